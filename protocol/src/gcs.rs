@@ -1,0 +1,1 @@
+//! PI GCS 2.0 stage protocol subset (sans-IO).

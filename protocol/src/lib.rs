@@ -1,0 +1,11 @@
+//! Sans-IO wire protocols of sdsem.
+//!
+//! Both sides of every link live here, as typed values and byte parsers that do
+//! no I/O, so the driver in `sdsem` and the simulator in `sdsem-sim` cannot
+//! drift apart:
+//!
+//! - [`gcs`]: the PI GCS 2.0 subset spoken by the stage controller.
+//! - [`sem`]: the line protocol of the SEM imaging link.
+
+pub mod gcs;
+pub mod sem;

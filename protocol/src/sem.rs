@@ -1,0 +1,1 @@
+//! SEM imaging link protocol (sans-IO).

@@ -1,0 +1,1 @@
+//! The tilt-series acquisition: a pure state machine, tracking and re-centring.

@@ -1,0 +1,1 @@
+//! Writers (and readers, for verification) of the result files.

@@ -1,0 +1,1 @@
+//! The SEM side: grabbing frames, and reading micrographs with their metadata.

@@ -1,0 +1,31 @@
+//! # sdsem — unattended 3D surface reconstruction on a scanning electron microscope
+//!
+//! ```text
+//!  stage controller ──(PI GCS 2.0, serial/pty/TCP)──┐
+//!                                                    │  stage::driver (async, one request in flight)
+//!  SEM imaging link ──(line protocol, TCP)───────────┤  imaging (frames + metadata)
+//!                                                    ▼
+//!                     acquisition (pure state machine: tilt 1° steps, track, re-centre)
+//!                                                    │ left / right micrographs
+//!                                                    ▼
+//!   vision (pure, rayon):  sparse SIFT → matching → ORSA → quasi-Euclidean rectification
+//!                          → dense SIFT → SIFT flow (dual-layer BP, coarse to fine)
+//!                          → bilateral grid → depth h = d·p / (2 sin(θ/2))
+//!                                                    │
+//!                                                    ▼
+//!                     export (height.tif, height.gsf, pointcloud.ply, mesh.ply, report.json)
+//!
+//!   record: one MCAP per run, fed by everything above through a bounded channel
+//!   daemon: job spool, supervisor, signals, systemd notify
+//! ```
+//!
+//! The vision core knows nothing of tokio, MCAP, configuration files or the stage;
+//! the stage protocol ([`sdsem_protocol`]) does no I/O; time is an input.
+
+pub mod acquisition;
+pub mod daemon;
+pub mod export;
+pub mod imaging;
+pub mod record;
+pub mod stage;
+pub mod vision;

@@ -1,0 +1,1 @@
+//! The MCAP record of a run: writer thread, Foxglove schemas, reading back.
