@@ -3,5 +3,6 @@
 //! Nothing here does I/O, knows about tokio, MCAP or configuration files.
 
 pub mod image;
+pub mod registration;
 
 pub use image::Image;
