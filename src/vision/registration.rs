@@ -128,7 +128,7 @@ pub fn phase_correlation(
     } else {
         0.0
     };
-    if !(peak_ratio >= params.min_peak_ratio) {
+    if peak_ratio.is_nan() || peak_ratio < params.min_peak_ratio {
         return Err(RegistrationError::Unreliable {
             peak_ratio,
             min_peak_ratio: params.min_peak_ratio,
