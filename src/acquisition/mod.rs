@@ -1,1 +1,8 @@
-//! The tilt-series acquisition: a pure state machine, tracking and re-centring.
+//! The tilt-series acquisition: a pure state machine ([`machine`]) planned by
+//! [`plan`], and the runner that performs its actions with the instruments.
+
+pub mod machine;
+pub mod plan;
+
+pub use machine::{Action, Event, FrameRole, Outcome, Series, Tracked, TrackingConfig};
+pub use plan::{PlanError, SeriesConfig, SeriesPlan};
