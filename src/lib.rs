@@ -23,6 +23,8 @@
 //! the stage protocol ([`sdsem_protocol`]) does no I/O; time is an input.
 
 pub mod acquisition;
+pub mod cli;
+pub mod config;
 pub mod daemon;
 pub mod export;
 pub mod imaging;

@@ -1,5 +1,18 @@
-//! `sdsem` command line: parse, initialise, run, turn the result into an exit code.
+//! `sdsem` command line: parse, initialise logging, run, and turn the result
+//! into an exit code — the only place where that happens.
 
-fn main() {
-    println!("sdsem {}", env!("CARGO_PKG_VERSION"));
+use std::process::ExitCode;
+
+use clap::Parser;
+
+fn main() -> ExitCode {
+    let cli = sdsem::cli::Cli::parse();
+    match sdsem::cli::run(cli) {
+        Ok(code) => code,
+        Err(err) => {
+            // One line that names the cause chain; details went to the log.
+            eprintln!("error: {err:#}");
+            ExitCode::FAILURE
+        }
+    }
 }

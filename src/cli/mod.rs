@@ -1,0 +1,81 @@
+//! The command line (DESIGN §4): argument definitions and dispatch to the
+//! commands. Each command lives in its own module and returns a `Result`;
+//! `main` turns it into the exit code.
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use clap::{Args, Parser, Subcommand};
+
+use crate::config::{Config, LogFormat};
+
+mod check_config;
+mod logging;
+
+/// Unattended 3D surface reconstruction on a scanning electron microscope.
+#[derive(Debug, Parser)]
+#[command(name = "sdsem", version, about, long_about = None)]
+pub struct Cli {
+    #[command(subcommand)]
+    pub command: Command,
+    /// Log format on stderr: auto (readable on a terminal, JSON lines otherwise), text or json.
+    #[arg(long, global = true, value_enum)]
+    pub log_format: Option<LogFormat>,
+    /// Log filter (tracing syntax, e.g. `debug` or `sdsem=debug,info`); RUST_LOG overrides it.
+    #[arg(long, global = true)]
+    pub log: Option<String>,
+}
+
+/// The configuration file and overrides, shared by every command that reads one.
+#[derive(Debug, Clone, Args)]
+pub struct ConfigArgs {
+    /// Configuration file (TOML); see config/sdsem.toml for every key.
+    #[arg(long, short = 'c', value_name = "FILE")]
+    pub config: Option<PathBuf>,
+    /// Override one key, e.g. `--set series.end_tilt_deg=5` (repeatable; beats file and environment).
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    pub overrides: Vec<String>,
+}
+
+impl ConfigArgs {
+    /// Loads the layered configuration.
+    ///
+    /// # Errors
+    /// When the file cannot be read or a key is unknown or invalid.
+    pub fn load(&self) -> anyhow::Result<Config> {
+        Ok(Config::load(self.config.as_deref(), &self.overrides)?)
+    }
+}
+
+#[derive(Debug, Subcommand)]
+pub enum Command {
+    /// Validate a configuration file (all layers) and print the effective configuration.
+    CheckConfig {
+        /// The configuration file.
+        file: PathBuf,
+        /// Overrides, as for the other commands.
+        #[arg(long = "set", value_name = "KEY=VALUE")]
+        overrides: Vec<String>,
+        /// Print nothing on success.
+        #[arg(long, short)]
+        quiet: bool,
+    },
+}
+
+/// Runs one command.
+///
+/// # Errors
+/// Whatever the command fails with; `main` prints it on one line.
+pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
+    logging::init(
+        cli.log_format.unwrap_or(LogFormat::Auto),
+        cli.log.as_deref(),
+    );
+    match cli.command {
+        Command::CheckConfig {
+            file,
+            overrides,
+            quiet,
+        } => check_config::run(&file, &overrides, quiet),
+    }
+}

@@ -1,0 +1,293 @@
+//! The configuration, layered: built-in defaults → TOML file → `SDSEM_*`
+//! environment → command-line `--set key=value`. Every section rejects keys it
+//! does not know, naming them, and [`Config::validate`] checks what only makes
+//! sense across sections (a series inside the stage's limits) before anything
+//! is sent to an instrument.
+
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+
+use crate::acquisition::{PlanError, SeriesConfig, SeriesPlan, TrackingConfig};
+
+/// Where runs go and what they are called.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct RunConfig {
+    /// Directory under which each run gets its own directory
+    /// `<name>-<UTC timestamp>`. Default `runs`.
+    pub output_dir: PathBuf,
+    /// Name of the run (job name in the daemon). Default `run`.
+    pub name: String,
+    /// Reconstruct the pair at the end of the run. Default true.
+    pub reconstruct: bool,
+}
+
+impl Default for RunConfig {
+    fn default() -> Self {
+        Self {
+            output_dir: PathBuf::from("runs"),
+            name: "run".into(),
+            reconstruct: true,
+        }
+    }
+}
+
+/// Logging on the terminal or journal.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct LogConfig {
+    /// `auto` (readable on a terminal, JSON lines otherwise), `text` or `json`.
+    pub format: LogFormat,
+    /// Filter in `tracing` syntax (`info`, `sdsem=debug,info`). `RUST_LOG` overrides it.
+    pub filter: String,
+}
+
+impl Default for LogConfig {
+    fn default() -> Self {
+        Self {
+            format: LogFormat::Auto,
+            filter: "info".into(),
+        }
+    }
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "lowercase")]
+pub enum LogFormat {
+    Auto,
+    Text,
+    Json,
+}
+
+/// The whole configuration of sdsem. Each section is documented in
+/// `config/sdsem.toml`.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct Config {
+    pub run: RunConfig,
+    pub series: SeriesConfig,
+    pub tracking: TrackingConfig,
+    pub log: LogConfig,
+}
+
+/// Why a configuration cannot be used.
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    #[error("cannot read configuration file {path}")]
+    Read {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("invalid configuration{}: {message}", origin.as_ref().map(|p| format!(" in {}", p.display())).unwrap_or_default())]
+    Invalid {
+        origin: Option<PathBuf>,
+        message: String,
+    },
+    #[error("--set {arg:?}: expected key=value, for example series.end_tilt_deg=5")]
+    BadOverride { arg: String },
+    #[error("invalid configuration: {0}")]
+    Plan(#[from] PlanError),
+    #[error("invalid configuration: {0}")]
+    Rule(String),
+}
+
+/// Prefix of the environment variables that override configuration keys:
+/// `SDSEM_SERIES__END_TILT_DEG=5` sets `series.end_tilt_deg`. Only variables
+/// with a `__` (section separator) count, so `SDSEM_DATA` and the like are left alone.
+const ENV_PREFIX: &str = "SDSEM_";
+
+impl Config {
+    /// Loads defaults, then `file` (if any), then the environment, then the
+    /// `key=value` overrides, and validates the result.
+    ///
+    /// # Errors
+    /// [`ConfigError`] naming the file, the key and the cause.
+    pub fn load(file: Option<&Path>, overrides: &[String]) -> Result<Self, ConfigError> {
+        Self::load_with_env(file, overrides, std::env::vars())
+    }
+
+    /// [`Config::load`] with the environment given explicitly (for tests).
+    ///
+    /// # Errors
+    /// As [`Config::load`].
+    pub fn load_with_env(
+        file: Option<&Path>,
+        overrides: &[String],
+        env: impl IntoIterator<Item = (String, String)>,
+    ) -> Result<Self, ConfigError> {
+        let mut builder = config::Config::builder();
+        if let Some(path) = file {
+            let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+                path: path.to_owned(),
+                source,
+            })?;
+            builder = builder.add_source(config::File::from_str(&text, config::FileFormat::Toml));
+        }
+        let invalid = |e: config::ConfigError| ConfigError::Invalid {
+            origin: file.map(Path::to_owned),
+            message: e.to_string(),
+        };
+        for (name, value) in env {
+            if let Some(rest) = name.strip_prefix(ENV_PREFIX)
+                && rest.contains("__")
+            {
+                let key = rest.to_ascii_lowercase().replace("__", ".");
+                builder = builder.set_override(key, value).map_err(invalid)?;
+            }
+        }
+        for arg in overrides {
+            let (key, value) = arg
+                .split_once('=')
+                .filter(|(k, _)| !k.trim().is_empty())
+                .ok_or_else(|| ConfigError::BadOverride { arg: arg.clone() })?;
+            builder = builder
+                .set_override(key.trim(), parse_override_value(value.trim()))
+                .map_err(invalid)?;
+        }
+        let config: Self = builder
+            .build()
+            .and_then(config::Config::try_deserialize)
+            .map_err(invalid)?;
+        config.validate()?;
+        Ok(config)
+    }
+
+    /// Checks the rules that span sections.
+    ///
+    /// # Errors
+    /// [`ConfigError`] naming the keys at fault.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        self.plan()?;
+        let t = &self.tracking;
+        if !(t.gain > 0.0 && t.gain <= 1.0) {
+            return Err(ConfigError::Rule(format!(
+                "tracking.gain = {} must lie in (0, 1]",
+                t.gain
+            )));
+        }
+        if self.run.name.trim().is_empty() || self.run.name.contains('/') {
+            return Err(ConfigError::Rule(format!(
+                "run.name = {:?} must be a non-empty name without '/'",
+                self.run.name
+            )));
+        }
+        Ok(())
+    }
+
+    /// The tilts of the configured series.
+    ///
+    /// # Errors
+    /// [`PlanError`] when the series does not fit the stage limits.
+    pub fn plan(&self) -> Result<SeriesPlan, PlanError> {
+        SeriesPlan::new(&self.series, -5.0, 70.0)
+    }
+
+    /// The effective configuration as TOML (for the record and `check-config`).
+    #[must_use]
+    pub fn to_toml(&self) -> String {
+        toml::to_string_pretty(self).unwrap_or_else(|e| format!("# cannot render: {e}\n"))
+    }
+}
+
+/// `--set` values are TOML-ish: numbers and booleans become typed values,
+/// `[..]` arrays are parsed as TOML, everything else is a string.
+fn parse_override_value(value: &str) -> config::Value {
+    if let Ok(parsed) = toml::from_str::<toml::Table>(&format!("v = {value}"))
+        && let Some(v) = parsed.get("v")
+    {
+        return toml_to_config(v);
+    }
+    config::Value::from(value)
+}
+
+fn toml_to_config(v: &toml::Value) -> config::Value {
+    match v {
+        toml::Value::String(s) => config::Value::from(s.as_str()),
+        toml::Value::Integer(i) => config::Value::from(*i),
+        toml::Value::Float(f) => config::Value::from(*f),
+        toml::Value::Boolean(b) => config::Value::from(*b),
+        toml::Value::Array(a) => {
+            config::Value::from(a.iter().map(toml_to_config).collect::<Vec<config::Value>>())
+        }
+        other => config::Value::from(other.to_string()),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn load(toml: &str, overrides: &[&str], env: &[(&str, &str)]) -> Result<Config, ConfigError> {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("c.toml");
+        std::fs::write(&path, toml).unwrap();
+        let overrides: Vec<String> = overrides.iter().map(|s| (*s).to_owned()).collect();
+        Config::load_with_env(
+            Some(&path),
+            &overrides,
+            env.iter().map(|(k, v)| ((*k).to_owned(), (*v).to_owned())),
+        )
+    }
+
+    #[test]
+    fn layers_apply_in_order() {
+        let c = load(
+            "[series]\nend_tilt_deg = 5.0\nstep_deg = 0.5\n",
+            &["series.step_deg=0.25"],
+            &[("SDSEM_SERIES__END_TILT_DEG", "6"), ("SDSEM_DATA", "/x")],
+        )
+        .unwrap();
+        assert_eq!(c.series.end_tilt_deg, 6.0, "environment beats the file");
+        assert_eq!(c.series.step_deg, 0.25, "--set beats the environment");
+        assert_eq!(c.series.start_tilt_deg, 0.0, "defaults fill the rest");
+    }
+
+    #[test]
+    fn unknown_key_is_named() {
+        let err = load("[series]\nend_tilt = 5.0\n", &[], &[]).unwrap_err();
+        let msg = err.to_string();
+        assert!(msg.contains("end_tilt"), "{msg}");
+    }
+
+    #[test]
+    fn unknown_section_is_named() {
+        let err = load("[seris]\nend_tilt_deg = 5.0\n", &[], &[]).unwrap_err();
+        assert!(err.to_string().contains("seris"), "{err}");
+    }
+
+    #[test]
+    fn zero_step_and_out_of_limit_end_are_refused() {
+        let err = load("[series]\nstep_deg = 0\n", &[], &[]).unwrap_err();
+        assert!(err.to_string().contains("series.step_deg"), "{err}");
+        let err = load("[series]\nend_tilt_deg = 80\n", &[], &[]).unwrap_err();
+        assert!(
+            err.to_string().contains("series.end_tilt_deg = 80"),
+            "{err}"
+        );
+    }
+
+    #[test]
+    fn array_override_parses() {
+        let c = load(
+            "",
+            &["tracking.stage_to_image=[[1.0, 0.0], [0.0, 1.0]]"],
+            &[],
+        )
+        .unwrap();
+        assert_eq!(c.tracking.stage_to_image, [[1.0, 0.0], [0.0, 1.0]]);
+    }
+
+    #[test]
+    fn malformed_override_is_explained() {
+        let err = load("", &["series.end_tilt_deg"], &[]).unwrap_err();
+        assert!(err.to_string().contains("expected key=value"), "{err}");
+    }
+
+    #[test]
+    fn effective_config_round_trips_through_toml() {
+        let c = load("[series]\nend_tilt_deg = 5.0\n", &[], &[]).unwrap();
+        let again = load(&c.to_toml(), &[], &[]).unwrap();
+        assert_eq!(c, again);
+    }
+}
