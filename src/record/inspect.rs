@@ -277,8 +277,19 @@ pub fn format_inspection(inspection: &RecordInspection) -> String {
         );
     }
     for (name, entries) in &i.metadata {
-        let keys: Vec<&str> = entries.keys().map(String::as_str).collect();
-        let _ = writeln!(out, "  metadata:    {name}: {}", keys.join(", "));
+        // Short one-line values inline (job, version, host); long ones (the configuration)
+        // by size only.
+        let items: Vec<String> = entries
+            .iter()
+            .map(|(k, v)| {
+                if v.len() <= 48 && !v.contains('\n') {
+                    format!("{k}={v}")
+                } else {
+                    format!("{k} ({} lines)", v.lines().count())
+                }
+            })
+            .collect();
+        let _ = writeln!(out, "  metadata:    {name}: {}", items.join(", "));
     }
     for a in &i.attachments {
         let _ = writeln!(

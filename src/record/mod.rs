@@ -29,9 +29,9 @@ pub use inspect::{
 pub use log_layer::{RecordLogLayer, RecordLogSwitch, record_log_layer};
 pub use messages::{FrameInfo, RunOutcome, RunStatus, StageIo, StageState};
 pub use read::{
-    ChannelInfo, Extract, MetadataRecord, RecordedAttachment, RecordedImage, RecordedJson,
-    RecordedLog, RecordedPointCloud, ScanEnd, read_attachments, read_images, read_json, read_logs,
-    read_metadata, read_point_clouds,
+    ChannelInfo, EndMicrographs, Extract, MetadataRecord, RecordedAttachment, RecordedImage,
+    RecordedJson, RecordedLog, RecordedMicrograph, RecordedPointCloud, ScanEnd, read_attachments,
+    read_end_micrographs, read_images, read_json, read_logs, read_metadata, read_point_clouds,
 };
 pub use recorder::{RecordSummary, Recorder, RecorderHandle, RecorderOptions, RecorderStatus};
 pub use topics::FrameRole;

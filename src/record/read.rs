@@ -19,7 +19,8 @@ use serde::de::DeserializeOwned;
 
 use super::entry::{LogLevel, Pixels};
 use super::error::ReadError;
-use super::topics;
+use super::messages::FrameInfo;
+use super::topics::{self, FrameRole};
 use crate::export::CloudPoint;
 use crate::vision::Image;
 
@@ -590,4 +591,85 @@ pub fn read_point_clouds(
         Ok(())
     })?;
     Ok(Extract { items, end })
+}
+
+/// An end micrograph read back with its acquisition parameters.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RecordedMicrograph {
+    pub role: FrameRole,
+    pub log_time_ns: u64,
+    /// Intensities in `[0, 1]`.
+    pub image: Image,
+    /// The `/sem/frame_info` of the same log time (tilt, pixel size, …), if recorded.
+    pub info: Option<FrameInfo>,
+}
+
+/// The left and right micrographs of a run, for `sdsem replay`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct EndMicrographs {
+    pub left: Option<RecordedMicrograph>,
+    pub right: Option<RecordedMicrograph>,
+    pub end: ScanEnd,
+}
+
+/// The last `left` and `right` frames of the record with their frame info, in one pass.
+///
+/// # Errors
+/// As [`scan`], and [`ReadError::Decode`] for an undecodable frame or frame info.
+pub fn read_end_micrographs(path: impl AsRef<Path>) -> Result<EndMicrographs, ReadError> {
+    let path = path.as_ref();
+    let mut frames: Vec<(FrameRole, RecordedImage)> = Vec::new();
+    let mut infos: Vec<(u64, FrameInfo)> = Vec::new();
+    let end = scan(path, |item| {
+        let ScanItem::Message {
+            channel,
+            log_time_ns,
+            data,
+        } = item
+        else {
+            return Ok(());
+        };
+        if channel.topic == topics::SEM_FRAME
+            && let Some(role) = image_frame_id(channel, data)
+                .and_then(|id| id.parse::<FrameRole>().ok())
+                .filter(|r| *r != FrameRole::Tracking)
+        {
+            frames.retain(|(r, _)| *r != role);
+            frames.push((role, decode_image(path, channel, log_time_ns, data)?));
+        } else if channel.topic == topics::SEM_FRAME_INFO && channel.message_encoding == "json" {
+            let info: FrameInfo =
+                serde_json::from_slice(data).map_err(|e| decode_error(path, channel, e))?;
+            if info.role != FrameRole::Tracking {
+                infos.push((log_time_ns, info));
+            }
+        }
+        Ok(())
+    })?;
+    let mut pick = |role: FrameRole| -> Result<Option<RecordedMicrograph>, ReadError> {
+        let Some(pos) = frames.iter().position(|(r, _)| *r == role) else {
+            return Ok(None);
+        };
+        let (_, frame) = frames.swap_remove(pos);
+        let image = frame.to_image().map_err(|e| ReadError::Decode {
+            path: path.to_path_buf(),
+            topic: topics::SEM_FRAME.to_owned(),
+            schema: "foxglove.RawImage".to_owned(),
+            cause: e.to_string(),
+        })?;
+        let info = infos
+            .iter()
+            .rev()
+            .find(|(t, i)| i.role == role && *t == frame.log_time_ns)
+            .or_else(|| infos.iter().rev().find(|(_, i)| i.role == role))
+            .map(|(_, i)| i.clone());
+        Ok(Some(RecordedMicrograph {
+            role,
+            log_time_ns: frame.log_time_ns,
+            image,
+            info,
+        }))
+    };
+    let left = pick(FrameRole::Left)?;
+    let right = pick(FrameRole::Right)?;
+    Ok(EndMicrographs { left, right, end })
 }

@@ -29,9 +29,20 @@ use serde::Serialize;
 
 use super::entry::{ChannelSpec, Entry, EntryKind, LogLevel, Pixels};
 use super::error::{RecordError, error_chain};
-use super::messages::RunOutcome;
-use super::topics;
+use super::messages::{FrameInfo, RunOutcome, StageIo, StageState};
+use super::topics::{self, FrameRole};
 use crate::export::CloudPoint;
+use crate::vision::Image;
+
+fn dims(topic: &str, image: &Image) -> Result<(u32, u32), RecordError> {
+    match (u32::try_from(image.width()), u32::try_from(image.height())) {
+        (Ok(w), Ok(h)) => Ok((w, h)),
+        _ => Err(RecordError::InvalidMessage {
+            topic: topic.to_owned(),
+            reason: "image too large for a RawImage".to_owned(),
+        }),
+    }
+}
 
 /// Options of a [`Recorder`]; the defaults suit a run on a lab PC.
 #[derive(Debug, Clone)]
@@ -312,6 +323,84 @@ impl RecorderHandle {
         data: Vec<u8>,
     ) -> Result<(), RecordError> {
         self.send(Entry::attachment(log_time_ns, name, media_type, data))
+    }
+
+    /// Records a SEM frame: the micrograph (`[0, 1]`) as a 16-bit `/sem/frame` RawImage
+    /// whose `frame_id` is `info.role`, and `info` on `/sem/frame_info`, both at
+    /// `log_time_ns`. The frame's chunk is flushed before the next message is written.
+    ///
+    /// # Errors
+    /// [`RecordError::InvalidMessage`] when `info.width/height` disagree with `image`, and
+    /// as [`Self::send`].
+    pub fn frame(
+        &self,
+        log_time_ns: u64,
+        image: &Image,
+        info: &FrameInfo,
+    ) -> Result<(), RecordError> {
+        let (w, h) = (info.width, info.height);
+        if (w as usize, h as usize) != image.dimensions() {
+            return Err(RecordError::InvalidMessage {
+                topic: topics::SEM_FRAME.to_owned(),
+                reason: format!(
+                    "frame info says {w} × {h}, the image is {} × {}",
+                    image.width(),
+                    image.height()
+                ),
+            });
+        }
+        let pixels = Pixels::mono16_from_image(image);
+        let image_entry = Entry::image(
+            topics::SEM_FRAME,
+            log_time_ns,
+            info.role.as_str(),
+            &pixels,
+            w,
+            h,
+        )?;
+        let info_entry = Entry::json(topics::SEM_FRAME_INFO, log_time_ns, info)?;
+        self.send(image_entry)?;
+        self.send(info_entry)
+    }
+
+    /// Records a `/stage/state` message.
+    ///
+    /// # Errors
+    /// As [`Self::send`].
+    pub fn stage_state(&self, log_time_ns: u64, state: &StageState) -> Result<(), RecordError> {
+        self.json(topics::STAGE_STATE, log_time_ns, state)
+    }
+
+    /// Records a `/stage/io` message.
+    ///
+    /// # Errors
+    /// As [`Self::send`].
+    pub fn stage_io(&self, log_time_ns: u64, io: &StageIo) -> Result<(), RecordError> {
+        self.json(topics::STAGE_IO, log_time_ns, io)
+    }
+
+    /// Records the height map (µm, NaN unknown, left grid) on `/recon/height` as 32FC1.
+    ///
+    /// # Errors
+    /// As [`Entry::image`] and [`Self::send`].
+    pub fn height(&self, log_time_ns: u64, height_um: &Image) -> Result<(), RecordError> {
+        let (w, h) = dims(topics::RECON_HEIGHT, height_um)?;
+        self.image(
+            topics::RECON_HEIGHT,
+            log_time_ns,
+            FrameRole::Left.as_str(),
+            &Pixels::float32_from_image(height_um),
+            w,
+            h,
+        )
+    }
+
+    /// Records the reconstruction report (the figures of `report.json`) on `/recon/report`.
+    ///
+    /// # Errors
+    /// As [`Entry::json`] and [`Self::send`].
+    pub fn report(&self, log_time_ns: u64, report: &impl Serialize) -> Result<(), RecordError> {
+        self.json(topics::RECON_REPORT, log_time_ns, report)
     }
 
     /// Writes the run's outcome as the metadata record [`topics::METADATA_OUTCOME`];

@@ -592,3 +592,169 @@ fn cloud_points_survive_record() {
     assert_eq!(back.items[0].points, points);
     assert_eq!(back.items[0].frame_id, "left");
 }
+
+#[test]
+fn end_micrographs_come_back_with_their_parameters() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("run.mcap");
+    let recorder = Recorder::create(&path, fast_options()).unwrap();
+    let rec = recorder.handle();
+    rec.frame(
+        T0,
+        &micrograph(1),
+        &frame_info(FrameRole::Tracking, 0, -3.0),
+    )
+    .unwrap();
+    rec.frame(
+        T0 + 1,
+        &micrograph(2),
+        &frame_info(FrameRole::Left, 1, -3.0),
+    )
+    .unwrap();
+    rec.frame(
+        T0 + 2,
+        &micrograph(3),
+        &frame_info(FrameRole::Right, 2, 3.0),
+    )
+    .unwrap();
+    let wrong = frame_info(FrameRole::Left, 3, 0.0);
+    let err = rec.frame(T0 + 3, &Image::zeros(4, 4), &wrong).unwrap_err();
+    assert!(err.to_string().contains("8 × 6"), "{err}");
+    let mut height = Image::filled(8, 6, 1.5);
+    height.set(0, 0, f32::NAN);
+    rec.height(T0 + 4, &height).unwrap();
+    recorder.finish().unwrap();
+
+    let ends = read_end_micrographs(&path).unwrap();
+    let left = ends.left.unwrap();
+    let right = ends.right.unwrap();
+    assert_eq!(left.info.unwrap().tilt_deg, -3.0);
+    assert_eq!(right.info.as_ref().unwrap().tilt_deg, 3.0);
+    assert_eq!(right.log_time_ns, T0 + 2);
+    for (a, b) in micrograph(3).data().iter().zip(right.image.data()) {
+        assert!((a - b).abs() < 1e-4);
+    }
+    let h = &read_images(&path, topics::RECON_HEIGHT, |id| id == "left")
+        .unwrap()
+        .items[0];
+    assert!(h.to_image().unwrap().get(0, 0).is_nan());
+}
+
+/// Logs may be dropped under backpressure, never silently: what was written plus what
+/// was counted as dropped is what was sent, and the count is in the record.
+#[test]
+fn log_drops_are_counted_and_recorded() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("logs.mcap");
+    let recorder = Recorder::create(
+        &path,
+        RecorderOptions {
+            channel_capacity: 1,
+            ..fast_options()
+        },
+    )
+    .unwrap();
+    let rec = recorder.handle();
+    let sent = 5000;
+    let mut queued = 0;
+    for i in 0..sent {
+        let entry = Entry::log(T0 + i, LogLevel::Info, "tick", "t", "f.rs", 1).unwrap();
+        queued += usize::from(rec.try_send_log(entry));
+    }
+    let summary = recorder.finish().unwrap();
+    let written = read_logs(&path).unwrap().items.len();
+    assert_eq!(written, queued);
+    assert_eq!(written as u64 + summary.log_messages_dropped, sent);
+    let drops = read_metadata(&path)
+        .unwrap()
+        .items
+        .into_iter()
+        .find(|m| m.name == topics::METADATA_LOG_DROPS);
+    match drops {
+        Some(m) => assert_eq!(
+            m.entries["dropped"],
+            summary.log_messages_dropped.to_string()
+        ),
+        None => assert_eq!(summary.log_messages_dropped, 0),
+    }
+}
+
+/// The child half of `killed_run_keeps_every_flushed_frame`: records frames until killed,
+/// publishing how many are flushed. Does nothing unless the parent test started it.
+#[test]
+#[ignore = "child process of killed_run_keeps_every_flushed_frame"]
+fn child_records_until_killed() {
+    let Some(path) = std::env::var_os("SDSEM_KILL_CHILD_RECORD") else {
+        return;
+    };
+    let path = std::path::PathBuf::from(path);
+    let progress = path.with_extension("progress");
+    let recorder = Recorder::create(&path, fast_options()).unwrap();
+    let rec = recorder.handle();
+    for i in 0u64.. {
+        rec.frame(
+            T0 + i,
+            &micrograph(i as u32),
+            &frame_info(FrameRole::Tracking, i, 0.0),
+        )
+        .unwrap();
+        // Two entries per frame; the image is flushed before the counter moves.
+        while rec.status().entries_written < 2 * i + 1 {
+            std::thread::yield_now();
+        }
+        let tmp = path.with_extension("progress.tmp");
+        std::fs::write(&tmp, (i + 1).to_string()).unwrap();
+        std::fs::rename(&tmp, &progress).unwrap();
+    }
+    drop(recorder);
+}
+
+/// A run killed with SIGKILL in the middle of recording keeps every frame it had flushed.
+#[cfg(unix)]
+#[test]
+fn killed_run_keeps_every_flushed_frame() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("killed.mcap");
+    let progress = path.with_extension("progress");
+    let mut child = std::process::Command::new(std::env::current_exe().unwrap())
+        .args([
+            "--exact",
+            "record::tests::child_records_until_killed",
+            "--ignored",
+            "--test-threads=1",
+        ])
+        .env("SDSEM_KILL_CHILD_RECORD", &path)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let read_progress = || {
+        std::fs::read_to_string(&progress)
+            .ok()
+            .and_then(|s| s.parse::<usize>().ok())
+            .unwrap_or(0)
+    };
+    let deadline = std::time::Instant::now() + Duration::from_secs(60);
+    while read_progress() < 20 {
+        assert!(
+            std::time::Instant::now() < deadline,
+            "child made no progress"
+        );
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    child.kill().unwrap(); // SIGKILL
+    child.wait().unwrap();
+    let flushed = read_progress();
+    let frames = read_images(&path, topics::SEM_FRAME, |_| true).unwrap();
+    assert!(!frames.end.complete);
+    assert!(
+        frames.items.len() >= flushed,
+        "{} frames recovered, {flushed} were flushed",
+        frames.items.len()
+    );
+    for (i, f) in frames.items.iter().enumerate() {
+        assert_eq!(f.pixels, Pixels::mono16_from_image(&micrograph(i as u32)));
+    }
+    let inspection = read_summary(&path).unwrap();
+    assert!(format_inspection(&inspection).contains("INCOMPLETE"));
+}
