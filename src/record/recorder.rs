@@ -96,7 +96,7 @@ pub struct RecorderStatus {
     pub entries_written: u64,
     /// `/log` messages dropped under backpressure so far.
     pub log_messages_dropped: u64,
-    /// Whether the record was finished.
+    /// Whether `finish()` was called (new entries are refused).
     pub finished: bool,
 }
 
@@ -508,16 +508,16 @@ impl Recorder {
         let Some(thread) = self.thread.take() else {
             return Err(RecordError::Closed);
         };
+        // New sends are refused from here on; what is queued is still written.
+        self.handle.shared.finished.store(true, Ordering::Release);
         // The writer thread is alive until it sees Finish, so this only fails if it
         // panicked, which join() reports below.
         let _ = self.handle.tx.send(Command::Finish);
-        let result = thread.join().unwrap_or_else(|_| {
+        thread.join().unwrap_or_else(|_| {
             Err(RecordError::WriterPanicked {
                 path: self.handle.path.as_ref().clone(),
             })
-        });
-        self.handle.shared.finished.store(true, Ordering::Release);
-        result
+        })
     }
 }
 
@@ -592,7 +592,16 @@ impl WriterState {
                         self.write(entry);
                     }
                 }
-                Ok(Command::Finish) | Err(RecvTimeoutError::Disconnected) => break,
+                Ok(Command::Finish) => {
+                    // Entries that raced with finish() are written, not lost.
+                    while let Ok(Command::Write(entry)) = rx.try_recv() {
+                        if self.error.is_none() {
+                            self.write(entry);
+                        }
+                    }
+                    break;
+                }
+                Err(RecvTimeoutError::Disconnected) => break,
                 Err(RecvTimeoutError::Timeout) => {}
             }
             if self.error.is_none()

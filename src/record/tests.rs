@@ -758,3 +758,54 @@ fn killed_run_keeps_every_flushed_frame() {
     let inspection = read_summary(&path).unwrap();
     assert!(format_inspection(&inspection).contains("INCOMPLETE"));
 }
+
+/// Indicative figures for full-size frames (the CPU is shared while we develop):
+/// `cargo test -p sdsem --lib record::tests::throughput -- --ignored --nocapture`
+#[test]
+#[ignore = "evaluation: prints timings"]
+fn throughput() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("big.mcap");
+    let (w, h) = (2048usize, 1536usize);
+    let frames = 20u64;
+    // A textured micrograph (LZ4 does not shrink noise, nor does it for real SEM frames).
+    let mut state = 12345u32;
+    let image = Image::from_fn(w, h, |x, y| {
+        state = state.wrapping_mul(1_103_515_245).wrapping_add(12345);
+        let noise = (state >> 16) as f32 / 65536.0;
+        0.5 + 0.3 * ((x as f32 * 0.01).sin() * (y as f32 * 0.013).cos()) + 0.1 * noise
+    });
+    for fsync in [false, true] {
+        let recorder = Recorder::create(
+            &path,
+            RecorderOptions {
+                fsync,
+                ..RecorderOptions::default()
+            },
+        )
+        .unwrap();
+        let rec = recorder.handle();
+        let start = std::time::Instant::now();
+        for i in 0..frames {
+            let mut info = frame_info(FrameRole::Tracking, i, i as f64);
+            info.width = w as u32;
+            info.height = h as u32;
+            rec.frame(T0 + i * 1_000_000_000, &image, &info).unwrap();
+        }
+        let summary = recorder.finish().unwrap();
+        let write = start.elapsed();
+        let start = std::time::Instant::now();
+        let inspection = read_summary(&path).unwrap();
+        let inspect = start.elapsed();
+        assert_eq!(inspection.frames_by_role["tracking"], frames);
+        println!(
+            "fsync={fsync}: {frames} frames {w}x{h} mono16 written in {:.2} s ({:.0} ms/frame, \
+             encode+write+flush), file {:.1} MiB ({:.0}% of raw), read_summary {:.2} s",
+            write.as_secs_f64(),
+            write.as_secs_f64() * 1e3 / frames as f64,
+            summary.file_bytes as f64 / (1 << 20) as f64,
+            100.0 * summary.file_bytes as f64 / (frames as f64 * (w * h * 2) as f64),
+            inspect.as_secs_f64()
+        );
+    }
+}
