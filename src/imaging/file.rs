@@ -66,10 +66,10 @@ pub fn load_micrograph(path: impl AsRef<Path>) -> Result<Micrograph, ImageFileEr
         source,
     })?;
     let (image, bits_per_sample, mut metadata) = if is_tiff(&bytes) {
-        let (image, bits) = decode_tiff(path, bytes.clone())?;
         let meta = RawTiff::parse(&bytes)
             .map(|t| tiff_metadata(&t))
             .unwrap_or_default();
+        let (image, bits) = decode_tiff(path, bytes)?;
         (image, bits, meta)
     } else if bytes.starts_with(b"\x89PNG\r\n\x1a\n") {
         let (image, bits) = decode_png(path, &bytes)?;
@@ -205,13 +205,16 @@ fn decode_tiff(path: &Path, mut bytes: Vec<u8>) -> Result<(Image, u8), ImageFile
         tiff::TiffError::UnsupportedError(u) => unsupported(path, u.to_string()),
         other => decode_error(path, other),
     })?;
-    let channels: usize = match colortype {
-        tiff::ColorType::Gray(_) => 1,
-        tiff::ColorType::GrayA(_) => 2,
-        tiff::ColorType::RGB(_) => 3,
-        tiff::ColorType::RGBA(_) => 4,
+    let (channels, bits): (usize, u8) = match colortype {
+        tiff::ColorType::Gray(b) => (1, b),
+        tiff::ColorType::GrayA(b) => (2, b),
+        tiff::ColorType::RGB(b) => (3, b),
+        tiff::ColorType::RGBA(b) => (4, b),
         other => return Err(unsupported(path, format!("colour type {other:?}"))),
     };
+    if bits != 8 && bits != 16 && bits != 32 && bits != 64 {
+        return Err(unsupported(path, format!("{bits}-bit samples")));
+    }
     let result = decoder.read_image().map_err(|e| match e {
         tiff::TiffError::UnsupportedError(u) => unsupported(path, u.to_string()),
         other => decode_error(path, other),

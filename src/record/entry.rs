@@ -306,7 +306,13 @@ impl Entry {
         height: u32,
     ) -> Result<Self, RecordError> {
         let expected = width as usize * height as usize;
-        if pixels.len() != expected || expected == 0 {
+        if expected == 0 {
+            return Err(RecordError::InvalidMessage {
+                topic: topic.to_owned(),
+                reason: format!("empty image ({width} × {height})"),
+            });
+        }
+        if pixels.len() != expected {
             return Err(RecordError::InvalidMessage {
                 topic: topic.to_owned(),
                 reason: format!(
