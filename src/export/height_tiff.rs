@@ -1,0 +1,171 @@
+//! `height.tif`: the height map as a single-channel float32 TIFF, µm, NaN unknown.
+//!
+//! The ImageDescription holds a small JSON object (`{"sdsem":"height","unit":"um",...}`)
+//! with the pixel size, and the standard resolution tags carry it too (pixels per cm),
+//! so GIS tools, ImageJ/Fiji and Gwyddion read a calibrated field.
+
+use std::io::{BufReader, Seek, Write};
+use std::path::Path;
+
+use tiff::decoder::{Decoder, DecodingResult, Limits};
+use tiff::encoder::{Rational, TiffEncoder, colortype::Gray32Float};
+use tiff::tags::{ResolutionUnit, Tag};
+
+use super::ExportError;
+use super::atomic::write_atomic;
+use crate::vision::Image;
+
+/// A height map read back from `height.tif`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct HeightTiff {
+    /// Heights, µm, NaN unknown.
+    pub height_um: Image,
+    /// Pixel size from the ImageDescription, µm.
+    pub pixel_size_um: Option<f64>,
+}
+
+/// `value` as a TIFF rational with the largest power-of-ten denominator that fits.
+pub(crate) fn rational(value: f64) -> Rational {
+    let mut d: u32 = 1;
+    while d < 1_000_000_000 && (value * f64::from(d) * 10.0) < f64::from(u32::MAX) {
+        d *= 10;
+    }
+    Rational {
+        // Bounded by the loop condition; values beyond u32 saturate.
+        n: (value * f64::from(d))
+            .round()
+            .clamp(0.0, f64::from(u32::MAX)) as u32,
+        d,
+    }
+}
+
+fn description(pixel_size_um: Option<f64>) -> String {
+    let mut json = serde_json::json!({
+        "sdsem": "height",
+        "unit": "um",
+        "unknown": "NaN",
+        "grid": "left micrograph",
+    });
+    if let Some(p) = pixel_size_um {
+        json["pixel_size_um"] = serde_json::json!(p);
+    }
+    json.to_string()
+}
+
+pub(crate) fn encode_height<W: Write + Seek>(
+    out: W,
+    height_um: &Image,
+    pixel_size_um: Option<f64>,
+) -> tiff::TiffResult<()> {
+    let (w, h) = dims_u32(height_um)?;
+    let mut encoder = TiffEncoder::new(out)?;
+    let mut image = encoder.new_image::<Gray32Float>(w, h)?;
+    image
+        .encoder()
+        .write_tag(Tag::ImageDescription, description(pixel_size_um).as_str())?;
+    image
+        .encoder()
+        .write_tag(Tag::Software, concat!("sdsem ", env!("CARGO_PKG_VERSION")))?;
+    if let Some(p) = pixel_size_um.filter(|p| p.is_finite() && *p > 0.0) {
+        image.resolution(ResolutionUnit::Centimeter, rational(1e4 / p));
+    }
+    image.write_data(height_um.data())
+}
+
+pub(crate) fn dims_u32(image: &Image) -> tiff::TiffResult<(u32, u32)> {
+    let w = u32::try_from(image.width()).map_err(|_| tiff::TiffError::IntSizeError)?;
+    let h = u32::try_from(image.height()).map_err(|_| tiff::TiffError::IntSizeError)?;
+    Ok((w, h))
+}
+
+/// Writes `height.tif` atomically: float32, µm, NaN unknown.
+///
+/// # Errors
+/// [`ExportError::Invalid`] for an empty map, [`ExportError::Write`] on I/O failure.
+pub fn write_height_tiff(
+    path: &Path,
+    height_um: &Image,
+    pixel_size_um: Option<f64>,
+) -> Result<(), ExportError> {
+    if height_um.is_empty() {
+        return Err(ExportError::Invalid {
+            path: path.to_path_buf(),
+            reason: "the height map is empty".to_owned(),
+        });
+    }
+    write_atomic(path, |w| {
+        encode_height(&mut *w, height_um, pixel_size_um).map_err(std::io::Error::other)
+    })
+}
+
+/// Reads a float32 height TIFF back (any single-channel float32 TIFF).
+///
+/// # Errors
+/// [`ExportError::Read`] on I/O failure, [`ExportError::Format`] when it is not a
+/// single-channel float32 TIFF.
+pub fn read_height_tiff(path: &Path) -> Result<HeightTiff, ExportError> {
+    let format = |reason: String| ExportError::Format {
+        path: path.to_path_buf(),
+        format: "float32 height TIFF",
+        reason,
+    };
+    let file = std::fs::File::open(path).map_err(|source| ExportError::Read {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    let mut decoder = Decoder::new(BufReader::new(file))
+        .map_err(|e| format(e.to_string()))?
+        .with_limits(Limits::unlimited());
+    let (w, h) = decoder.dimensions().map_err(|e| format(e.to_string()))?;
+    let pixel_size_um = decoder
+        .get_tag_ascii_string(Tag::ImageDescription)
+        .ok()
+        .and_then(|d| serde_json::from_str::<serde_json::Value>(&d).ok())
+        .and_then(|v| v["pixel_size_um"].as_f64());
+    let data = match decoder.read_image().map_err(|e| format(e.to_string()))? {
+        DecodingResult::F32(data) => data,
+        _ => return Err(format("samples are not float32".to_owned())),
+    };
+    let height_um =
+        Image::from_vec(w as usize, h as usize, data).map_err(|e| format(e.to_string()))?;
+    Ok(HeightTiff {
+        height_um,
+        pixel_size_um,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn height_round_trips_with_nan_and_pixel_size() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("height.tif");
+        let mut img = Image::from_fn(5, 3, |x, y| x as f32 * 0.25 - y as f32 * 1.5);
+        img.set(2, 1, f32::NAN);
+        write_height_tiff(&path, &img, Some(0.05582)).unwrap();
+        let back = read_height_tiff(&path).unwrap();
+        assert_eq!(back.pixel_size_um, Some(0.05582));
+        assert_eq!(back.height_um.dimensions(), (5, 3));
+        for (a, b) in img.data().iter().zip(back.height_um.data()) {
+            assert!(a == b || (a.is_nan() && b.is_nan()), "{a} vs {b}");
+        }
+        assert!(back.height_um.get(2, 1).is_nan());
+    }
+
+    #[test]
+    fn rational_keeps_precision() {
+        let r = rational(1e4 / 0.05582);
+        let v = f64::from(r.n) / f64::from(r.d);
+        assert!((v - 1e4 / 0.05582).abs() / v < 1e-6, "{v}");
+    }
+
+    #[test]
+    fn empty_map_is_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let err =
+            write_height_tiff(&dir.path().join("h.tif"), &Image::zeros(0, 0), None).unwrap_err();
+        assert!(err.to_string().contains("empty"));
+    }
+}

@@ -1,0 +1,442 @@
+//! `pointcloud.ply` and `mesh.ply`: binary little-endian PLY 1.0.
+//!
+//! Coordinates are µm in a right-handed frame seen from the beam: a pixel at column c,
+//! row r of the left micrograph with height h becomes (x, y, z) = (c·p, −r·p, h), p the
+//! pixel size. (Image rows go down; flipping y keeps the frame right-handed, so viewers
+//! show the surface unmirrored with z towards the beam.)
+//!
+//! The mesh joins valid neighbouring pixels: each 2×2 block gives up to two triangles,
+//! and a triangle is left out when any of its edges crosses a depth discontinuity — a
+//! height step larger than [`MeshParams::max_step_px`] pixel sizes per pixel of edge
+//! length, i.e. a surface steeper than atan(max_step_px) (79° by default), which SEM
+//! stereo cannot observe and which therefore marks an occlusion edge, not a wall.
+
+use std::io::Write;
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+
+use super::ExportError;
+use super::atomic::write_atomic;
+use crate::vision::Image;
+
+/// One point of the dense cloud: position in µm (see the module docs) and intensity.
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
+pub struct CloudPoint {
+    pub x: f32,
+    pub y: f32,
+    pub z: f32,
+    /// Micrograph intensity at the point, `[0, 1]`.
+    pub intensity: f32,
+}
+
+/// Parameters of the triangle mesh.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct MeshParams {
+    /// Largest height step between mesh neighbours, in pixel sizes per pixel of distance
+    /// (a slope of `max_step_px`). Default 5 (≈ 79°): steeper edges are treated as depth
+    /// discontinuities and not triangulated. Lower it to cut more aggressively at
+    /// occlusions; raise it to close steep walls.
+    pub max_step_px: f64,
+}
+
+impl Default for MeshParams {
+    fn default() -> Self {
+        Self { max_step_px: 5.0 }
+    }
+}
+
+/// A mesh over the pixel grid.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Mesh {
+    pub vertices: Vec<CloudPoint>,
+    /// Vertex indices, counter-clockwise seen from +z (normals towards the beam).
+    pub triangles: Vec<[u32; 3]>,
+    /// Triangles left out because an edge crossed a depth discontinuity.
+    pub cut_triangles: usize,
+}
+
+fn point(c: usize, r: usize, h: f32, p: f64, intensity: Option<&Image>) -> CloudPoint {
+    CloudPoint {
+        x: (c as f64 * p) as f32,
+        y: (-(r as f64) * p) as f32,
+        z: h,
+        intensity: intensity.map_or(0.0, |i| i.get(c, r)),
+    }
+}
+
+/// The dense point cloud of a height map: one point per finite height.
+///
+/// # Panics
+/// When `intensity` is given with other dimensions than `height_um`.
+#[must_use]
+pub fn cloud_from_height(
+    height_um: &Image,
+    pixel_size_um: f64,
+    intensity: Option<&Image>,
+) -> Vec<CloudPoint> {
+    if let Some(i) = intensity {
+        assert_eq!(i.dimensions(), height_um.dimensions(), "intensity grid");
+    }
+    let mut points = Vec::new();
+    for r in 0..height_um.height() {
+        for (c, &h) in height_um.row(r).iter().enumerate() {
+            if h.is_finite() {
+                points.push(point(c, r, h, pixel_size_um, intensity));
+            }
+        }
+    }
+    points
+}
+
+/// Triangulates the valid pixels of a height map (see the module docs).
+///
+/// # Panics
+/// When `intensity` is given with other dimensions than `height_um`.
+#[must_use]
+pub fn build_mesh(
+    height_um: &Image,
+    pixel_size_um: f64,
+    intensity: Option<&Image>,
+    params: &MeshParams,
+) -> Mesh {
+    if let Some(i) = intensity {
+        assert_eq!(i.dimensions(), height_um.dimensions(), "intensity grid");
+    }
+    let (w, h) = height_um.dimensions();
+    let mut index = vec![u32::MAX; w * h];
+    let mut mesh = Mesh::default();
+    for r in 0..h {
+        for c in 0..w {
+            let z = height_um.get(c, r);
+            if z.is_finite() {
+                // More than 4 billion vertices would not fit a PLY int index anyway.
+                index[r * w + c] = mesh.vertices.len() as u32;
+                mesh.vertices.push(point(c, r, z, pixel_size_um, intensity));
+            }
+        }
+    }
+    let max_step = params.max_step_px * pixel_size_um;
+    let continuous = |a: (usize, usize), b: (usize, usize)| {
+        let dist = if a.0 != b.0 && a.1 != b.1 {
+            std::f64::consts::SQRT_2
+        } else {
+            1.0
+        };
+        let dz = f64::from(height_um.get(a.0, a.1) - height_um.get(b.0, b.1)).abs();
+        dz <= max_step * dist
+    };
+    for r in 0..h.saturating_sub(1) {
+        for c in 0..w.saturating_sub(1) {
+            // a b
+            // e d   (image rows go down; y = −r·p)
+            let (a, b, d, e) = ((c, r), (c + 1, r), (c + 1, r + 1), (c, r + 1));
+            let id = |(x, y): (usize, usize)| index[y * w + x];
+            if [a, b, d, e].iter().any(|&q| id(q) == u32::MAX) {
+                continue;
+            }
+            for tri in [[a, e, d], [a, d, b]] {
+                if continuous(tri[0], tri[1])
+                    && continuous(tri[1], tri[2])
+                    && continuous(tri[2], tri[0])
+                {
+                    mesh.triangles.push([id(tri[0]), id(tri[1]), id(tri[2])]);
+                } else {
+                    mesh.cut_triangles += 1;
+                }
+            }
+        }
+    }
+    mesh
+}
+
+fn write_vertex(w: &mut impl Write, p: &CloudPoint, with_intensity: bool) -> std::io::Result<()> {
+    w.write_all(&p.x.to_le_bytes())?;
+    w.write_all(&p.y.to_le_bytes())?;
+    w.write_all(&p.z.to_le_bytes())?;
+    if with_intensity {
+        w.write_all(&p.intensity.to_le_bytes())?;
+    }
+    Ok(())
+}
+
+/// Writes `pointcloud.ply` atomically: `x y z intensity`, float32, µm.
+///
+/// # Errors
+/// [`ExportError::Write`] on I/O failure.
+pub fn write_point_cloud_ply(path: &Path, points: &[CloudPoint]) -> Result<(), ExportError> {
+    write_atomic(path, |w| {
+        write!(
+            w,
+            "ply\nformat binary_little_endian 1.0\ncomment sdsem dense point cloud, units: micrometre\n\
+             element vertex {}\nproperty float x\nproperty float y\nproperty float z\n\
+             property float intensity\nend_header\n",
+            points.len()
+        )?;
+        for p in points {
+            write_vertex(w, p, true)?;
+        }
+        Ok(())
+    })
+}
+
+/// Writes a mesh as PLY atomically: vertices `x y z [intensity]` float32 (µm), faces as
+/// `uchar`-counted `int` index lists.
+///
+/// # Errors
+/// [`ExportError::Write`] on I/O failure.
+pub fn write_mesh_ply(path: &Path, mesh: &Mesh, with_intensity: bool) -> Result<(), ExportError> {
+    write_atomic(path, |w| {
+        write!(
+            w,
+            "ply\nformat binary_little_endian 1.0\ncomment sdsem surface mesh, units: micrometre\n\
+             element vertex {}\nproperty float x\nproperty float y\nproperty float z\n{}\
+             element face {}\nproperty list uchar int vertex_indices\nend_header\n",
+            mesh.vertices.len(),
+            if with_intensity {
+                "property float intensity\n"
+            } else {
+                ""
+            },
+            mesh.triangles.len()
+        )?;
+        for p in &mesh.vertices {
+            write_vertex(w, p, with_intensity)?;
+        }
+        for t in &mesh.triangles {
+            w.write_all(&[3])?;
+            for &i in t {
+                // Indices come from a Vec index and PLY stores int32.
+                w.write_all(&(i as i32).to_le_bytes())?;
+            }
+        }
+        Ok(())
+    })
+}
+
+/// A binary little-endian PLY file read back (float vertex properties, triangle faces) —
+/// enough to verify what this module writes.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PlyData {
+    /// Names of the vertex properties, in order.
+    pub vertex_properties: Vec<String>,
+    /// Vertex property values, row-major (`vertex_properties.len()` per vertex).
+    pub vertex_data: Vec<f32>,
+    pub faces: Vec<[u32; 3]>,
+}
+
+impl PlyData {
+    #[must_use]
+    pub fn vertex_count(&self) -> usize {
+        self.vertex_data.len() / self.vertex_properties.len().max(1)
+    }
+
+    /// The vertices as points (`intensity` 0 when the file has none); `None` unless the
+    /// first properties are `x y z`.
+    #[must_use]
+    pub fn points(&self) -> Option<Vec<CloudPoint>> {
+        let n = self.vertex_properties.len();
+        if n < 3 || self.vertex_properties[..3] != ["x", "y", "z"] {
+            return None;
+        }
+        let has_i = self
+            .vertex_properties
+            .get(3)
+            .is_some_and(|p| p == "intensity");
+        Some(
+            self.vertex_data
+                .chunks_exact(n)
+                .map(|v| CloudPoint {
+                    x: v[0],
+                    y: v[1],
+                    z: v[2],
+                    intensity: if has_i { v[3] } else { 0.0 },
+                })
+                .collect(),
+        )
+    }
+}
+
+/// Reads a PLY file as written by this module, checking the header and the exact size.
+///
+/// # Errors
+/// [`ExportError::Read`] on I/O failure, [`ExportError::Format`] for anything else.
+pub fn read_ply(path: &Path) -> Result<PlyData, ExportError> {
+    let bytes = std::fs::read(path).map_err(|source| ExportError::Read {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    parse_ply(&bytes).map_err(|reason| ExportError::Format {
+        path: path.to_path_buf(),
+        format: "binary PLY",
+        reason,
+    })
+}
+
+fn parse_ply(bytes: &[u8]) -> Result<PlyData, String> {
+    const END: &[u8] = b"end_header\n";
+    let end = bytes
+        .windows(END.len())
+        .position(|w| w == END)
+        .ok_or("no end_header line")?
+        + END.len();
+    let header = std::str::from_utf8(&bytes[..end]).map_err(|_| "header is not text")?;
+    let mut lines = header.lines();
+    if lines.next() != Some("ply") {
+        return Err("does not start with \"ply\"".to_owned());
+    }
+    let (mut vertices, mut faces) = (0usize, 0usize);
+    let mut props = Vec::new();
+    let mut element = "";
+    for line in lines {
+        let words: Vec<&str> = line.split_whitespace().collect();
+        match words.as_slice() {
+            ["format", "binary_little_endian", "1.0"] | ["comment", ..] | ["end_header"] => {}
+            ["format", other, ..] => return Err(format!("unsupported format {other}")),
+            ["element", "vertex", n] => {
+                element = "vertex";
+                vertices = n.parse().map_err(|_| format!("bad vertex count {n}"))?;
+            }
+            ["element", "face", n] => {
+                element = "face";
+                faces = n.parse().map_err(|_| format!("bad face count {n}"))?;
+            }
+            ["property", "float", name] if element == "vertex" => props.push((*name).to_owned()),
+            ["property", "list", "uchar", "int", "vertex_indices"] if element == "face" => {}
+            _ => return Err(format!("unsupported header line {line:?}")),
+        }
+    }
+    let vertex_bytes = vertices * props.len() * 4;
+    let expected = end + vertex_bytes + faces * 13;
+    if bytes.len() != expected {
+        return Err(format!(
+            "size is {} bytes, header says {expected}",
+            bytes.len()
+        ));
+    }
+    let f32_at = |b: &[u8]| f32::from_le_bytes([b[0], b[1], b[2], b[3]]);
+    let vertex_data = bytes[end..end + vertex_bytes]
+        .chunks_exact(4)
+        .map(f32_at)
+        .collect();
+    let mut face_list = Vec::with_capacity(faces);
+    for f in bytes[end + vertex_bytes..].chunks_exact(13) {
+        if f[0] != 3 {
+            return Err(format!("face with {} vertices, expected 3", f[0]));
+        }
+        let mut tri = [0u32; 3];
+        for (k, idx) in tri.iter_mut().enumerate() {
+            let b = &f[1 + 4 * k..5 + 4 * k];
+            let i = i32::from_le_bytes([b[0], b[1], b[2], b[3]]);
+            *idx = u32::try_from(i)
+                .ok()
+                .filter(|&i| (i as usize) < vertices)
+                .ok_or_else(|| format!("face index {i} outside 0..{vertices}"))?;
+        }
+        face_list.push(tri);
+    }
+    Ok(PlyData {
+        vertex_properties: props,
+        vertex_data,
+        faces: face_list,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn cloud_maps_pixels_to_right_handed_micrometres() {
+        let mut h = Image::from_fn(3, 2, |x, y| (x + 10 * y) as f32);
+        h.set(1, 0, f32::NAN);
+        let intensity = Image::filled(3, 2, 0.5);
+        let cloud = cloud_from_height(&h, 0.5, Some(&intensity));
+        assert_eq!(cloud.len(), 5, "NaN pixel must be skipped");
+        let last = cloud[4];
+        assert_eq!(
+            (last.x, last.y, last.z, last.intensity),
+            (1.0, -0.5, 12.0, 0.5)
+        );
+    }
+
+    #[test]
+    fn mesh_has_two_triangles_per_valid_block_facing_the_beam() {
+        let h = Image::filled(3, 3, 1.0);
+        let mesh = build_mesh(&h, 1.0, None, &MeshParams::default());
+        assert_eq!(mesh.vertices.len(), 9);
+        assert_eq!(mesh.triangles.len(), 8);
+        for t in &mesh.triangles {
+            let [a, b, c] = t.map(|i| mesh.vertices[i as usize]);
+            let nz = (b.x - a.x) * (c.y - a.y) - (b.y - a.y) * (c.x - a.x);
+            assert!(nz > 0.0, "triangle {t:?} faces away from the beam");
+        }
+    }
+
+    #[test]
+    fn mesh_skips_blocks_with_unknown_pixels() {
+        let mut h = Image::filled(3, 3, 1.0);
+        h.set(1, 1, f32::NAN);
+        // Every 2×2 block contains the centre pixel.
+        assert!(
+            build_mesh(&h, 1.0, None, &MeshParams::default())
+                .triangles
+                .is_empty()
+        );
+    }
+
+    #[test]
+    fn mesh_cuts_depth_discontinuities_but_keeps_steep_slopes() {
+        // Left half at 0, right half 20 pixel sizes higher: a cliff.
+        let cliff = Image::from_fn(4, 2, |x, _| if x < 2 { 0.0 } else { 20.0 });
+        let mesh = build_mesh(&cliff, 1.0, None, &MeshParams::default());
+        assert_eq!(
+            mesh.triangles.len(),
+            4,
+            "the block straddling the cliff is cut"
+        );
+        assert_eq!(mesh.cut_triangles, 2);
+        // A continuous 70° slope (step tan 70° ≈ 2.7 px per px) stays closed.
+        let slope = Image::from_fn(4, 2, |x, _| x as f32 * 2.7);
+        let mesh = build_mesh(&slope, 1.0, None, &MeshParams::default());
+        assert_eq!((mesh.triangles.len(), mesh.cut_triangles), (6, 0));
+    }
+
+    #[test]
+    fn ply_files_round_trip() {
+        let dir = tempfile::tempdir().unwrap();
+        let h = Image::from_fn(3, 2, |x, y| (x * y) as f32 * 0.1);
+        let intensity = Image::from_fn(3, 2, |x, _| x as f32 / 2.0);
+        let cloud = cloud_from_height(&h, 0.25, Some(&intensity));
+        let path = dir.path().join("pointcloud.ply");
+        write_point_cloud_ply(&path, &cloud).unwrap();
+        let back = read_ply(&path).unwrap();
+        assert_eq!(back.vertex_properties, ["x", "y", "z", "intensity"]);
+        assert_eq!(back.points().unwrap(), cloud);
+        assert!(back.faces.is_empty());
+
+        let mesh = build_mesh(&h, 0.25, Some(&intensity), &MeshParams::default());
+        let path = dir.path().join("mesh.ply");
+        write_mesh_ply(&path, &mesh, true).unwrap();
+        let back = read_ply(&path).unwrap();
+        assert_eq!(back.vertex_count(), 6);
+        assert_eq!(back.faces, mesh.triangles);
+        assert_eq!(back.points().unwrap(), mesh.vertices);
+
+        write_mesh_ply(&path, &mesh, false).unwrap();
+        let back = read_ply(&path).unwrap();
+        assert_eq!(back.vertex_properties, ["x", "y", "z"]);
+        assert_eq!(back.faces.len(), 4);
+    }
+
+    #[test]
+    fn reader_rejects_truncated_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("p.ply");
+        write_point_cloud_ply(&path, &[CloudPoint::default(); 3]).unwrap();
+        let bytes = std::fs::read(&path).unwrap();
+        std::fs::write(&path, &bytes[..bytes.len() - 1]).unwrap();
+        assert!(read_ply(&path).unwrap_err().to_string().contains("size"));
+    }
+}

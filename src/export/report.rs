@@ -1,0 +1,61 @@
+//! `report.json` (and any JSON result): serde of the pipeline's report, written atomically.
+
+use std::io::Write;
+use std::path::Path;
+
+use serde::Serialize;
+
+use super::ExportError;
+use super::atomic::write_atomic;
+
+/// Writes `value` as pretty-printed JSON (with a final newline) to `path`, atomically.
+///
+/// # Errors
+/// [`ExportError::Invalid`] when `value` cannot be serialised (e.g. a map with non-string
+/// keys), [`ExportError::Write`] on I/O failure.
+pub fn write_json_atomic(path: &Path, value: &impl Serialize) -> Result<(), ExportError> {
+    let mut text = serde_json::to_vec_pretty(value).map_err(|e| ExportError::Invalid {
+        path: path.to_path_buf(),
+        reason: format!("cannot serialise to JSON: {e}"),
+    })?;
+    text.push(b'\n');
+    write_atomic(path, |w| w.write_all(&text))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn report_is_written_and_parses_back() {
+        #[derive(Serialize)]
+        struct Report {
+            matches: u32,
+            final_error_px: f64,
+        }
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("report.json");
+        write_json_atomic(
+            &path,
+            &Report {
+                matches: 42,
+                final_error_px: 0.31,
+            },
+        )
+        .unwrap();
+        let text = std::fs::read_to_string(&path).unwrap();
+        assert!(text.ends_with('\n'));
+        let v: serde_json::Value = serde_json::from_str(&text).unwrap();
+        assert_eq!(v["matches"], 42);
+    }
+
+    #[test]
+    fn unserialisable_value_leaves_no_file() {
+        let mut map = std::collections::HashMap::new();
+        map.insert((1, 2), 3);
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("report.json");
+        assert!(write_json_atomic(&path, &map).is_err());
+        assert!(!path.exists());
+    }
+}

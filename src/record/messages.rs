@@ -1,0 +1,374 @@
+//! The JSON messages of the run record and their JSON schemas (DESIGN §5).
+//!
+//! Each JSON topic gets a channel whose schema (encoding `jsonschema`) describes its
+//! messages, so Foxglove and any MCAP reader can make sense of them. The structs here
+//! are the wire format; producers fill them, `sdsem replay` and `sdsem inspect` read
+//! them back. Fields carry their unit in their name.
+
+use std::collections::BTreeMap;
+
+use serde::{Deserialize, Serialize};
+
+use super::topics::{self, FrameRole};
+
+/// One `/sem/frame_info` message, published right after its `/sem/frame` image with the
+/// same log time.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FrameInfo {
+    /// tracking / left / right — equal to the image's `frame_id`.
+    pub role: FrameRole,
+    /// Number of the frame within the run, from 0, in capture order.
+    pub index: u64,
+    /// Stage tilt when the frame was captured, degrees.
+    pub tilt_deg: f64,
+    /// Stage X when the frame was captured, mm.
+    pub stage_x_mm: f64,
+    /// Stage Y when the frame was captured, mm.
+    pub stage_y_mm: f64,
+    /// Pixel size of the frame, µm.
+    pub pixel_size_um: f64,
+    /// Pixel dwell time, µs.
+    pub dwell_us: f64,
+    /// Frame width, pixels.
+    pub width: u32,
+    /// Frame height, pixels.
+    pub height: u32,
+    /// Specimen drift measured on this frame (x, y), pixels; absent when not measured.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub drift_px: Option<[f64; 2]>,
+}
+
+/// One `/stage/state` message: the stage after a move or a poll result that matters.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct StageState {
+    /// What produced this state, e.g. `move_done`, `poll`, `referenced`, `stopped`.
+    pub event: String,
+    /// Tilt axis position, degrees.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tilt_deg: Option<f64>,
+    /// X position, mm.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub x_mm: Option<f64>,
+    /// Y position, mm.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub y_mm: Option<f64>,
+    /// Z position, mm.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub z_mm: Option<f64>,
+    /// Whether every moved axis reported on target.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub on_target: Option<bool>,
+    /// Controller error code read after the command (`ERR?`), 0 = none.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub error_code: Option<i32>,
+}
+
+/// One `/stage/io` message: a command line sent to an instrument and its reply.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct StageIo {
+    /// Which link: `stage` or `sem`.
+    pub device: String,
+    /// The command line as sent, without its terminator.
+    pub command: String,
+    /// The reply lines joined by `\n`; absent for commands that do not reply.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub reply: Option<String>,
+    /// When the command was sent, ns since the Unix epoch.
+    pub sent_ns: u64,
+    /// When the reply was complete, ns since the Unix epoch.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub replied_ns: Option<u64>,
+    /// Round-trip time, ms.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rtt_ms: Option<f64>,
+    /// Timeout or I/O error of this exchange, if any.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub error: Option<String>,
+}
+
+/// How a run ended; written last as the MCAP metadata record [`topics::METADATA_OUTCOME`].
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct RunOutcome {
+    pub status: RunStatus,
+    /// One-line cause when the run did not succeed.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cause: Option<String>,
+}
+
+/// The final state of a run.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum RunStatus {
+    Succeeded,
+    Failed,
+    Aborted,
+}
+
+impl RunStatus {
+    #[must_use]
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Succeeded => "succeeded",
+            Self::Failed => "failed",
+            Self::Aborted => "aborted",
+        }
+    }
+}
+
+impl RunOutcome {
+    /// The metadata record's key-value map.
+    #[must_use]
+    pub fn to_map(&self) -> BTreeMap<String, String> {
+        let mut map = BTreeMap::new();
+        map.insert("status".to_owned(), self.status.as_str().to_owned());
+        if let Some(cause) = &self.cause {
+            map.insert("cause".to_owned(), cause.clone());
+        }
+        map
+    }
+
+    /// Reads the metadata record's map back; `None` when `status` is missing or unknown.
+    #[must_use]
+    pub fn from_map(map: &BTreeMap<String, String>) -> Option<Self> {
+        let status = match map.get("status")?.as_str() {
+            "succeeded" => RunStatus::Succeeded,
+            "failed" => RunStatus::Failed,
+            "aborted" => RunStatus::Aborted,
+            _ => return None,
+        };
+        Some(Self {
+            status,
+            cause: map.get("cause").cloned(),
+        })
+    }
+}
+
+/// A JSON schema for a channel: its name and its text.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct JsonSchema {
+    pub name: &'static str,
+    pub text: &'static str,
+}
+
+/// Schema of [`FrameInfo`].
+pub const FRAME_INFO_SCHEMA: JsonSchema = JsonSchema {
+    name: "sdsem.FrameInfo",
+    text: r#"{
+  "$schema": "https://json-schema.org/draft/2020-12/schema",
+  "title": "sdsem.FrameInfo",
+  "description": "Acquisition parameters of one /sem/frame message (same log time)",
+  "type": "object",
+  "properties": {
+    "role": {"type": "string", "enum": ["tracking", "left", "right"]},
+    "index": {"type": "integer", "minimum": 0, "description": "frame number in the run"},
+    "tilt_deg": {"type": "number", "description": "stage tilt, degrees"},
+    "stage_x_mm": {"type": "number", "description": "stage X, mm"},
+    "stage_y_mm": {"type": "number", "description": "stage Y, mm"},
+    "pixel_size_um": {"type": "number", "description": "pixel size, micrometres"},
+    "dwell_us": {"type": "number", "description": "pixel dwell time, microseconds"},
+    "width": {"type": "integer", "minimum": 0},
+    "height": {"type": "integer", "minimum": 0},
+    "drift_px": {"type": "array", "items": {"type": "number"}, "minItems": 2, "maxItems": 2,
+                 "description": "measured specimen drift (x, y), pixels"}
+  },
+  "required": ["role", "index", "tilt_deg", "stage_x_mm", "stage_y_mm", "pixel_size_um",
+               "dwell_us", "width", "height"]
+}"#,
+};
+
+/// Schema of [`StageState`].
+pub const STAGE_STATE_SCHEMA: JsonSchema = JsonSchema {
+    name: "sdsem.StageState",
+    text: r#"{
+  "$schema": "https://json-schema.org/draft/2020-12/schema",
+  "title": "sdsem.StageState",
+  "description": "Stage position after a move or a poll result",
+  "type": "object",
+  "properties": {
+    "event": {"type": "string"},
+    "tilt_deg": {"type": "number", "description": "tilt, degrees"},
+    "x_mm": {"type": "number"},
+    "y_mm": {"type": "number"},
+    "z_mm": {"type": "number"},
+    "on_target": {"type": "boolean"},
+    "error_code": {"type": "integer"}
+  },
+  "required": ["event"]
+}"#,
+};
+
+/// Schema of [`StageIo`].
+pub const STAGE_IO_SCHEMA: JsonSchema = JsonSchema {
+    name: "sdsem.StageIo",
+    text: r#"{
+  "$schema": "https://json-schema.org/draft/2020-12/schema",
+  "title": "sdsem.StageIo",
+  "description": "One command line sent to an instrument and its reply",
+  "type": "object",
+  "properties": {
+    "device": {"type": "string"},
+    "command": {"type": "string"},
+    "reply": {"type": "string"},
+    "sent_ns": {"type": "integer", "minimum": 0},
+    "replied_ns": {"type": "integer", "minimum": 0},
+    "rtt_ms": {"type": "number"},
+    "error": {"type": "string"}
+  },
+  "required": ["device", "command", "sent_ns"]
+}"#,
+};
+
+/// Schema of `/recon/report`: the pipeline's report, every stage's figures and timings.
+pub const RECON_REPORT_SCHEMA: JsonSchema = JsonSchema {
+    name: "sdsem.ReconReport",
+    text: r#"{
+  "$schema": "https://json-schema.org/draft/2020-12/schema",
+  "title": "sdsem.ReconReport",
+  "description": "Figures and timings of every reconstruction stage, as in report.json",
+  "type": "object"
+}"#,
+};
+
+/// Schema for JSON topics without a schema of their own.
+pub const GENERIC_OBJECT_SCHEMA: JsonSchema = JsonSchema {
+    name: "sdsem.Json",
+    text: r#"{
+  "$schema": "https://json-schema.org/draft/2020-12/schema",
+  "title": "sdsem.Json",
+  "type": "object"
+}"#,
+};
+
+/// The schema the recorder uses for JSON messages on `topic`.
+#[must_use]
+pub fn json_schema_for(topic: &str) -> JsonSchema {
+    match topic {
+        topics::SEM_FRAME_INFO => FRAME_INFO_SCHEMA,
+        topics::STAGE_STATE => STAGE_STATE_SCHEMA,
+        topics::STAGE_IO => STAGE_IO_SCHEMA,
+        topics::RECON_REPORT => RECON_REPORT_SCHEMA,
+        _ => GENERIC_OBJECT_SCHEMA,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn schema_properties(schema: JsonSchema) -> (Vec<String>, Vec<String>) {
+        let value: serde_json::Value = serde_json::from_str(schema.text).unwrap();
+        let props = value["properties"]
+            .as_object()
+            .map(|m| m.keys().cloned().collect())
+            .unwrap_or_default();
+        let required = value["required"]
+            .as_array()
+            .map(|a| a.iter().map(|v| v.as_str().unwrap().to_owned()).collect())
+            .unwrap_or_default();
+        (props, required)
+    }
+
+    /// Every field a message carries is described by its schema, and every field the
+    /// schema requires is always present — so the schema cannot drift from the struct.
+    fn assert_schema_matches(schema: JsonSchema, full: &impl Serialize, minimal: &impl Serialize) {
+        let (props, required) = schema_properties(schema);
+        let full = serde_json::to_value(full).unwrap();
+        for key in full.as_object().unwrap().keys() {
+            assert!(
+                props.contains(key),
+                "{}: field {key} not in schema",
+                schema.name
+            );
+        }
+        assert_eq!(
+            full.as_object().unwrap().len(),
+            props.len(),
+            "{}",
+            schema.name
+        );
+        let minimal = serde_json::to_value(minimal).unwrap();
+        let minimal_keys: Vec<&String> = minimal.as_object().unwrap().keys().collect();
+        for key in &required {
+            assert!(
+                minimal_keys.contains(&key),
+                "{}: required {key} missing",
+                schema.name
+            );
+        }
+        assert_eq!(minimal_keys.len(), required.len(), "{}", schema.name);
+    }
+
+    #[test]
+    fn frame_info_schema_describes_the_struct() {
+        let mut info = FrameInfo {
+            role: FrameRole::Left,
+            index: 3,
+            tilt_deg: -3.0,
+            stage_x_mm: 1.0,
+            stage_y_mm: 2.0,
+            pixel_size_um: 0.05582,
+            dwell_us: 1.2,
+            width: 2048,
+            height: 1536,
+            drift_px: Some([0.5, -1.0]),
+        };
+        let full = info.clone();
+        info.drift_px = None;
+        assert_schema_matches(FRAME_INFO_SCHEMA, &full, &info);
+    }
+
+    #[test]
+    fn stage_schemas_describe_the_structs() {
+        let full = StageState {
+            event: "move_done".into(),
+            tilt_deg: Some(1.0),
+            x_mm: Some(0.0),
+            y_mm: Some(0.0),
+            z_mm: Some(0.0),
+            on_target: Some(true),
+            error_code: Some(0),
+        };
+        let minimal = StageState {
+            event: "poll".into(),
+            tilt_deg: None,
+            x_mm: None,
+            y_mm: None,
+            z_mm: None,
+            on_target: None,
+            error_code: None,
+        };
+        assert_schema_matches(STAGE_STATE_SCHEMA, &full, &minimal);
+
+        let full = StageIo {
+            device: "stage".into(),
+            command: "POS? 1".into(),
+            reply: Some("1=12.5".into()),
+            sent_ns: 1,
+            replied_ns: Some(2),
+            rtt_ms: Some(0.001),
+            error: Some("timeout".into()),
+        };
+        let minimal = StageIo {
+            device: "stage".into(),
+            command: "MOV 1 2".into(),
+            reply: None,
+            sent_ns: 1,
+            replied_ns: None,
+            rtt_ms: None,
+            error: None,
+        };
+        assert_schema_matches(STAGE_IO_SCHEMA, &full, &minimal);
+    }
+
+    #[test]
+    fn outcome_round_trips_through_metadata_map() {
+        let outcome = RunOutcome {
+            status: RunStatus::Failed,
+            cause: Some("stage did not reach 12°".into()),
+        };
+        assert_eq!(RunOutcome::from_map(&outcome.to_map()), Some(outcome));
+        let mut map = BTreeMap::new();
+        map.insert("status".to_owned(), "exploded".to_owned());
+        assert_eq!(RunOutcome::from_map(&map), None);
+    }
+}

@@ -1,0 +1,117 @@
+//! Topic names, frame roles and record names of the run record — DESIGN §5 (contract).
+
+use std::fmt;
+use std::str::FromStr;
+
+use serde::{Deserialize, Serialize};
+
+/// Every SEM frame (foxglove.RawImage mono8/mono16, or CompressedImage png);
+/// the message's `frame_id` is the [`FrameRole`].
+pub const SEM_FRAME: &str = "/sem/frame";
+/// Per frame: tilt, stage position, pixel size, dwell, role, drift (JSON, [`super::FrameInfo`]).
+pub const SEM_FRAME_INFO: &str = "/sem/frame_info";
+/// Stage position after every move and every poll result that matters (JSON, [`super::StageState`]).
+pub const STAGE_STATE: &str = "/stage/state";
+/// Every command line sent and every reply, with timestamps and round-trip time (JSON, [`super::StageIo`]).
+pub const STAGE_IO: &str = "/stage/io";
+/// Height map on the left micrograph's grid, µm, NaN unknown (foxglove.RawImage 32FC1).
+pub const RECON_HEIGHT: &str = "/recon/height";
+/// The dense point cloud, µm (foxglove.PointCloud).
+pub const RECON_POINTCLOUD: &str = "/recon/pointcloud";
+/// The same figures as `report.json` (JSON).
+pub const RECON_REPORT: &str = "/recon/report";
+/// The tracing events of the run (foxglove.Log).
+pub const LOG: &str = "/log";
+
+/// All contract topics, in the order of DESIGN §5.
+pub const ALL_TOPICS: [&str; 8] = [
+    SEM_FRAME,
+    SEM_FRAME_INFO,
+    STAGE_STATE,
+    STAGE_IO,
+    RECON_HEIGHT,
+    RECON_POINTCLOUD,
+    RECON_REPORT,
+    LOG,
+];
+
+/// Name of the MCAP metadata record with the job, the full effective configuration,
+/// the version and the host (DESIGN §5).
+pub const METADATA_RUN: &str = "sdsem.run";
+/// Name of the MCAP metadata record written last, with the run's outcome
+/// (keys `status` and, on failure, `cause`). See [`super::RunOutcome`].
+pub const METADATA_OUTCOME: &str = "sdsem.outcome";
+/// Name of the MCAP metadata record the recorder writes at `finish()` when log
+/// messages had to be dropped under backpressure (key `dropped`).
+pub const METADATA_LOG_DROPS: &str = "sdsem.log_drops";
+
+/// Attachment name of the Gwyddion height field (DESIGN §5).
+pub const ATTACHMENT_HEIGHT_GSF: &str = "height.gsf";
+/// Attachment name of the triangle mesh (DESIGN §5).
+pub const ATTACHMENT_MESH_PLY: &str = "mesh.ply";
+
+/// Which frame a `/sem/frame` message is: the `frame_id` of the image message and the
+/// `role` of its `/sem/frame_info`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum FrameRole {
+    /// A quick frame after a tilt step, used to follow and re-centre the specimen.
+    Tracking,
+    /// The full-quality micrograph at the lower stage tilt.
+    Left,
+    /// The full-quality micrograph at the higher stage tilt.
+    Right,
+}
+
+impl FrameRole {
+    /// The `frame_id` string: `tracking`, `left` or `right`.
+    #[must_use]
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Tracking => "tracking",
+            Self::Left => "left",
+            Self::Right => "right",
+        }
+    }
+}
+
+impl fmt::Display for FrameRole {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+/// A `frame_id` that is not one of `tracking`, `left`, `right`.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("unknown frame role {0:?}: expected tracking, left or right")]
+pub struct UnknownFrameRole(pub String);
+
+impl FromStr for FrameRole {
+    type Err = UnknownFrameRole;
+
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s {
+            "tracking" => Ok(Self::Tracking),
+            "left" => Ok(Self::Left),
+            "right" => Ok(Self::Right),
+            other => Err(UnknownFrameRole(other.to_owned())),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn roles_round_trip_through_their_frame_id() {
+        for role in [FrameRole::Tracking, FrameRole::Left, FrameRole::Right] {
+            assert_eq!(role.as_str().parse::<FrameRole>().unwrap(), role);
+            assert_eq!(
+                serde_json::to_string(&role).unwrap(),
+                format!("\"{}\"", role.as_str())
+            );
+        }
+        assert!("Left".parse::<FrameRole>().is_err());
+    }
+}
