@@ -2,3 +2,6 @@
 //! real instruments, so `sdsem` runs and is tested without hardware.
 
 pub mod pose;
+pub mod render;
+pub mod scene;
+pub mod walk;
