@@ -4,4 +4,5 @@
 pub mod pose;
 pub mod render;
 pub mod scene;
+pub mod sem_server;
 pub mod walk;
