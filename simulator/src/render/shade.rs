@@ -124,13 +124,9 @@ impl<'a> Shader<'a> {
             p.edge_gain * ((hit.z - scene.edge_mean.at(hit.s, hit.r)) / p.edge_scale_um).tanh();
         let depth = (scene.cavity_mean.at(hit.s, hit.r) - hit.z).max(0.0);
         let f_cavity = (-p.cavity_gain * depth / p.cavity_scale_um).exp();
-        let texture = 1.0 + p.texture * (scene.albedo(hit.s, hit.r, self.footprint) - 1.0);
-        let signal = scene.yield_at(hit.s, hit.r)
-            * texture.max(0.0)
-            * f_secant
-            * f_detector
-            * f_cavity
-            * (1.0 + edge);
+        let yld = scene.yield_at(hit.s, hit.r);
+        let texture = 1.0 + p.texture * (scene.albedo(hit.s, hit.r, self.footprint, yld) - 1.0);
+        let signal = yld * texture.max(0.0) * f_secant * f_detector * f_cavity * (1.0 + edge);
         1.0 - (-p.gain * signal.max(0.0)).exp()
     }
 }

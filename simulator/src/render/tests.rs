@@ -500,57 +500,97 @@ fn quantisation_clamps_and_rounds() {
     assert_eq!(to_u8(&[0.0, 1.0 / 255.0, 2.0]), vec![0, 1, 255]);
 }
 
-/// Render timings: `cargo test -p sdsem-sim --lib render::tests::timings -- --ignored --nocapture`
+/// CPU seconds this process has used (user + system), from /proc; 0 elsewhere.
+fn cpu_seconds() -> f64 {
+    let Ok(stat) = std::fs::read_to_string("/proc/self/stat") else {
+        return 0.0;
+    };
+    // Fields after the command name (which is in parentheses): utime is the 14th field overall.
+    let rest = stat.rsplit_once(')').map_or("", |(_, r)| r);
+    let f: Vec<f64> = rest
+        .split_whitespace()
+        .filter_map(|x| x.parse().ok())
+        .collect();
+    // rest starts at field 3 (state, not numeric, filtered out): utime, stime are fields 14, 15.
+    (f.get(10).copied().unwrap_or(0.0) + f.get(11).copied().unwrap_or(0.0)) / 100.0
+}
+
+/// Render timings (wall and CPU seconds; on an idle machine wall ≈ CPU / cores):
+/// `cargo test -p sdsem-sim --lib render::tests::timings -- --ignored --nocapture`
 #[test]
 #[ignore = "prints timings"]
 fn timings() {
     use std::time::Instant;
+    let timed = |f: &mut dyn FnMut()| {
+        let (t, c) = (Instant::now(), cpu_seconds());
+        f();
+        (t.elapsed().as_secs_f64(), cpu_seconds() - c)
+    };
     for kind in SceneKind::ALL {
-        let t0 = Instant::now();
-        let sc = Scene::generate(&SceneParams {
-            kind,
-            ..SceneParams::default()
-        })
-        .unwrap();
-        let gen_s = t0.elapsed().as_secs_f64();
+        let mut sc = None;
+        let scene_t = timed(&mut || {
+            sc = Some(
+                Scene::generate(&SceneParams {
+                    kind,
+                    ..SceneParams::default()
+                })
+                .unwrap(),
+            )
+        });
+        let sc = sc.unwrap();
         let full = View {
             tilt_deg: 10.0,
             ..View::default()
         };
-        let t1 = Instant::now();
-        let img = render_noisy(
-            &sc,
-            &full,
-            &ShadingParams::default(),
-            &NoiseParams::default(),
-            10.0,
-            1,
-        );
-        let full_s = t1.elapsed().as_secs_f64();
+        let mut img = Vec::new();
+        let full_t = timed(&mut || {
+            img = render_noisy(
+                &sc,
+                &full,
+                &ShadingParams::default(),
+                &NoiseParams::default(),
+                10.0,
+                1,
+            )
+        });
         let track = View {
             width: 320,
             height: 240,
             pixel_size_um: 0.4,
             ..full
         };
-        let t2 = Instant::now();
-        let _ = render_noisy(
-            &sc,
-            &track,
-            &ShadingParams::default(),
-            &NoiseParams::default(),
-            1.0,
-            1,
-        );
-        let track_s = t2.elapsed().as_secs_f64();
-        let t3 = Instant::now();
-        let _ = height_map(&sc, &full);
-        let truth_s = t3.elapsed().as_secs_f64();
+        let mut reps = 0;
+        let track_t = timed(&mut || {
+            for _ in 0..10 {
+                reps += render_noisy(
+                    &sc,
+                    &track,
+                    &ShadingParams::default(),
+                    &NoiseParams::default(),
+                    1.0,
+                    1,
+                )
+                .len();
+            }
+        });
+        let truth_t = timed(&mut || {
+            let _ = height_map(&sc, &full);
+        });
         println!(
-            "{kind:9}: scene {gen_s:.2} s, 1280×960 {full_s:.3} s, 320×240 {track_s:.4} s, height map 1280×960 {truth_s:.3} s, z {:?} ({} threads)",
-            sc.height_range(),
+            "{kind:9}: scene {:.2} s (cpu {:.2}), 1280×960 {:.3} s (cpu {:.2}), 320×240 {:.4} s (cpu {:.3}), height map 1280×960 {:.3} s (cpu {:.2}); z {:.1}..{:.1} µm; {} threads",
+            scene_t.0,
+            scene_t.1,
+            full_t.0,
+            full_t.1,
+            track_t.0 / 10.0,
+            track_t.1 / 10.0,
+            truth_t.0,
+            truth_t.1,
+            sc.height_range().0,
+            sc.height_range().1,
             rayon::current_num_threads()
         );
+        assert_eq!(reps, 10 * 320 * 240);
         if let Ok(dir) = std::env::var("SDSEM_SIM_DUMP") {
             let path = format!("{dir}/{kind}.pgm");
             let mut bytes = format!("P5 {} {} 255\n", full.width, full.height).into_bytes();

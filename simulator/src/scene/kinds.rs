@@ -452,26 +452,37 @@ impl SurfaceModel for Dome {
 
 /// Brightness variation of the material itself (albedo), evaluated at the exact
 /// specimen point so both views of a point agree; `footprint` (µm) band-limits it.
-pub(crate) fn albedo(tex: &Texture, seed: u64, s: f64, r: f64, footprint: f64) -> f64 {
+///
+/// Grains (crystallites with dark boundaries) show on bright, metallic
+/// materials (`yld` above ~0.45), not on the low-yield substrate.
+pub(crate) fn albedo(tex: &Texture, seed: u64, s: f64, r: f64, footprint: f64, yld: f64) -> f64 {
     use super::noise::{cellular, lod_weight};
+    // Non-metallic materials (substrate, carbon) look grainy: stronger mottling.
+    let metal = ((yld - 0.4) / 0.15).clamp(0.0, 1.0);
     let mottle = tex.mottle
+        * (2.5 - 1.5 * metal)
         * fbm(
             substream(seed, 910),
             s,
             r,
             tex.mottle_lambda_um,
-            4,
-            0.6,
+            5,
+            0.7,
             footprint,
         );
     // Grains: per-grain brightness (channelling contrast) and dark boundaries.
-    let (f1, f2, id) = cellular(substream(seed, 911), s / tex.grain_um, r / tex.grain_um);
-    let grain_w = lod_weight(tex.grain_um, footprint);
-    let grain = tex.grain_contrast * grain_w * (unit(id) - 0.5) * 2.0;
-    let line_um = 0.08_f64;
-    let eff = line_um.max(0.5 * footprint);
-    let gap = (f2 - f1) * tex.grain_um;
-    let boundary = tex.boundary_contrast * (line_um / eff) * (-(gap / eff).powi(2)).exp();
+    let (grain, boundary) = if metal > 0.0 {
+        let (f1, f2, id) = cellular(substream(seed, 911), s / tex.grain_um, r / tex.grain_um);
+        let grain_w = lod_weight(tex.grain_um, footprint);
+        let grain = tex.grain_contrast * grain_w * (unit(id) - 0.5) * 2.0;
+        let line_um = 0.08_f64;
+        let eff = line_um.max(0.5 * footprint);
+        let gap = (f2 - f1) * tex.grain_um;
+        let boundary = tex.boundary_contrast * (line_um / eff) * (-(gap / eff).powi(2)).exp();
+        (metal * grain, metal * boundary)
+    } else {
+        (0.0, 0.0)
+    };
     // Specks of dust: small Gaussian spots, widened (and dimmed) to the
     // footprint. One candidate per cell, kept away from the cell's border, so
     // only the 2 × 2 cells nearest the point can reach it.
@@ -550,7 +561,7 @@ mod tests {
     fn albedo_is_positive_and_textured() {
         let tex = build(SceneKind::Particles, 1, 100.0).1;
         let vals: Vec<f64> = (0..200)
-            .map(|k| albedo(&tex, 1, f64::from(k) * 0.1, 0.0, 0.1))
+            .map(|k| albedo(&tex, 1, f64::from(k) * 0.1, 0.0, 0.1, 0.7))
             .collect();
         assert!(vals.iter().all(|&v| v > 0.0));
         let mean = vals.iter().sum::<f64>() / 200.0;

@@ -416,9 +416,10 @@ impl Scene {
         top + b * (bottom - top)
     }
 
-    /// Material brightness texture at `(s, r)`, band-limited to `footprint` µm.
-    pub(crate) fn albedo(&self, s: f64, r: f64, footprint: f64) -> f64 {
-        kinds::albedo(&self.texture, self.params.seed, s, r, footprint)
+    /// Material brightness texture at `(s, r)` of a material of yield `yld`,
+    /// band-limited to `footprint` µm.
+    pub(crate) fn albedo(&self, s: f64, r: f64, footprint: f64, yld: f64) -> f64 {
+        kinds::albedo(&self.texture, self.params.seed, s, r, footprint, yld)
     }
 }
 
