@@ -71,9 +71,9 @@ fn connect(line: &str) -> (TcpStream, BufReader<TcpStream>) {
 }
 
 fn ask(stream: &mut TcpStream, reader: &mut BufReader<TcpStream>, line: &str) -> String {
-    stream.write_all(line.as_bytes()).unwrap();
+    stream.write_all(line.as_bytes()).expect("send");
     let mut out = String::new();
-    reader.read_line(&mut out).unwrap();
+    reader.read_line(&mut out).expect("reply");
     out
 }
 
