@@ -65,8 +65,8 @@ fn connect(line: &str) -> (TcpStream, BufReader<TcpStream>) {
     let stream = TcpStream::connect(addr).expect("connect to the simulator");
     stream
         .set_read_timeout(Some(Duration::from_secs(5)))
-        .unwrap();
-    let reader = BufReader::new(stream.try_clone().unwrap());
+        .expect("set a read timeout");
+    let reader = BufReader::new(stream.try_clone().expect("clone the stream"));
     (stream, reader)
 }
 
