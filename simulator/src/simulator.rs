@@ -1,16 +1,19 @@
 //! Starting and stopping the simulated instruments, in-process or from `main`.
 
+use std::net::{SocketAddr, TcpStream};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
+use std::thread::JoinHandle;
+use std::time::Duration;
 
-use tracing::info;
+use tracing::{info, warn};
 
 use crate::SimError;
 use crate::clock::{Clock, ScaledClock};
 use crate::config::{SimConfig, SimEndpoint};
 use crate::pose::PoseSource;
 use crate::stage::SimStage;
-use crate::stage_link::{LinkServer, serve_pty, serve_tcp};
+use crate::stage_link::{serve_pty, serve_tcp};
 
 /// One endpoint the simulator serves, e.g. `stage` at `tcp://127.0.0.1:40123`.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -19,6 +22,33 @@ pub struct ServiceEndpoint {
     pub service: &'static str,
     /// What a client opens: `tcp://IP:PORT` or a pty slave path such as `/dev/pts/7`.
     pub address: String,
+}
+
+/// A running server thread, as every simulated instrument's server returns it.
+///
+/// A server watches the simulator's shared stop flag; `wake` is an address to
+/// connect to so that a thread blocked in `accept` notices the flag.
+#[derive(Debug)]
+pub(crate) struct ServiceServer {
+    /// What a client opens: `tcp://IP:PORT` or a device path.
+    pub endpoint: String,
+    /// The server thread.
+    pub thread: JoinHandle<()>,
+    /// Connect here to unblock `accept` (TCP servers).
+    pub wake: Option<SocketAddr>,
+}
+
+impl ServiceServer {
+    /// Waits for the server thread after the stop flag was set.
+    fn join(self) {
+        if let Some(addr) = self.wake {
+            // Unblocks accept(); failure only means the listener is already gone.
+            let _ = TcpStream::connect_timeout(&addr, Duration::from_secs(1));
+        }
+        if self.thread.join().is_err() {
+            warn!(endpoint = %self.endpoint, "simulator server thread panicked");
+        }
+    }
 }
 
 /// Entry point of the simulator as a library.
@@ -58,7 +88,9 @@ impl Simulator {
             SimEndpoint::Pty => serve_pty(stage, Arc::clone(&stop))?,
         };
         handle.add("stage", server);
-        // The SEM imaging server starts here too, on `handle.pose_source()` and the same clock.
+        // Another instrument starts here the same way: a server function taking
+        // `handle.pose_source()`, `handle.clock()` and the stop flag, returning a
+        // `ServiceServer`, then `handle.add("sem", server)`.
         info!(
             seed = config.seed,
             time_scale = config.time_scale,
@@ -72,14 +104,14 @@ impl Simulator {
 #[derive(Debug)]
 pub struct SimHandle {
     endpoints: Vec<ServiceEndpoint>,
-    servers: Vec<LinkServer>,
+    servers: Vec<ServiceServer>,
     stage: Arc<SimStage>,
     clock: Arc<dyn Clock>,
     stop: Arc<AtomicBool>,
 }
 
 impl SimHandle {
-    fn add(&mut self, service: &'static str, server: LinkServer) {
+    fn add(&mut self, service: &'static str, server: ServiceServer) {
         self.endpoints.push(ServiceEndpoint {
             service,
             address: server.endpoint.clone(),

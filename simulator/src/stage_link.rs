@@ -2,7 +2,7 @@
 //! each served on std threads. Bytes in → [`CommandFramer`] → [`SimStage`] → bytes out.
 
 use std::io::{self, Read, Write};
-use std::net::{SocketAddr, TcpListener, TcpStream};
+use std::net::{SocketAddr, TcpListener};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::thread::{self, JoinHandle};
@@ -13,6 +13,7 @@ use serialport::SerialPort;
 use tracing::{debug, info, warn};
 
 use crate::SimError;
+use crate::simulator::ServiceServer;
 use crate::stage::SimStage;
 
 /// How often blocked reads look at the stop flag.
@@ -90,35 +91,12 @@ fn sleep_unless_stopped(d: Duration, stop: &AtomicBool) -> bool {
     }
 }
 
-/// A running link server.
-#[derive(Debug)]
-pub(crate) struct LinkServer {
-    /// The endpoint a client connects to: `tcp://IP:PORT` or the pty slave path.
-    pub endpoint: String,
-    thread: JoinHandle<()>,
-    /// Address to connect to so that a blocked `accept` sees the stop flag.
-    wake: Option<SocketAddr>,
-}
-
-impl LinkServer {
-    /// Waits for the server thread after `stop` was set.
-    pub fn join(self) {
-        if let Some(addr) = self.wake {
-            // Unblocks accept(); failure only means the listener is already gone.
-            let _ = TcpStream::connect_timeout(&addr, Duration::from_secs(1));
-        }
-        if self.thread.join().is_err() {
-            warn!(endpoint = %self.endpoint, "stage link thread panicked");
-        }
-    }
-}
-
 /// Listens on `addr` (port 0 picks one) and serves every connection on its own thread.
 pub(crate) fn serve_tcp(
     addr: SocketAddr,
     stage: Arc<SimStage>,
     stop: Arc<AtomicBool>,
-) -> Result<LinkServer, SimError> {
+) -> Result<ServiceServer, SimError> {
     let listener = TcpListener::bind(addr).map_err(|source| SimError::Bind { addr, source })?;
     let local = listener
         .local_addr()
@@ -133,7 +111,7 @@ pub(crate) fn serve_tcp(
         .spawn(move || accept_loop(&listener, &stage, &stop))
         .map_err(|source| SimError::Thread { source })?;
     info!(%local, "stage controller listening on TCP");
-    Ok(LinkServer {
+    Ok(ServiceServer {
         endpoint: format!("tcp://{local}"),
         thread,
         wake: Some(wake),
@@ -201,7 +179,7 @@ fn accept_loop(listener: &TcpListener, stage: &Arc<SimStage>, stop: &Arc<AtomicB
 pub(crate) fn serve_pty(
     stage: Arc<SimStage>,
     stop: Arc<AtomicBool>,
-) -> Result<LinkServer, SimError> {
+) -> Result<ServiceServer, SimError> {
     let pty_err = |e: serialport::Error| SimError::Pty {
         cause: e.to_string(),
     };
@@ -225,7 +203,7 @@ pub(crate) fn serve_pty(
         })
         .map_err(|source| SimError::Thread { source })?;
     info!(path = %endpoint, "stage controller on pseudo-terminal");
-    Ok(LinkServer {
+    Ok(ServiceServer {
         endpoint,
         thread,
         wake: None,
