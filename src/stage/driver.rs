@@ -15,6 +15,10 @@
 //!   controller reports on target is a move that did not happen, re-issued once,
 //!   then an error. Past the move timeout the stage is stopped.
 //! - Targets outside the limits are refused before anything is sent.
+//!
+//! Known limit: reading `ERR?` clears the code, so when the answer to an `ERR?`
+//! is lost its retry answers 0. For a move this costs nothing but time: the
+//! verification sees the stage not moving and re-issues the move once.
 
 use std::sync::Arc;
 use std::time::Duration;
@@ -807,19 +811,22 @@ impl<T: AsyncRead + AsyncWrite + Unpin> StageDriver<T> {
     }
 
     /// Discards input until `window` has passed and the line has been quiet for
-    /// `resync_quiet_s`, then forgets any partial reply.
+    /// `resync_quiet_s`, then forgets any partial reply. A device that never
+    /// falls quiet (wrong baud rate, not a GCS controller) is given up on one
+    /// reply timeout after the window: the next exchange then fails as garbled.
     async fn resync(&mut self, window: Duration, text: &str) -> Result<(), StageError> {
         let quiet = secs(self.config.resync_quiet_s);
         let window_end = Instant::now() + window;
+        let give_up = window_end + quiet + secs(self.config.reply_timeout_s);
         let mut deadline = window_end.max(Instant::now() + quiet);
-        loop {
+        while deadline < give_up {
             let mut buf = [0u8; 256];
             match tokio::time::timeout_at(deadline, self.io.read(&mut buf)).await {
                 Err(_) => break,
                 Ok(Ok(0)) => return Err(self.lost(text, "the controller closed the connection")),
                 Ok(Ok(n)) => {
                     self.framer.feed(&buf[..n]);
-                    deadline = window_end.max(Instant::now() + quiet);
+                    deadline = window_end.max(Instant::now() + quiet).min(give_up);
                 }
                 Ok(Err(e)) => return Err(self.lost(text, &e.to_string())),
             }

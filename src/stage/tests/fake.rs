@@ -630,3 +630,25 @@ async fn probabilistic_faults_on_every_reply_kind_are_survived() {
         "no fault fired: {f:?}"
     );
 }
+
+#[tokio::test(start_paused = true)]
+async fn a_babbling_device_fails_connect_instead_of_hanging() {
+    let (client, mut server) = tokio::io::duplex(4096);
+    tokio::spawn(async move {
+        use tokio::io::AsyncWriteExt;
+        // Noise every 10 ms, forever (until the driver goes away).
+        while server.write_all(b"\xf0\x0f~~").await.is_ok() {
+            tokio::time::sleep(Duration::from_millis(10)).await;
+        }
+    });
+    let t0 = Instant::now();
+    let err = StageDriver::connect(client, driver_config(), Arc::new(NoopObserver))
+        .await
+        .err()
+        .unwrap();
+    assert!(
+        matches!(err, StageError::Garbled { .. } | StageError::NoReply { .. }),
+        "{err}"
+    );
+    assert!(t0.elapsed() < Duration::from_secs(30), "{:?}", t0.elapsed());
+}
