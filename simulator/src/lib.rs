@@ -40,14 +40,15 @@ pub enum SimError {
     },
     /// The TCP endpoint cannot be bound.
     #[error(
-        "cannot listen for the stage link on {addr}: {source}; \
-         choose a free port (port 0 picks one) or stop the other simulator"
+        "cannot listen for the stage link on {addr}: {error}; \
+         listen on a local address and a free port (port 0 picks one), or stop the program \
+         already listening there"
     )]
     Bind {
         /// The address asked for.
         addr: std::net::SocketAddr,
-        /// The system's reason.
-        source: std::io::Error,
+        /// The system's reason (not a `source`: the message already shows it).
+        error: std::io::Error,
     },
     /// No pseudo-terminal can be created.
     #[error(
@@ -59,9 +60,9 @@ pub enum SimError {
         cause: String,
     },
     /// A server thread cannot be started.
-    #[error("cannot start a simulator thread: {source}")]
+    #[error("cannot start a simulator thread: {error}")]
     Thread {
         /// The system's reason.
-        source: std::io::Error,
+        error: std::io::Error,
     },
 }

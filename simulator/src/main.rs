@@ -32,7 +32,7 @@ struct Args {
     #[arg(long, value_name = "F")]
     time_scale: Option<f64>,
     /// GCS identifiers of the X, Y and tilt axes.
-    #[arg(long, value_name = "X,Y,T", value_delimiter = ',', num_args = 3)]
+    #[arg(long, value_name = "X,Y,T", value_delimiter = ',')]
     axis_names: Option<Vec<String>>,
     /// Low tilt soft limit, degrees.
     #[arg(long, value_name = "DEG", allow_hyphen_values = true)]
@@ -136,9 +136,10 @@ impl Args {
         let s = &mut c.stage;
         if let Some(names) = &self.axis_names {
             let ids = AxisId::list(names).context("--axis-names")?;
-            if let [x, y, t] = ids.as_slice() {
-                (s.axis_x, s.axis_y, s.axis_tilt) = (x.clone(), y.clone(), t.clone());
-            }
+            let [x, y, t] = ids.as_slice() else {
+                anyhow::bail!("--axis-names takes three identifiers, e.g. --axis-names 1,2,3");
+            };
+            (s.axis_x, s.axis_y, s.axis_tilt) = (x.clone(), y.clone(), t.clone());
         }
         s.tilt_min_deg = self.tilt_min.unwrap_or(s.tilt_min_deg);
         s.tilt_max_deg = self.tilt_max.unwrap_or(s.tilt_max_deg);
@@ -179,9 +180,18 @@ fn stdin_is_watchable() -> bool {
     })
 }
 
-fn main() -> anyhow::Result<()> {
+fn main() {
+    if let Err(e) = run() {
+        // One line with the whole cause chain; the exit code says it failed.
+        eprintln!("sdsem-sim: {e:#}");
+        std::process::exit(1);
+    }
+}
+
+fn run() -> anyhow::Result<()> {
     tracing_subscriber::fmt()
         .with_writer(std::io::stderr)
+        .with_ansi(std::io::stderr().is_terminal())
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_default_env()
                 .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),

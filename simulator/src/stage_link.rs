@@ -97,10 +97,10 @@ pub(crate) fn serve_tcp(
     stage: Arc<SimStage>,
     stop: Arc<AtomicBool>,
 ) -> Result<ServiceServer, SimError> {
-    let listener = TcpListener::bind(addr).map_err(|source| SimError::Bind { addr, source })?;
+    let listener = TcpListener::bind(addr).map_err(|error| SimError::Bind { addr, error })?;
     let local = listener
         .local_addr()
-        .map_err(|source| SimError::Bind { addr, source })?;
+        .map_err(|error| SimError::Bind { addr, error })?;
     let wake = if local.ip().is_unspecified() {
         SocketAddr::from(([127, 0, 0, 1], local.port()))
     } else {
@@ -109,7 +109,7 @@ pub(crate) fn serve_tcp(
     let thread = thread::Builder::new()
         .name("stage-tcp".into())
         .spawn(move || accept_loop(&listener, &stage, &stop))
-        .map_err(|source| SimError::Thread { source })?;
+        .map_err(|error| SimError::Thread { error })?;
     info!(%local, "stage controller listening on TCP");
     Ok(ServiceServer {
         endpoint: format!("tcp://{local}"),
@@ -201,7 +201,7 @@ pub(crate) fn serve_pty(
             }
             drop(slave);
         })
-        .map_err(|source| SimError::Thread { source })?;
+        .map_err(|error| SimError::Thread { error })?;
     info!(path = %endpoint, "stage controller on pseudo-terminal");
     Ok(ServiceServer {
         endpoint,
