@@ -159,3 +159,18 @@ fn snapshot(
         .unwrap_or_else(PoisonError::into_inner)
         .snapshot(start.elapsed().as_secs_f64())
 }
+
+/// The lead runs the driver inside spawned tasks: its futures must be `Send`.
+/// (Checked by the compiler; the function is never called.)
+#[allow(dead_code)]
+fn driver_futures_are_send(d: &mut super::StageDriver<super::StageLink>) {
+    fn send<T: Send>(_: &T) {}
+    send(&d.move_tilt(1.0));
+    send(&d.move_xy(1.0, 2.0));
+    send(&d.position());
+    send(&d.stop());
+    send(&super::StageDriver::open(
+        StageConfig::default(),
+        Arc::new(super::NoopObserver),
+    ));
+}
