@@ -1,1 +1,0 @@
-//! PI GCS 2.0 stage protocol subset (sans-IO).

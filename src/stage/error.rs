@@ -1,0 +1,222 @@
+//! The stage layer's errors: each names the command, the reply when there was
+//! one, the cause, and what to do about it.
+
+use std::time::Duration;
+
+use sdsem_protocol::gcs::GcsErrorCode;
+
+use super::config::StageAxis;
+
+/// Everything that can go wrong between sdsem and the stage controller.
+#[derive(Debug, thiserror::Error)]
+pub enum StageError {
+    /// A configuration value is wrong.
+    #[error("invalid stage configuration: {field}: {reason}")]
+    Config {
+        /// The field, as written in the configuration.
+        field: &'static str,
+        /// What is wrong and what is accepted.
+        reason: String,
+    },
+
+    /// The port or connection cannot be opened.
+    #[error("cannot open the stage controller at {endpoint}: {cause}; {remedy}")]
+    Open {
+        /// The endpoint from the configuration.
+        endpoint: String,
+        /// The system's reason.
+        cause: String,
+        /// What to check.
+        remedy: String,
+    },
+
+    /// The link closed or failed.
+    #[error(
+        "stage link lost during `{command}`: {cause}; check the controller's power and cable \
+         (or that the simulator still runs), then start the run again"
+    )]
+    Disconnected {
+        /// The command in flight.
+        command: String,
+        /// What the link reported.
+        cause: String,
+    },
+
+    /// A query was not answered, retries included.
+    #[error(
+        "no reply to `{command}` within {timeout:?} ({attempts} attempt(s)); check the cable, \
+         the baud rate (stage.baud) and that the controller is powered and not busy"
+    )]
+    NoReply {
+        /// The query.
+        command: String,
+        /// Attempts made.
+        attempts: u32,
+        /// Time allowed for each.
+        timeout: Duration,
+    },
+
+    /// A query was answered with garbage, retries included.
+    #[error(
+        "garbled reply to `{command}` ({attempts} attempt(s)), last {reply:?}: {cause}; check the \
+         baud rate (stage.baud), the cable and its shielding, and that the axis names match"
+    )]
+    Garbled {
+        /// The query.
+        command: String,
+        /// The last reply, escaped (none when the bytes did not even frame).
+        reply: Option<String>,
+        /// Why it does not parse.
+        cause: String,
+        /// Attempts made.
+        attempts: u32,
+    },
+
+    /// The controller refused a command: `ERR?` answered a non-zero code.
+    #[error("the controller refused `{command}` with error {code}; {remedy}")]
+    Controller {
+        /// The refused command.
+        command: String,
+        /// The controller's error code (the reply to `ERR?`).
+        code: GcsErrorCode,
+        /// What to do.
+        remedy: String,
+    },
+
+    /// A target outside the configured (or controller) limits; nothing was sent.
+    #[error(
+        "{axis} target {target} {unit} is outside the limits [{min}, {max}] {unit}; nothing was sent \
+         to the controller: choose a target inside them, or widen {} if the stage allows it",
+        .axis.limit_fields()
+    )]
+    OutOfLimits {
+        /// The axis.
+        axis: StageAxis,
+        /// The refused target.
+        target: f64,
+        /// Lowest allowed.
+        min: f64,
+        /// Highest allowed.
+        max: f64,
+        /// Unit of the axis.
+        unit: &'static str,
+    },
+
+    /// `*IDN?` does not name the expected controller.
+    #[error(
+        "the device at the stage endpoint answers {idn:?}, which does not contain {expected:?}; \
+         check that stage.endpoint is the stage controller, or clear stage.expect_idn"
+    )]
+    UnexpectedIdentity {
+        /// The answer to `*IDN?`.
+        idn: String,
+        /// The configured `expect_idn`.
+        expected: String,
+    },
+
+    /// Axes are unreferenced or their servo is off, so moves would be refused.
+    #[error("{}", not_ready_message(unreferenced, servo_off))]
+    NotReady {
+        /// Axes not referenced (`FRF?` = 0), GCS identifiers.
+        unreferenced: Vec<String>,
+        /// Axes with the servo off (`SVO?` = 0), GCS identifiers.
+        servo_off: Vec<String>,
+    },
+
+    /// Referencing did not finish in time.
+    #[error(
+        "referencing {axes:?} did not finish within {timeout:?}; the stage was stopped (STP): \
+         check that nothing blocks the travel to the reference switches, or raise \
+         stage.reference_timeout_s"
+    )]
+    ReferenceTimeout {
+        /// Axes still unreferenced.
+        axes: Vec<String>,
+        /// Time allowed.
+        timeout: Duration,
+    },
+
+    /// The controller reports on target, but the axis did not go there, even
+    /// after the move was re-issued once.
+    #[error(
+        "`{command}` did not move the {axis} axis: it stays at {position} {unit} (target {target}, \
+         tolerance {tolerance}) although the controller reports it on target, and re-issuing the \
+         move once did not help; check the stage for a mechanical block or a controller fault, or \
+         widen {} if the controller's own on-target window is wider",
+        .axis.tolerance_field()
+    )]
+    MoveNotExecuted {
+        /// The move command.
+        command: String,
+        /// The axis that did not arrive.
+        axis: StageAxis,
+        /// Its target.
+        target: f64,
+        /// Where it is.
+        position: f64,
+        /// The tolerance applied.
+        tolerance: f64,
+        /// Unit of the axis.
+        unit: &'static str,
+    },
+
+    /// A move did not reach its target in time; the stage was stopped.
+    #[error(
+        "`{command}` did not reach the target in {timeout:?}: {axis} at {position:?} (target \
+         {target}); the stage was stopped (STP): check for an obstruction, or lower {} / raise \
+         stage.move_timeout_margin_s if the stage is slower than configured",
+        .axis.speed_field()
+    )]
+    MoveTimeout {
+        /// The move command.
+        command: String,
+        /// The first axis not on target.
+        axis: StageAxis,
+        /// Its target.
+        target: f64,
+        /// Its last known position.
+        position: Option<f64>,
+        /// Time allowed.
+        timeout: Duration,
+    },
+}
+
+fn not_ready_message(unreferenced: &[String], servo_off: &[String]) -> String {
+    let mut what = Vec::new();
+    if !servo_off.is_empty() {
+        what.push(format!("servo off on axes {servo_off:?} (SVO? = 0)"));
+    }
+    if !unreferenced.is_empty() {
+        what.push(format!("axes {unreferenced:?} not referenced (FRF? = 0)"));
+    }
+    format!(
+        "the stage is not ready to move: {}; switch the servos on (SVO) and reference the axes \
+         (FRF) with the controller's software, or set stage.auto_reference = true if moving to \
+         the reference switches is safe for this specimen",
+        what.join(", ")
+    )
+}
+
+/// What to do about a controller error code.
+pub(crate) fn remedy(code: GcsErrorCode) -> String {
+    match code.0 {
+        1 => "the controller did not understand the parameters: report this as an sdsem bug".into(),
+        2 => "the controller does not know this command: is it a PI GCS 2.0 controller?".into(),
+        5 => "reference the axes (FRF) and switch their servos on (SVO), or set \
+              stage.auto_reference = true"
+            .into(),
+        7 => "the target is beyond the controller's soft limits (TMN?/TMX?): narrow the \
+              configured limits"
+            .into(),
+        10 => {
+            "the stage was stopped (STP, an abort or another client); start the move again".into()
+        }
+        15 => "stage.axis_x/axis_y/axis_tilt do not match the controller's axis identifiers \
+               (the controller lists them with SAI?)"
+            .into(),
+        1024 => "motion error, the servo switched off: check the stage for an obstruction, then \
+                 switch the servo on (SVO) and reference again"
+            .into(),
+        _ => "see the controller's manual for this error code".into(),
+    }
+}
