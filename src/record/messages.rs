@@ -21,10 +21,10 @@ pub struct FrameInfo {
     pub index: u64,
     /// Stage tilt when the frame was captured, degrees.
     pub tilt_deg: f64,
-    /// Stage X when the frame was captured, mm.
-    pub stage_x_mm: f64,
-    /// Stage Y when the frame was captured, mm.
-    pub stage_y_mm: f64,
+    /// Stage X when the frame was captured, µm.
+    pub stage_x_um: f64,
+    /// Stage Y when the frame was captured, µm.
+    pub stage_y_um: f64,
     /// Pixel size of the frame, µm.
     pub pixel_size_um: f64,
     /// Pixel dwell time, µs.
@@ -38,53 +38,10 @@ pub struct FrameInfo {
     pub drift_px: Option<[f64; 2]>,
 }
 
-/// One `/stage/state` message: the stage after a move or a poll result that matters.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct StageState {
-    /// What produced this state, e.g. `move_done`, `poll`, `referenced`, `stopped`.
-    pub event: String,
-    /// Tilt axis position, degrees.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub tilt_deg: Option<f64>,
-    /// X position, mm.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub x_mm: Option<f64>,
-    /// Y position, mm.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub y_mm: Option<f64>,
-    /// Z position, mm.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub z_mm: Option<f64>,
-    /// Whether every moved axis reported on target.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub on_target: Option<bool>,
-    /// Controller error code read after the command (`ERR?`), 0 = none.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub error_code: Option<i32>,
-}
-
-/// One `/stage/io` message: a command line sent to an instrument and its reply.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct StageIo {
-    /// Which link: `stage` or `sem`.
-    pub device: String,
-    /// The command line as sent, without its terminator.
-    pub command: String,
-    /// The reply lines joined by `\n`; absent for commands that do not reply.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub reply: Option<String>,
-    /// When the command was sent, ns since the Unix epoch.
-    pub sent_ns: u64,
-    /// When the reply was complete, ns since the Unix epoch.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub replied_ns: Option<u64>,
-    /// Round-trip time, ms.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub rtt_ms: Option<f64>,
-    /// Timeout or I/O error of this exchange, if any.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub error: Option<String>,
-}
+// `/stage/state` and `/stage/io` carry the driver's own records
+// ([`crate::stage::StageState`], [`crate::stage::StageIo`]): one definition of the
+// wire format, owned by the code that produces it.
+pub use crate::stage::{StageIo, StageState};
 
 /// How a run ended; written last as the MCAP metadata record [`topics::METADATA_OUTCOME`].
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
@@ -162,8 +119,8 @@ pub const FRAME_INFO_SCHEMA: JsonSchema = JsonSchema {
     "role": {"type": "string", "enum": ["tracking", "left", "right"]},
     "index": {"type": "integer", "minimum": 0, "description": "frame number in the run"},
     "tilt_deg": {"type": "number", "description": "stage tilt, degrees"},
-    "stage_x_mm": {"type": "number", "description": "stage X, mm"},
-    "stage_y_mm": {"type": "number", "description": "stage Y, mm"},
+    "stage_x_um": {"type": "number", "description": "stage X, micrometres"},
+    "stage_y_um": {"type": "number", "description": "stage Y, micrometres"},
     "pixel_size_um": {"type": "number", "description": "pixel size, micrometres"},
     "dwell_us": {"type": "number", "description": "pixel dwell time, microseconds"},
     "width": {"type": "integer", "minimum": 0},
@@ -171,7 +128,7 @@ pub const FRAME_INFO_SCHEMA: JsonSchema = JsonSchema {
     "drift_px": {"type": "array", "items": {"type": "number"}, "minItems": 2, "maxItems": 2,
                  "description": "measured specimen drift (x, y), pixels"}
   },
-  "required": ["role", "index", "tilt_deg", "stage_x_mm", "stage_y_mm", "pixel_size_um",
+  "required": ["role", "index", "tilt_deg", "stage_x_um", "stage_y_um", "pixel_size_um",
                "dwell_us", "width", "height"]
 }"#,
 };
@@ -182,18 +139,25 @@ pub const STAGE_STATE_SCHEMA: JsonSchema = JsonSchema {
     text: r#"{
   "$schema": "https://json-schema.org/draft/2020-12/schema",
   "title": "sdsem.StageState",
-  "description": "Stage position after a move or a poll result",
+  "description": "Stage axes after a move, a poll or a stop",
   "type": "object",
   "properties": {
-    "event": {"type": "string"},
-    "tilt_deg": {"type": "number", "description": "tilt, degrees"},
-    "x_mm": {"type": "number"},
-    "y_mm": {"type": "number"},
-    "z_mm": {"type": "number"},
-    "on_target": {"type": "boolean"},
-    "error_code": {"type": "integer"}
+    "wall_ns": {"type": "integer", "minimum": 0, "description": "ns since the Unix epoch"},
+    "event": {"type": "string",
+              "enum": ["connected", "move_started", "poll", "move_reissued", "reached", "stopped", "position"]},
+    "axes": {"type": "array", "items": {
+      "type": "object",
+      "properties": {
+        "axis": {"type": "string", "enum": ["x", "y", "tilt"]},
+        "id": {"type": "string", "description": "the controller's axis identifier"},
+        "position": {"type": ["number", "null"], "description": "micrometres (x, y) or degrees (tilt)"},
+        "target": {"type": ["number", "null"]},
+        "on_target": {"type": ["boolean", "null"]}
+      },
+      "required": ["axis", "id", "position", "target", "on_target"]
+    }}
   },
-  "required": ["event"]
+  "required": ["wall_ns", "event", "axes"]
 }"#,
 };
 
@@ -203,18 +167,21 @@ pub const STAGE_IO_SCHEMA: JsonSchema = JsonSchema {
     text: r#"{
   "$schema": "https://json-schema.org/draft/2020-12/schema",
   "title": "sdsem.StageIo",
-  "description": "One command line sent to an instrument and its reply",
+  "description": "One exchange with the stage controller: command line sent and reply",
   "type": "object",
   "properties": {
-    "device": {"type": "string"},
-    "command": {"type": "string"},
-    "reply": {"type": "string"},
-    "sent_ns": {"type": "integer", "minimum": 0},
-    "replied_ns": {"type": "integer", "minimum": 0},
-    "rtt_ms": {"type": "number"},
-    "error": {"type": "string"}
+    "seq": {"type": "integer", "minimum": 0, "description": "exchange number since connect"},
+    "command": {"type": ["string", "null"], "description": "command line as sent; null for stray bytes"},
+    "attempt": {"type": "integer", "minimum": 1},
+    "sent_wall_ns": {"type": ["integer", "null"], "description": "ns since the Unix epoch"},
+    "reply": {"type": ["string", "null"]},
+    "reply_wall_ns": {"type": ["integer", "null"]},
+    "rtt_ns": {"type": ["integer", "null"], "description": "round-trip time, ns"},
+    "outcome": {"type": "string", "enum": ["replied", "sent", "timeout", "garbled", "stray"]},
+    "detail": {"type": ["string", "null"]}
   },
-  "required": ["device", "command", "sent_ns"]
+  "required": ["seq", "command", "attempt", "sent_wall_ns", "reply", "reply_wall_ns", "rtt_ns",
+               "outcome", "detail"]
 }"#,
 };
 
@@ -304,8 +271,8 @@ mod tests {
             role: FrameRole::Left,
             index: 3,
             tilt_deg: -3.0,
-            stage_x_mm: 1.0,
-            stage_y_mm: 2.0,
+            stage_x_um: 1.0,
+            stage_y_um: 2.0,
             pixel_size_um: 0.05582,
             dwell_us: 1.2,
             width: 2048,
@@ -319,45 +286,42 @@ mod tests {
 
     #[test]
     fn stage_schemas_describe_the_structs() {
-        let full = StageState {
-            event: "move_done".into(),
-            tilt_deg: Some(1.0),
-            x_mm: Some(0.0),
-            y_mm: Some(0.0),
-            z_mm: Some(0.0),
-            on_target: Some(true),
-            error_code: Some(0),
+        use crate::stage::{AxisState, IoOutcome, StageAxis, StageEvent};
+        let state = StageState {
+            wall_ns: 1,
+            event: StageEvent::Reached,
+            axes: vec![AxisState {
+                axis: StageAxis::Tilt,
+                id: "T".into(),
+                position: Some(1.0),
+                target: Some(1.0),
+                on_target: Some(true),
+            }],
         };
-        let minimal = StageState {
-            event: "poll".into(),
-            tilt_deg: None,
-            x_mm: None,
-            y_mm: None,
-            z_mm: None,
-            on_target: None,
-            error_code: None,
+        assert_schema_matches(STAGE_STATE_SCHEMA, &state, &state);
+        let axis_schema: serde_json::Value = serde_json::from_str(STAGE_STATE_SCHEMA.text).unwrap();
+        let axis_props = axis_schema["properties"]["axes"]["items"]["properties"]
+            .as_object()
+            .unwrap();
+        let axis_value = serde_json::to_value(&state.axes[0]).unwrap();
+        for key in axis_value.as_object().unwrap().keys() {
+            assert!(
+                axis_props.contains_key(key),
+                "axis field {key} not in schema"
+            );
+        }
+        let io = StageIo {
+            seq: 3,
+            command: Some("POS? T".into()),
+            attempt: 1,
+            sent_wall_ns: Some(1),
+            reply: Some("T=1.000000".into()),
+            reply_wall_ns: Some(2),
+            rtt_ns: Some(1),
+            outcome: IoOutcome::Replied,
+            detail: None,
         };
-        assert_schema_matches(STAGE_STATE_SCHEMA, &full, &minimal);
-
-        let full = StageIo {
-            device: "stage".into(),
-            command: "POS? 1".into(),
-            reply: Some("1=12.5".into()),
-            sent_ns: 1,
-            replied_ns: Some(2),
-            rtt_ms: Some(0.001),
-            error: Some("timeout".into()),
-        };
-        let minimal = StageIo {
-            device: "stage".into(),
-            command: "MOV 1 2".into(),
-            reply: None,
-            sent_ns: 1,
-            replied_ns: None,
-            rtt_ms: None,
-            error: None,
-        };
-        assert_schema_matches(STAGE_IO_SCHEMA, &full, &minimal);
+        assert_schema_matches(STAGE_IO_SCHEMA, &io, &io);
     }
 
     #[test]

@@ -23,8 +23,8 @@ fn frame_info(role: FrameRole, index: u64, tilt: f64) -> FrameInfo {
         role,
         index,
         tilt_deg: tilt,
-        stage_x_mm: 1.0,
-        stage_y_mm: -2.0,
+        stage_x_um: 1.0,
+        stage_y_um: -2.0,
         pixel_size_um: 0.05,
         dwell_us: 0.8,
         width: 8,
@@ -62,23 +62,27 @@ fn write_full_run(path: &Path) -> RecordSummary {
         )
         .unwrap();
         let io = StageIo {
-            device: "stage".into(),
-            command: format!("MOV 4 {i}"),
+            seq: i,
+            command: Some(format!("MOV T {i}")),
+            attempt: 1,
+            sent_wall_ns: Some(t),
             reply: None,
-            sent_ns: t,
-            replied_ns: None,
-            rtt_ms: None,
-            error: None,
+            reply_wall_ns: None,
+            rtt_ns: None,
+            outcome: crate::stage::IoOutcome::Sent,
+            detail: None,
         };
         rec.json(topics::STAGE_IO, t, &io).unwrap();
         let state = StageState {
-            event: "move_done".into(),
-            tilt_deg: Some(i as f64),
-            x_mm: Some(1.0),
-            y_mm: None,
-            z_mm: None,
-            on_target: Some(true),
-            error_code: Some(0),
+            wall_ns: t,
+            event: crate::stage::StageEvent::Reached,
+            axes: vec![crate::stage::AxisState {
+                axis: crate::stage::StageAxis::Tilt,
+                id: "T".into(),
+                position: Some(i as f64),
+                target: Some(i as f64),
+                on_target: Some(true),
+            }],
         };
         rec.json(topics::STAGE_STATE, t, &state).unwrap();
     }
