@@ -57,7 +57,7 @@ pub const MAX_SIDE: u32 = 16384;
 pub const MAX_DWELL_US: f64 = 10_000.0;
 
 /// What a frame is for. Recorded with the frame; the scan is the same.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Role {
     /// A quick frame after a tilt step, to follow the specimen.

@@ -16,28 +16,9 @@ use serde::{Deserialize, Serialize};
 
 use super::plan::SeriesPlan;
 
-/// Which frame of the series a capture is: decides its size, dwell and topic role.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum FrameRole {
-    /// Full-quality micrograph at the lower tilt.
-    Left,
-    /// Full-quality micrograph at the higher tilt.
-    Right,
-    /// Quick frame that follows the specimen between steps.
-    Tracking,
-}
-
-impl FrameRole {
-    #[must_use]
-    pub fn as_str(self) -> &'static str {
-        match self {
-            Self::Left => "left",
-            Self::Right => "right",
-            Self::Tracking => "tracking",
-        }
-    }
-}
+/// Which frame of the series a capture is (decides its size, dwell and
+/// recorded role): the SEM link's own role type.
+pub use sdsem_protocol::sem::Role as FrameRole;
 
 /// How the specimen is kept centred.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]

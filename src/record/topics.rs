@@ -1,10 +1,5 @@
 //! Topic names, frame roles and record names of the run record — DESIGN §5 (contract).
 
-use std::fmt;
-use std::str::FromStr;
-
-use serde::{Deserialize, Serialize};
-
 /// Every SEM frame (foxglove.RawImage mono8/mono16, or CompressedImage png);
 /// the message's `frame_id` is the [`FrameRole`].
 pub const SEM_FRAME: &str = "/sem/frame";
@@ -51,53 +46,8 @@ pub const ATTACHMENT_HEIGHT_GSF: &str = "height.gsf";
 pub const ATTACHMENT_MESH_PLY: &str = "mesh.ply";
 
 /// Which frame a `/sem/frame` message is: the `frame_id` of the image message and the
-/// `role` of its `/sem/frame_info`.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum FrameRole {
-    /// A quick frame after a tilt step, used to follow and re-centre the specimen.
-    Tracking,
-    /// The full-quality micrograph at the lower stage tilt.
-    Left,
-    /// The full-quality micrograph at the higher stage tilt.
-    Right,
-}
-
-impl FrameRole {
-    /// The `frame_id` string: `tracking`, `left` or `right`.
-    #[must_use]
-    pub fn as_str(self) -> &'static str {
-        match self {
-            Self::Tracking => "tracking",
-            Self::Left => "left",
-            Self::Right => "right",
-        }
-    }
-}
-
-impl fmt::Display for FrameRole {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.write_str(self.as_str())
-    }
-}
-
-/// A `frame_id` that is not one of `tracking`, `left`, `right`.
-#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
-#[error("unknown frame role {0:?}: expected tracking, left or right")]
-pub struct UnknownFrameRole(pub String);
-
-impl FromStr for FrameRole {
-    type Err = UnknownFrameRole;
-
-    fn from_str(s: &str) -> Result<Self, Self::Err> {
-        match s {
-            "tracking" => Ok(Self::Tracking),
-            "left" => Ok(Self::Left),
-            "right" => Ok(Self::Right),
-            other => Err(UnknownFrameRole(other.to_owned())),
-        }
-    }
-}
+/// `role` of its `/sem/frame_info` — the SEM link's own [`sdsem_protocol::sem::Role`].
+pub use sdsem_protocol::sem::Role as FrameRole;
 
 #[cfg(test)]
 mod tests {
