@@ -9,6 +9,8 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 
 use crate::acquisition::{PlanError, SeriesConfig, SeriesPlan, TrackingConfig};
+use crate::imaging::ImagingConfig;
+use crate::stage::StageConfig;
 
 /// Where runs go and what they are called.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -68,6 +70,13 @@ pub struct Config {
     pub run: RunConfig,
     pub series: SeriesConfig,
     pub tracking: TrackingConfig,
+    pub stage: StageConfig,
+    pub imaging: ImagingConfig,
+    /// When present, sdsem starts the stage-and-SEM simulator inside its own
+    /// process and connects to it through the real links, in place of
+    /// `stage.endpoint` and `imaging.endpoint`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub simulator: Option<sdsem_sim::SimConfig>,
     pub log: LogConfig,
 }
 
@@ -159,6 +168,12 @@ impl Config {
     /// [`ConfigError`] naming the keys at fault.
     pub fn validate(&self) -> Result<(), ConfigError> {
         self.plan()?;
+        self.stage
+            .validate()
+            .map_err(|e| ConfigError::Rule(e.to_string()))?;
+        self.imaging
+            .validate()
+            .map_err(|e| ConfigError::Rule(e.to_string()))?;
         let t = &self.tracking;
         if !(t.gain > 0.0 && t.gain <= 1.0) {
             return Err(ConfigError::Rule(format!(
@@ -180,7 +195,11 @@ impl Config {
     /// # Errors
     /// [`PlanError`] when the series does not fit the stage limits.
     pub fn plan(&self) -> Result<SeriesPlan, PlanError> {
-        SeriesPlan::new(&self.series, -5.0, 70.0)
+        SeriesPlan::new(
+            &self.series,
+            self.stage.tilt_min_deg,
+            self.stage.tilt_max_deg,
+        )
     }
 
     /// The effective configuration as TOML (for the record and `check-config`).

@@ -1,8 +1,16 @@
 //! The tilt-series acquisition: a pure state machine ([`machine`]) planned by
-//! [`plan`], and the runner that performs its actions with the instruments.
+//! [`plan`], and the [`runner`] that performs its actions with the instruments.
 
+pub mod cancel;
+pub mod instruments;
+pub mod job;
 pub mod machine;
 pub mod plan;
+pub mod runner;
 
+pub use instruments::{Instruments, InstrumentsError, RunObserver};
+pub use job::{JobError, JobReport, create_run_dir, run_job};
+pub use cancel::{Cancel, CancelHandle, cancel_pair};
 pub use machine::{Action, Event, FrameRole, Outcome, Series, Tracked, TrackingConfig};
 pub use plan::{PlanError, SeriesConfig, SeriesPlan};
+pub use runner::{Captured, SeriesContext, SeriesRecord, SeriesTimings, TrackingStep, run_series};

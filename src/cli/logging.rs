@@ -1,11 +1,17 @@
-//! Logging to stderr: readable on a terminal, JSON lines when not (journald,
-//! files), so a headless lab PC's logs can be searched by field.
+//! Logging to stderr — readable on a terminal, JSON lines when not (journald,
+//! files), so a headless lab PC's logs can be searched by field — and into the
+//! `/log` topic of the run being recorded.
 
 use std::io::IsTerminal;
+use std::sync::OnceLock;
 
-use tracing_subscriber::{EnvFilter, fmt, prelude::*};
+use tracing::Level;
+use tracing_subscriber::{EnvFilter, Layer, fmt, prelude::*};
 
 use crate::config::LogFormat;
+use crate::record::{RecordLogSwitch, record_log_layer};
+
+static RECORD_LOGS: OnceLock<RecordLogSwitch> = OnceLock::new();
 
 /// Installs the global subscriber once. `RUST_LOG` beats `filter`.
 pub fn init(format: LogFormat, filter: Option<&str>) {
@@ -17,16 +23,26 @@ pub fn init(format: LogFormat, filter: Option<&str>) {
         LogFormat::Text => false,
         LogFormat::Auto => !std::io::stderr().is_terminal(),
     };
-    let registry = tracing_subscriber::registry().with(filter);
-    let result = if json {
-        registry
-            .with(fmt::layer().json().with_writer(std::io::stderr))
-            .try_init()
+    let stderr = if json {
+        fmt::layer().json().with_writer(std::io::stderr).boxed()
     } else {
-        registry
-            .with(fmt::layer().with_target(false).with_writer(std::io::stderr))
-            .try_init()
+        fmt::layer()
+            .with_target(false)
+            .with_writer(std::io::stderr)
+            .boxed()
     };
-    // A second init (tests) keeps the first subscriber; nothing to report.
-    drop(result);
+    let (record_layer, switch) = record_log_layer(Level::INFO);
+    let installed = tracing_subscriber::registry()
+        .with(stderr.with_filter(filter))
+        .with(record_layer)
+        .try_init()
+        .is_ok();
+    if installed {
+        let _ = RECORD_LOGS.set(switch);
+    }
+}
+
+/// The switch that sends log events into the record of the current run.
+pub fn record_logs() -> Option<&'static RecordLogSwitch> {
+    RECORD_LOGS.get()
 }

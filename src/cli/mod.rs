@@ -9,6 +9,7 @@ use clap::{Args, Parser, Subcommand};
 
 use crate::config::{Config, LogFormat};
 
+mod acquire;
 mod check_config;
 mod logging;
 
@@ -49,6 +50,12 @@ impl ConfigArgs {
 
 #[derive(Debug, Subcommand)]
 pub enum Command {
+    /// One run now: tilt series, end micrographs, reconstruction, record.
+    /// The last line on stdout is the run directory.
+    Acquire {
+        #[command(flatten)]
+        config: ConfigArgs,
+    },
     /// Validate a configuration file (all layers) and print the effective configuration.
     CheckConfig {
         /// The configuration file.
@@ -72,6 +79,7 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         cli.log.as_deref(),
     );
     match cli.command {
+        Command::Acquire { config } => acquire::run(&config),
         Command::CheckConfig {
             file,
             overrides,

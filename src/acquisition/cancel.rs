@@ -1,0 +1,91 @@
+//! Cancellation of a run: the operator (Ctrl-C, SIGTERM, the daemon stopping)
+//! asks once, with a reason; every await point of the run can observe it.
+
+use tokio::sync::watch;
+
+/// The asking side. Cloneable; the first reason wins.
+#[derive(Debug, Clone)]
+pub struct CancelHandle(watch::Sender<Option<String>>);
+
+/// The observing side, held by the run.
+#[derive(Debug, Clone)]
+pub struct Cancel(watch::Receiver<Option<String>>);
+
+/// A new pair.
+#[must_use]
+pub fn cancel_pair() -> (CancelHandle, Cancel) {
+    let (tx, rx) = watch::channel(None);
+    (CancelHandle(tx), Cancel(rx))
+}
+
+impl CancelHandle {
+    /// Asks the run to stop; later reasons are ignored.
+    pub fn cancel(&self, reason: impl Into<String>) {
+        let reason = reason.into();
+        self.0.send_if_modified(|current| {
+            if current.is_none() {
+                *current = Some(reason);
+                true
+            } else {
+                false
+            }
+        });
+    }
+
+    /// Whether a cancellation was asked.
+    #[must_use]
+    pub fn is_cancelled(&self) -> bool {
+        self.0.borrow().is_some()
+    }
+}
+
+impl Cancel {
+    /// A signal that never fires (runs without an operator).
+    #[must_use]
+    pub fn never() -> Self {
+        // The sender is dropped at once: `cancelled()` then waits forever.
+        let (_, rx) = watch::channel(None);
+        Self(rx)
+    }
+
+    /// The reason, once cancelled.
+    #[must_use]
+    pub fn reason(&self) -> Option<String> {
+        self.0.borrow().clone()
+    }
+
+    /// Completes with the reason when the run is cancelled.
+    pub async fn cancelled(&mut self) -> String {
+        loop {
+            if let Some(reason) = self.0.borrow_and_update().clone() {
+                return reason;
+            }
+            if self.0.changed().await.is_err() {
+                // Every handle is gone: nobody can cancel any more.
+                std::future::pending::<()>().await;
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[tokio::test]
+    async fn first_reason_wins_and_is_seen_late() {
+        let (handle, mut cancel) = cancel_pair();
+        assert!(cancel.reason().is_none());
+        handle.cancel("SIGTERM");
+        handle.cancel("SIGINT");
+        assert_eq!(cancel.cancelled().await, "SIGTERM");
+        assert_eq!(cancel.reason().as_deref(), Some("SIGTERM"));
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn never_does_not_fire() {
+        let mut cancel = Cancel::never();
+        let r = tokio::time::timeout(std::time::Duration::from_secs(5), cancel.cancelled()).await;
+        assert!(r.is_err());
+    }
+}

@@ -1,0 +1,285 @@
+//! One acquisition run, start to finish: record, connect, tilt series, end
+//! micrographs on disk, reconstruction, outcome. `sdsem acquire` runs one; the
+//! daemon runs one per job, keeping the instruments connected between them.
+//!
+//! Once the record exists, every failure ends up in it (the outcome metadata,
+//! the `/log` topic) and the function still returns a report: the caller learns
+//! how the run ended from [`JobReport::outcome`], never from a lost error.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use tracing::{error, info, warn};
+
+use super::cancel::Cancel;
+use super::instruments::Instruments;
+use super::machine::{FrameRole, Outcome, Series};
+use super::runner::{Captured, SeriesContext, SeriesRecord, run_series};
+use crate::config::Config;
+use crate::imaging::file::{MicrographTags, SampleDepth, write_micrograph_tiff};
+use crate::record::{
+    RecordLogSwitch, RecordSummary, Recorder, RecorderHandle, RecorderOptions, RunOutcome,
+    RunStatus, topics,
+};
+use crate::stage::observer::wall_ns;
+use crate::vision::registration::PhaseCorrelationParams;
+
+/// File names inside a run directory (DESIGN §4).
+pub mod files {
+    pub const RECORD: &str = "run.mcap";
+    pub const LEFT: &str = "left.tif";
+    pub const RIGHT: &str = "right.tif";
+    pub const CONFIG: &str = "config.toml";
+}
+
+/// Why a run could not even be recorded.
+#[derive(Debug, thiserror::Error)]
+pub enum JobError {
+    #[error("cannot create the run directory {path}")]
+    RunDir {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("cannot create the run record {path}")]
+    Record {
+        path: PathBuf,
+        source: crate::record::RecordError,
+    },
+}
+
+/// How a run ended and what it left behind.
+#[derive(Debug)]
+pub struct JobReport {
+    pub run_dir: PathBuf,
+    pub outcome: Outcome,
+    /// The series, when the instruments could be reached.
+    pub series: Option<SeriesRecord>,
+    /// The record as finished; `Err` with the cause when it could not be completed.
+    pub record: Result<RecordSummary, String>,
+}
+
+/// Creates `<output_dir>/<name>-<UTC time>` (with a numeric suffix if taken).
+///
+/// # Errors
+/// [`JobError::RunDir`] when the directory cannot be created.
+pub fn create_run_dir(output_dir: &Path, name: &str) -> Result<PathBuf, JobError> {
+    let stamp = compact_utc(wall_ns());
+    let fail = |path: &Path, source| JobError::RunDir {
+        path: path.to_owned(),
+        source,
+    };
+    std::fs::create_dir_all(output_dir).map_err(|e| fail(output_dir, e))?;
+    for n in 0..1000 {
+        let dir_name = if n == 0 {
+            format!("{name}-{stamp}")
+        } else {
+            format!("{name}-{stamp}-{n}")
+        };
+        let path = output_dir.join(dir_name);
+        match std::fs::create_dir(&path) {
+            Ok(()) => return Ok(path),
+            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {}
+            Err(e) => return Err(fail(&path, e)),
+        }
+    }
+    Err(fail(
+        output_dir,
+        std::io::Error::other("a thousand runs started in the same second"),
+    ))
+}
+
+/// `YYYYMMDDThhmmssZ`.
+fn compact_utc(ns: u64) -> String {
+    let digits: String = crate::record::utc_time(ns)
+        .chars()
+        .filter(char::is_ascii_digit)
+        .take(14)
+        .collect();
+    format!("{}T{}Z", &digits[..8], &digits[8..])
+}
+
+/// Runs one acquisition into `run_dir` (which must exist). Connects the
+/// instruments itself unless `instruments` are given (the daemon keeps them).
+///
+/// # Errors
+/// [`JobError`] only when the record cannot be created; everything after that
+/// is reported in [`JobReport::outcome`] and in the record.
+pub async fn run_job(
+    config: &Config,
+    instruments: Option<&mut Instruments>,
+    run_dir: &Path,
+    cancel: Cancel,
+    logs: Option<&RecordLogSwitch>,
+) -> Result<JobReport, JobError> {
+    let record_path = run_dir.join(files::RECORD);
+    let recorder =
+        Recorder::create(&record_path, RecorderOptions::default()).map_err(|source| {
+            JobError::Record {
+                path: record_path.clone(),
+                source,
+            }
+        })?;
+    let rec = recorder.handle();
+    if let Some(logs) = logs {
+        logs.attach(rec.clone());
+    }
+    let config_text = config.to_toml();
+    if let Err(e) = std::fs::write(run_dir.join(files::CONFIG), &config_text) {
+        warn!("cannot write the effective configuration beside the record: {e}");
+    }
+    let _ = rec.metadata(topics::METADATA_RUN, run_metadata(config, &config_text));
+    info!(run_dir = %run_dir.display(), "run started");
+
+    let (outcome, series) = acquire(config, instruments, run_dir, &rec, cancel).await;
+
+    let (status, cause) = match &outcome {
+        Outcome::Completed => (RunStatus::Succeeded, None),
+        Outcome::Failed { reason } => (RunStatus::Failed, Some(reason.clone())),
+        Outcome::Interrupted { reason } => (RunStatus::Aborted, Some(reason.clone())),
+    };
+    let _ = rec.outcome(&RunOutcome { status, cause });
+    if let Some(logs) = logs {
+        logs.detach();
+    }
+    drop(rec);
+    let record = recorder.finish().map_err(|e| {
+        error!("the run record {} is incomplete: {e}", record_path.display());
+        e.to_string()
+    });
+    Ok(JobReport {
+        run_dir: run_dir.to_owned(),
+        outcome,
+        series,
+        record,
+    })
+}
+
+async fn acquire(
+    config: &Config,
+    instruments: Option<&mut Instruments>,
+    run_dir: &Path,
+    rec: &RecorderHandle,
+    mut cancel: Cancel,
+) -> (Outcome, Option<SeriesRecord>) {
+    let plan = match config.plan() {
+        Ok(plan) => plan,
+        Err(e) => return (failed(format!("invalid series: {e}")), None),
+    };
+    let mut owned;
+    let instruments = match instruments {
+        Some(i) => i,
+        None => match Instruments::connect(config).await {
+            Ok(i) => {
+                owned = i;
+                &mut owned
+            }
+            Err(e) => return (failed(format!("cannot reach the instruments: {e}")), None),
+        },
+    };
+    instruments.observer.attach(rec.clone());
+    let mut ids = BTreeMap::new();
+    ids.insert("stage".to_owned(), instruments.stage_identity.clone());
+    ids.insert("sem".to_owned(), instruments.sem_identity.clone());
+    let _ = rec.metadata("sdsem.instruments", ids);
+
+    let mut series = Series::new(plan, config.tracking, config.stage.safe_tilt_deg);
+    let mut ctx = SeriesContext {
+        stage: &mut instruments.stage,
+        imaging: &mut instruments.imaging,
+        imaging_config: &config.imaging,
+        recorder: rec,
+        phase: PhaseCorrelationParams::default(),
+    };
+    let record = run_series(&mut series, &mut ctx, &mut cancel).await;
+    instruments.observer.detach();
+
+    let mut outcome = record.outcome.clone();
+    if outcome.is_completed()
+        && let Err(e) = write_micrographs(&record, run_dir)
+    {
+        outcome = failed(format!("cannot write the micrographs: {e}"));
+    }
+    (outcome, Some(record))
+}
+
+fn failed(reason: String) -> Outcome {
+    error!("{reason}");
+    Outcome::Failed { reason }
+}
+
+/// `left.tif` and `right.tif`, 16-bit, with tilt and pixel size in their metadata.
+fn write_micrographs(record: &SeriesRecord, run_dir: &Path) -> Result<(), String> {
+    for (role, captured, name) in [
+        (FrameRole::Left, &record.left, files::LEFT),
+        (FrameRole::Right, &record.right, files::RIGHT),
+    ] {
+        let Some(Captured { frame, image }) = captured else {
+            return Err(format!("the {role} micrograph was not captured"));
+        };
+        let mut extra = serde_json::Map::new();
+        extra.insert("role".into(), role.as_str().into());
+        extra.insert("stage_x_um".into(), frame.meta.stage_x_um.into());
+        extra.insert("stage_y_um".into(), frame.meta.stage_y_um.into());
+        extra.insert("tilt_axis_deg".into(), frame.meta.tilt_axis_deg.into());
+        extra.insert("dwell_us".into(), frame.meta.dwell_us.into());
+        extra.insert("frame".into(), frame.meta.frame.into());
+        let tags = MicrographTags {
+            pixel_size_um: Some(frame.meta.pixel_size_um),
+            tilt_deg: Some(frame.meta.tilt_deg),
+            extra,
+        };
+        let depth = if frame.pixels.bits() == 8 {
+            SampleDepth::Bits8
+        } else {
+            SampleDepth::Bits16
+        };
+        let path = run_dir.join(name);
+        write_micrograph_tiff(&path, image, &tags, depth)
+            .map_err(|e| format!("{}: {e}", path.display()))?;
+    }
+    Ok(())
+}
+
+fn run_metadata(config: &Config, config_text: &str) -> BTreeMap<String, String> {
+    let mut m = BTreeMap::new();
+    m.insert("job".to_owned(), config.run.name.clone());
+    m.insert("config".to_owned(), config_text.to_owned());
+    m.insert("version".to_owned(), env!("CARGO_PKG_VERSION").to_owned());
+    m.insert("host".to_owned(), host_name());
+    m.insert("started".to_owned(), crate::record::utc_time(wall_ns()));
+    m.insert(
+        "simulated".to_owned(),
+        config.simulator.is_some().to_string(),
+    );
+    m
+}
+
+fn host_name() -> String {
+    std::fs::read_to_string("/proc/sys/kernel/hostname")
+        .map(|s| s.trim().to_owned())
+        .ok()
+        .filter(|s| !s.is_empty())
+        .or_else(|| std::env::var("HOSTNAME").ok())
+        .unwrap_or_else(|| "unknown".to_owned())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn compact_time_is_sortable() {
+        // 2026-11-22 03:04:05 UTC
+        let ns = 1_795_316_645_000_000_000;
+        assert_eq!(compact_utc(ns), "20261122T030405Z");
+    }
+
+    #[test]
+    fn run_dirs_do_not_collide() {
+        let dir = tempfile::tempdir().unwrap();
+        let a = create_run_dir(dir.path(), "run").unwrap();
+        let b = create_run_dir(dir.path(), "run").unwrap();
+        assert_ne!(a, b);
+        assert!(a.is_dir() && b.is_dir());
+    }
+}
