@@ -116,7 +116,11 @@ impl Simulator {
         };
         handle.add("stage", server);
         let SimEndpoint::Tcp(sem_addr) = config.sem.endpoint else {
-            unreachable!("SemSimConfig::validate accepts TCP endpoints only")
+            // Refused by SemSimConfig::validate already; kept as an error, not a panic.
+            return Err(SimError::Config {
+                field: "sem.endpoint",
+                reason: "the SEM imaging link is TCP only".into(),
+            });
         };
         let server = sem_server::serve_tcp(sem_addr, sem, Arc::clone(&stop))?;
         handle.sem_addr = server.wake.unwrap_or(sem_addr);
