@@ -27,13 +27,14 @@
 //! - `GRAB`: `role` is `tracking`, `left` or `right` (recorded in the metadata,
 //!   it changes nothing in the scan); `dwell_us` is the pixel dwell time in µs
 //!   (0 < dwell ≤ 10 000); `bits` is `16` (default) or `8`. The server scans
-//!   the frame (taking width × height × dwell) at the stage pose of the start
-//!   of the scan. The payload is row-major, x right, y down, unsigned
+//!   the frame (taking width × height × dwell; a simulator running faster than
+//!   real time takes that long in its simulated time) at the stage pose of
+//!   the start of the scan. The payload is row-major, x right, y down, unsigned
 //!   little-endian samples of `bits` bits: `nbytes = width·height·bits/8`.
 //! - `<json>` is one line of JSON, [`FrameMeta`]: frame number, role, pixel
 //!   size (µm), dwell (µs), stage X/Y (µm) and tilt (°) at the start of the
-//!   scan, tilt-axis direction and scan rotation (°), scan start and end (ns
-//!   since the Unix epoch). Readers ignore keys they do not know, so the
+//!   scan, tilt-axis direction and scan rotation (°), scan start and end
+//!   (wall-clock ns since the Unix epoch). Readers ignore keys they do not know, so the
 //!   server may add some.
 //! - `HEIGHTMAP`: the true height (µm, up towards the beam) of the surface
 //!   seen at each pixel of frame `<frame>`, row-major little-endian `f32`,

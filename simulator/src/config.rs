@@ -1,5 +1,15 @@
 //! Simulator configuration: serde structs with documented defaults, so `sdsem`'s
-//! configuration file can embed them under `[simulator]`.
+//! configuration file embeds them as `[simulator]`, `[simulator.stage]`,
+//! `[simulator.sem]` (with `[simulator.sem.scene]`, `.optics`, `.walk`,
+//! `.shading`, `.noise`).
+//!
+//! ## Seeds
+//! One `simulator.seed` drives everything. Every `seed` left unset below it
+//! is derived from its parent's ([`derive_seed`]): `stage.seed` (fault draws)
+//! and `sem.seed` from `simulator.seed`; `sem.scene.seed` (the specimen),
+//! `sem.walk.seed` (the random walk) and the scan-noise seed from `sem.seed`.
+//! Setting one fixes that part whatever its parent is. [`SimConfig::resolved`]
+//! fills them all in, so the effective configuration names every seed used.
 
 use std::fmt;
 use std::net::SocketAddr;
@@ -10,19 +20,33 @@ use serde::{Deserialize, Serialize};
 use sdsem_protocol::gcs::AxisId;
 
 use crate::SimError;
+use crate::render::{NoiseParams, OpticsParams, ShadingParams};
+use crate::scene::SceneParams;
+use crate::scene::noise::mix64;
+use crate::walk::WalkParams;
 
-/// Everything the simulator needs. The SEM imaging part adds its own table beside `stage`.
+/// Everything the simulator needs: the time base, the seed, and one table per
+/// simulated instrument.
+///
+/// | field | default | effect |
+/// | --- | --- | --- |
+/// | `seed` | 0 | seed of every random choice (faults, specimen, walk, scan noise), see the module docs |
+/// | `time_scale` | 1 | real seconds per simulated second: 0.01 runs motion, settling and scans 100× faster than real time; 1 is real time |
+/// | `stage` | see [`StageSimConfig`] | the PI GCS stage controller |
+/// | `sem` | see [`SemSimConfig`] | the SEM imaging server |
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct SimConfig {
-    /// Seed of every random choice (fault probabilities, which byte a garbled reply
-    /// loses): the same seed and the same commands give the same behaviour. Default 0.
+    /// Seed of every random choice: the same seed and the same commands give
+    /// the same replies, faults and frames. Default 0.
     pub seed: u64,
-    /// Real seconds per simulated second: 0.01 makes motion and settling 100×
-    /// faster than real time; 1 is real time. Default 1.
+    /// Real seconds per simulated second: 0.01 makes motion, settling and
+    /// scans 100× faster than real time; 1 is real time. Default 1.
     pub time_scale: f64,
     /// The simulated stage controller.
     pub stage: StageSimConfig,
+    /// The simulated SEM's imaging server.
+    pub sem: SemSimConfig,
 }
 
 impl Default for SimConfig {
@@ -31,7 +55,33 @@ impl Default for SimConfig {
             seed: 0,
             time_scale: 1.0,
             stage: StageSimConfig::default(),
+            sem: SemSimConfig::default(),
         }
+    }
+}
+
+/// The seed of the part called `name` under a part seeded `parent`: a
+/// well-mixed hash, so that sibling parts never correlate.
+#[must_use]
+pub fn derive_seed(parent: u64, name: &str) -> u64 {
+    // FNV-1a of the name, then SplitMix64 with the parent.
+    let tag = name.bytes().fold(0xCBF2_9CE4_8422_2325_u64, |h, b| {
+        (h ^ u64::from(b)).wrapping_mul(0x0000_0100_0000_01B3)
+    });
+    mix64(parent ^ mix64(tag))
+}
+
+impl SimConfig {
+    /// This configuration with every unset seed derived (module docs): what
+    /// the simulator runs, and what a record should store.
+    #[must_use]
+    pub fn resolved(&self) -> Self {
+        let mut c = self.clone();
+        c.stage
+            .seed
+            .get_or_insert_with(|| derive_seed(self.seed, "stage"));
+        c.sem = self.sem.resolved(self.seed);
+        c
     }
 }
 
@@ -89,6 +139,10 @@ impl fmt::Display for SimEndpoint {
 pub struct StageSimConfig {
     /// Where the controller listens. Default `tcp://127.0.0.1:0`.
     pub endpoint: SimEndpoint,
+    /// Seed of the fault draws (probabilities, garbled bytes). Default: derived
+    /// from `simulator.seed`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub seed: Option<u64>,
     /// Answer to `*IDN?`.
     pub idn: String,
     /// GCS identifier of the X axis. Default `X` (real stages often use `1`).
@@ -134,6 +188,7 @@ impl Default for StageSimConfig {
     fn default() -> Self {
         Self {
             endpoint: SimEndpoint::Tcp(SocketAddr::from(([127, 0, 0, 1], 0))),
+            seed: None,
             idn: format!(
                 "sdsem-sim, simulated PI GCS 2.0 stage controller, SN 0, {}",
                 env!("CARGO_PKG_VERSION")
@@ -240,6 +295,76 @@ impl Default for FaultConfig {
     }
 }
 
+/// The simulated SEM's imaging server (protocol: [`sdsem_protocol::sem`]).
+///
+/// | field | default | effect |
+/// | --- | --- | --- |
+/// | `endpoint` | `tcp://127.0.0.1:0` | where the imaging server listens (TCP only; port 0 picks a free port) |
+/// | `seed` | derived | seed of the SEM side (specimen, walk, scan noise); unset: derived from `simulator.seed` |
+/// | `scene` | particles, 200 µm | the specimen ([`SceneParams`]) |
+/// | `optics` | 1280×960, 0.1 µm, φ = 0 | full-resolution frame and pixel size, tilt axis, scan rotation, stage-to-image mapping ([`OpticsParams`]) |
+/// | `walk` | 5 px/° + random 3 px per 2° | eucentric walk in full-resolution pixels ([`WalkParams`]) |
+/// | `shading` | see [`ShadingParams`] | SE contrast |
+/// | `noise` | 30 e⁻/µs | scan noise ([`NoiseParams`]) |
+/// | `drift_um_per_s` | [0, 0] | slow drift of the specimen in the image plane, µm per simulated second |
+/// | `history` | 100 000 | frames whose views are kept for ground truth (~100 bytes each) |
+/// | `identity` | `sdsem,virtual-sem,0,<version>` | the `*IDN?` answer |
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct SemSimConfig {
+    pub endpoint: SimEndpoint,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub seed: Option<u64>,
+    pub scene: SceneParams,
+    pub optics: OpticsParams,
+    pub walk: WalkParams,
+    pub shading: ShadingParams,
+    pub noise: NoiseParams,
+    pub drift_um_per_s: [f64; 2],
+    pub history: usize,
+    pub identity: String,
+}
+
+impl Default for SemSimConfig {
+    fn default() -> Self {
+        Self {
+            endpoint: SimEndpoint::Tcp(SocketAddr::from(([127, 0, 0, 1], 0))),
+            seed: None,
+            scene: SceneParams::default(),
+            optics: OpticsParams::default(),
+            walk: WalkParams::default(),
+            shading: ShadingParams::default(),
+            noise: NoiseParams::default(),
+            drift_um_per_s: [0.0, 0.0],
+            history: 100_000,
+            identity: format!("sdsem,virtual-sem,0,{}", env!("CARGO_PKG_VERSION")),
+        }
+    }
+}
+
+impl SemSimConfig {
+    /// This configuration with `seed`, `scene.seed` and `walk.seed` filled in
+    /// (when unset) from the simulator's seed `simulator_seed`.
+    #[must_use]
+    pub fn resolved(&self, simulator_seed: u64) -> Self {
+        let mut c = self.clone();
+        let seed = *c
+            .seed
+            .get_or_insert_with(|| derive_seed(simulator_seed, "sem"));
+        c.scene
+            .seed
+            .get_or_insert_with(|| derive_seed(seed, "scene"));
+        c.walk.seed.get_or_insert_with(|| derive_seed(seed, "walk"));
+        c
+    }
+
+    /// The seed of the scan noise (frame `k` uses a hash of it and `k`).
+    #[must_use]
+    pub fn noise_seed(&self) -> u64 {
+        derive_seed(self.seed.unwrap_or(0), "noise")
+    }
+}
+
 fn invalid(field: &'static str, reason: impl Into<String>) -> SimError {
     SimError::Config {
         field,
@@ -278,7 +403,82 @@ impl SimConfig {
     /// Checks every value, naming the first wrong field.
     pub fn validate(&self) -> Result<(), SimError> {
         positive("time_scale", self.time_scale)?;
-        self.stage.validate()
+        self.stage.validate()?;
+        self.sem.validate()
+    }
+}
+
+fn finite(field: &'static str, v: f64) -> Result<(), SimError> {
+    if v.is_finite() {
+        Ok(())
+    } else {
+        Err(invalid(field, format!("must be a finite number, got {v}")))
+    }
+}
+
+fn non_negative(field: &'static str, v: f64) -> Result<(), SimError> {
+    if v.is_finite() && v >= 0.0 {
+        Ok(())
+    } else {
+        Err(invalid(field, format!("must be ≥ 0, got {v}")))
+    }
+}
+
+impl SemSimConfig {
+    /// Checks every value, naming the first wrong field. (The scene's own
+    /// ranges are checked when it is built.)
+    pub fn validate(&self) -> Result<(), SimError> {
+        if self.endpoint == SimEndpoint::Pty {
+            return Err(invalid(
+                "sem.endpoint",
+                "the SEM imaging link is TCP only: write tcp://IP:PORT, e.g. tcp://127.0.0.1:0",
+            ));
+        }
+        let o = &self.optics;
+        let max = sdsem_protocol::sem::MAX_SIDE;
+        for (field, side) in [
+            ("sem.optics.width", o.width),
+            ("sem.optics.height", o.height),
+        ] {
+            if side == 0 || u32::try_from(side).map_or(true, |s| s > max) {
+                return Err(invalid(
+                    field,
+                    format!("must be 1 to {max} pixels, got {side}"),
+                ));
+            }
+        }
+        positive("sem.optics.pixel_size_um", o.pixel_size_um)?;
+        finite("sem.optics.tilt_axis_deg", o.tilt_axis_deg)?;
+        finite("sem.optics.scan_rotation_deg", o.scan_rotation_deg)?;
+        if o.stage_to_image.iter().flatten().any(|v| !v.is_finite()) {
+            return Err(invalid(
+                "sem.optics.stage_to_image",
+                "every entry must be a finite number",
+            ));
+        }
+        let w = &self.walk;
+        finite("sem.walk.px_per_deg", w.px_per_deg)?;
+        finite("sem.walk.direction_deg", w.direction_deg)?;
+        non_negative("sem.walk.random_px", w.random_px)?;
+        positive("sem.walk.knot_deg", w.knot_deg)?;
+        // Infinity is allowed: no shot noise.
+        let e = self.noise.electrons_per_us;
+        if e.is_nan() || e <= 0.0 {
+            return Err(invalid(
+                "sem.noise.electrons_per_us",
+                format!("must be > 0, got {}", self.noise.electrons_per_us),
+            ));
+        }
+        non_negative("sem.noise.read_noise", self.noise.read_noise)?;
+        finite("sem.drift_um_per_s", self.drift_um_per_s[0])?;
+        finite("sem.drift_um_per_s", self.drift_um_per_s[1])?;
+        if self.history == 0 {
+            return Err(invalid("sem.history", "must keep at least 1 frame"));
+        }
+        if self.identity.trim().is_empty() || self.identity.contains(['\n', '\r']) {
+            return Err(invalid("sem.identity", "must be one non-empty line"));
+        }
+        Ok(())
     }
 }
 
@@ -348,6 +548,7 @@ impl FaultConfig {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::scene::SceneKind;
 
     #[test]
     fn defaults_are_valid_and_round_trip_through_json() {
@@ -360,13 +561,18 @@ mod tests {
         );
         let back: SimConfig = serde_json::from_str(&json).unwrap();
         assert_eq!(back, c);
+        let resolved = c.resolved();
+        let back: SimConfig =
+            serde_json::from_str(&serde_json::to_string(&resolved).unwrap()).unwrap();
+        assert_eq!(back, resolved, "seeds survive a round trip");
     }
 
     #[test]
     fn partial_tables_keep_the_other_defaults() {
         let c: SimConfig = serde_json::from_str(
             r#"{"time_scale": 0.01, "stage": {"tilt_max_deg": 60, "endpoint": "pty",
-                "faults": {"drop_reply": {"at": [3]}}}}"#,
+                "faults": {"drop_reply": {"at": [3]}}},
+                "sem": {"scene": {"kind": "grid"}, "walk": {"px_per_deg": 2.5}}}"#,
         )
         .unwrap();
         assert_eq!(c.time_scale, 0.01);
@@ -375,6 +581,11 @@ mod tests {
         assert_eq!(c.stage.endpoint, SimEndpoint::Pty);
         assert_eq!(c.stage.faults.drop_reply.at, vec![3]);
         assert_eq!(c.stage.faults.late_reply_delay_s, 2.0);
+        assert_eq!(c.sem.scene.kind, SceneKind::Grid);
+        assert_eq!(c.sem.scene.field_um, 200.0);
+        assert_eq!(c.sem.walk.px_per_deg, 2.5);
+        assert_eq!(c.sem.walk.direction_deg, 60.0);
+        assert_eq!(c.sem.optics.pixel_size_um, 0.1);
     }
 
     #[test]
@@ -383,6 +594,46 @@ mod tests {
         assert!(
             serde_json::from_str::<SimConfig>(r#"{"stage": {"endpoint": "udp://x"}}"#).is_err()
         );
+        assert!(serde_json::from_str::<SimConfig>(r#"{"sem": {"optics": {"pixel": 1}}}"#).is_err());
+        assert!(
+            serde_json::from_str::<SimConfig>(r#"{"sem": {"walk": {"linear_um_per_deg": 1}}}"#)
+                .is_err()
+        );
+    }
+
+    #[test]
+    fn one_seed_drives_every_part_unless_a_part_sets_its_own() {
+        let at = |seed| {
+            SimConfig {
+                seed,
+                ..SimConfig::default()
+            }
+            .resolved()
+        };
+        let (a, b, c) = (at(7), at(7), at(8));
+        assert_eq!(a, b, "derivation is deterministic");
+        assert!(a.stage.seed.is_some() && a.sem.scene.seed.is_some() && a.sem.walk.seed.is_some());
+        assert_ne!(a.stage.seed, c.stage.seed);
+        assert_ne!(a.sem.seed, c.sem.seed);
+        assert_ne!(a.sem.scene.seed, c.sem.scene.seed);
+        assert_ne!(a.sem.walk.seed, c.sem.walk.seed);
+        assert_ne!(a.sem.noise_seed(), c.sem.noise_seed());
+        // Sibling parts get different seeds.
+        assert_ne!(a.sem.scene.seed, a.sem.walk.seed);
+        assert_ne!(a.stage.seed, a.sem.seed);
+        // An explicit seed wins over its parent's; the rest still follows the parent.
+        let mut fixed = SimConfig {
+            seed: 8,
+            ..SimConfig::default()
+        };
+        fixed.sem.scene.seed = Some(a.sem.scene.seed.unwrap());
+        fixed.stage.seed = Some(42);
+        let fixed = fixed.resolved();
+        assert_eq!(fixed.sem.scene.seed, a.sem.scene.seed);
+        assert_eq!(fixed.stage.seed, Some(42));
+        assert_eq!(fixed.sem.walk.seed, c.sem.walk.seed);
+        // Resolving twice changes nothing.
+        assert_eq!(fixed.resolved(), fixed);
     }
 
     #[test]
@@ -407,5 +658,19 @@ mod tests {
         let mut c = SimConfig::default();
         c.stage.axis_y = c.stage.axis_x.clone();
         assert!(c.validate().is_err());
+        let mut c = SimConfig::default();
+        c.sem.endpoint = SimEndpoint::Pty;
+        let e = c.validate().unwrap_err().to_string();
+        assert!(e.contains("sem.endpoint") && e.contains("TCP only"), "{e}");
+        let mut c = SimConfig::default();
+        c.sem.optics.pixel_size_um = 0.0;
+        let e = c.validate().unwrap_err().to_string();
+        assert!(e.contains("sem.optics.pixel_size_um"), "{e}");
+        let mut c = SimConfig::default();
+        c.sem.walk.px_per_deg = f64::NAN;
+        assert!(c.validate().unwrap_err().to_string().contains("px_per_deg"));
+        let mut c = SimConfig::default();
+        c.sem.noise = NoiseParams::none();
+        c.validate().unwrap();
     }
 }

@@ -2,24 +2,31 @@
 //! real instruments, so `sdsem` runs and is tested without hardware.
 //!
 //! ```text
-//!  client ──bytes──▶ stage_link (TCP / pty, std threads) ──▶ CommandFramer ──▶ SimStage
-//!                                                                    │  Mutex<StageModel> (pure)
-//!                                                 Clock (scaled) ────┤  faults (seeded)
-//!                                                                    ▼
-//!                                      PoseSource ──▶ SEM renderer (where the stage is now)
+//!  GCS client ──bytes──▶ stage_link (TCP / pty) ──▶ CommandFramer ──▶ SimStage
+//!                                                          │  Mutex<StageModel> (pure, faults seeded)
+//!                              one Clock (time_scale) ─────┤
+//!                                                          ▼ PoseSource (the pose now, mid-move too)
+//!  SEM client ──bytes──▶ sem_server (TCP) ──▶ RequestDecoder ──▶ SimSem ──▶ render(Scene, View)
+//!                                                                   │  walk, drift, scan noise (seeded)
+//!                                                                   ▼  frame records → ground truth
 //! ```
 //!
-//! The device model ([`stage_model::StageModel`]) is pure: framed commands and the
-//! simulated time in, replies out. The links only move bytes. Time comes from a
-//! [`clock::Clock`]: real time scaled by `time_scale`, or a manual clock in tests.
-//! [`Simulator::spawn`] starts everything on background threads and returns a
-//! [`SimHandle`] with the endpoints, read access to the model, and a way to stop.
+//! The device models are pure or nearly so: [`stage_model::StageModel`] takes
+//! framed commands and the simulated time and answers replies; [`sem::SimSem`]
+//! takes SEM requests and renders frames where the stage is. The links only
+//! move bytes. Time comes from one [`clock::Clock`]: `time_scale` real seconds
+//! per simulated second (0.01 ⇒ 100× faster), or a manual clock in tests. One
+//! [`SimConfig`] describes both instruments, one `seed` drives them.
+//! [`Simulator::spawn`] builds the specimen, starts both servers on background
+//! threads and returns a [`SimHandle`] with both endpoints, the stage's state,
+//! the SEM's frames and their ground truth, and a way to stop.
 
 pub mod clock;
 pub mod config;
 pub mod pose;
 pub mod render;
 pub mod scene;
+pub mod sem;
 pub mod sem_server;
 pub mod simulator;
 pub mod stage;
@@ -27,7 +34,10 @@ mod stage_link;
 pub mod stage_model;
 pub mod walk;
 
-pub use config::{FaultConfig, FaultTrigger, SimConfig, SimEndpoint, StageSimConfig};
+pub use config::{
+    FaultConfig, FaultTrigger, SemSimConfig, SimConfig, SimEndpoint, StageSimConfig, derive_seed,
+};
+pub use sem::{FrameRecord, SimSem};
 pub use simulator::{ServiceEndpoint, SimHandle, Simulator};
 pub use stage::SimStage;
 
@@ -42,16 +52,29 @@ pub enum SimError {
         /// What is wrong and what is accepted.
         reason: String,
     },
-    /// The TCP endpoint cannot be bound.
+    /// The simulated specimen cannot be built.
+    #[error("cannot build the simulated specimen (sem.scene): {0}")]
+    Scene(#[from] crate::scene::SceneError),
+    /// A TCP endpoint cannot be bound.
     #[error(
-        "cannot listen for the stage link on {addr}: {error}; \
+        "cannot listen for the {service} link on {addr}: {error}; \
          listen on a local address and a free port (port 0 picks one), or stop the program \
          already listening there"
     )]
     Bind {
+        /// Which link: `stage` or `SEM imaging`.
+        service: &'static str,
         /// The address asked for.
         addr: std::net::SocketAddr,
         /// The system's reason (not a `source`: the message already shows it).
+        error: std::io::Error,
+    },
+    /// A listener handed to a server cannot be used.
+    #[error("cannot serve the {service} link on the listener given: {error}")]
+    Listener {
+        /// Which link.
+        service: &'static str,
+        /// The system's reason.
         error: std::io::Error,
     },
     /// No pseudo-terminal can be created.

@@ -1,138 +1,363 @@
-//! `sdsem-sim` binary: parse flags into a [`SimConfig`], start the simulator,
-//! print one machine-readable line per endpoint on stdout (`stage tcp://127.0.0.1:40123`),
-//! then serve until killed or until stdin closes.
+//! `sdsem-sim` binary: build a [`SimConfig`] from an optional TOML file and the
+//! flags, start the stage controller and the SEM imaging server, print one
+//! machine-readable line per endpoint on stdout (`stage tcp://127.0.0.1:40123`,
+//! `sem tcp://127.0.0.1:40124`), then serve until killed or until stdin closes.
 
 use std::io::{IsTerminal, Read, Write};
 use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
 
 use anyhow::Context;
 use clap::Parser;
 use sdsem_protocol::gcs::AxisId;
+use sdsem_sim::scene::SceneKind;
 use sdsem_sim::{FaultTrigger, SimConfig, SimEndpoint, Simulator};
 
-/// Stage-and-SEM simulator for sdsem: a PI GCS 2.0 stage controller (axes X, Y in µm,
-/// tilt T in degrees) with finite speed, settling, soft limits, referencing, servo
-/// state and faults on demand.
-///
-/// Prints `stage ENDPOINT` on stdout once listening, then serves until killed or
-/// until its stdin (when a pipe or a terminal) closes.
+const PROTOCOLS: &str = "\
+OUTPUT
+  Once both instruments listen, one line per service on stdout:
+    stage tcp://127.0.0.1:PORT      (or: stage /dev/pts/N with --stage-pty)
+    sem tcp://127.0.0.1:PORT
+  Logs go to stderr (RUST_LOG filters them). The simulator stops when killed
+  or when its stdin, if a pipe or a terminal, closes.
+
+STAGE LINK (PI GCS 2.0 subset; ASCII lines ending in LF)
+  Axes X, Y (µm) and T (tilt, °); --axis-names renames them.
+  MOV|MVR <axis> <value> ...   SVO <axis> 0|1 ...   FRF [axes]   STP
+  POS? ONT? SVO? FRF? TMN? TMX? [axes]   ERR?   *IDN?
+  Single bytes: 0x05 motion bitmap, 0x07 ready (0xB1), 0x18 stop all.
+  Commands do not answer: ask ERR? after one. Multi-axis replies end each
+  line but the last with \" \\n\". Motion has finite speed, then settles.
+
+SEM LINK (TCP; one request line, one reply header line, maybe a payload)
+  *IDN?                                  -> IDN <vendor>,<model>,<serial>,<version>
+  PIXELSIZE? <width>                     -> PIXELSIZE <width> <um>
+  GRAB <w> <h> <dwell_us> <tracking|left|right> [8|16]
+                                         -> FRAME <w> <h> <bits> <nbytes> <json> + samples
+  GROUNDTRUTH <frame> [<path>]           -> HEIGHTMAP <w> <h> 32 <nbytes> <json> + f32 um,
+                                            or OK after writing a GSF file at <path>
+  errors                                 -> ERR <code> <message>
+  A frame is scanned at the stage pose of the start of its scan (in the JSON
+  metadata with the scan's wall-clock start and end) and takes w*h*dwell of
+  simulated time. Samples are row-major little-endian, x right, y down.
+
+TIME
+  --time-scale is real seconds per simulated second: 0.01 makes moves,
+  settling and scans 100x faster than real time. Late replies (a fault) are
+  delayed in real seconds.
+
+CONFIGURATION FILE
+  --config FILE reads a TOML SimConfig: keys seed, time_scale and tables
+  [stage] (with [stage.faults]) and [sem] (with [sem.scene], [sem.optics],
+  [sem.walk], [sem.shading], [sem.noise]). A file with a [simulator] table
+  (sdsem's configuration) is read from that table. Flags override the file.";
+
+/// Stage-and-SEM simulator for sdsem: a PI GCS 2.0 stage controller (axes X, Y
+/// in µm, tilt T in degrees) with finite speed, settling, soft limits,
+/// referencing, servo state and faults on demand, and a SEM imaging server
+/// that renders a known synthetic specimen where the stage is, with eucentric
+/// walk, drift, scan noise and exact ground truth.
 #[derive(Debug, Parser)]
-#[command(name = "sdsem-sim", version)]
+#[command(name = "sdsem-sim", version, after_long_help = PROTOCOLS)]
 struct Args {
-    /// Serve the stage controller on TCP at this address (`127.0.0.1:0` picks a free port).
+    /// Read a SimConfig from this TOML file first (flags override it).
+    #[arg(long, value_name = "FILE")]
+    config: Option<PathBuf>,
+    /// Serve the stage controller on TCP at this address (`127.0.0.1:0` picks a free port; the default).
     #[arg(long, value_name = "ADDR", conflicts_with = "stage_pty")]
     stage_tcp: Option<String>,
     /// Serve the stage controller on a new pseudo-terminal (its path is printed).
     #[arg(long)]
     stage_pty: bool,
-    /// Seed of every random choice (faults).
+    /// Serve the SEM imaging link on TCP at this address (`127.0.0.1:0` picks a free port; the default).
+    #[arg(long, value_name = "ADDR")]
+    sem_tcp: Option<String>,
+    /// Seed of every random choice (faults, specimen, walk, scan noise).
     #[arg(long)]
     seed: Option<u64>,
     /// Real seconds per simulated second (0.01 = 100× faster than real time).
     #[arg(long, value_name = "F")]
     time_scale: Option<f64>,
+
+    /// Specimen: particles, grid, rough or dome.
+    #[arg(long, value_name = "KIND", help_heading = "SEM")]
+    scene: Option<SceneKind>,
+    /// Side of the square specimen, µm (default 200; smaller builds faster).
+    #[arg(long, value_name = "UM", help_heading = "SEM")]
+    scene_field: Option<f64>,
+    /// Full-resolution frame size (default 1280x960).
+    #[arg(long, value_name = "WxH", value_parser = parse_frame, help_heading = "SEM")]
+    frame: Option<(usize, usize)>,
+    /// Pixel size of the full-resolution frame, µm (default 0.1).
+    #[arg(long, value_name = "UM", help_heading = "SEM")]
+    pixel_size: Option<f64>,
+    /// Direction of the stage tilt axis in the image, degrees from +x towards +y (default 0).
+    #[arg(
+        long,
+        value_name = "DEG",
+        allow_hyphen_values = true,
+        help_heading = "SEM"
+    )]
+    tilt_axis: Option<f64>,
+    /// In-plane rotation of the scan, degrees (default 0).
+    #[arg(
+        long,
+        value_name = "DEG",
+        allow_hyphen_values = true,
+        help_heading = "SEM"
+    )]
+    scan_rotation: Option<f64>,
+    /// Eucentric walk, full-resolution pixels per degree of tilt (default 5).
+    #[arg(
+        long,
+        value_name = "PX",
+        allow_hyphen_values = true,
+        help_heading = "SEM"
+    )]
+    walk_px_per_deg: Option<f64>,
+    /// Direction of the eucentric walk in the image, degrees from +x towards +y (default 60).
+    #[arg(
+        long,
+        value_name = "DEG",
+        allow_hyphen_values = true,
+        help_heading = "SEM"
+    )]
+    walk_direction: Option<f64>,
+    /// Random part of the walk: standard deviation per 2° knot, full-resolution pixels (default 3).
+    #[arg(long, value_name = "PX", help_heading = "SEM")]
+    walk_random_px: Option<f64>,
+    /// Specimen drift in the image plane, µm per simulated second along x and y.
+    #[arg(
+        long,
+        value_name = "X,Y",
+        value_delimiter = ',',
+        allow_hyphen_values = true,
+        help_heading = "SEM"
+    )]
+    drift: Option<Vec<f64>>,
+
     /// GCS identifiers of the X, Y and tilt axes.
-    #[arg(long, value_name = "X,Y,T", value_delimiter = ',')]
+    #[arg(
+        long,
+        value_name = "X,Y,T",
+        value_delimiter = ',',
+        help_heading = "Stage"
+    )]
     axis_names: Option<Vec<String>>,
     /// Low tilt soft limit, degrees.
-    #[arg(long, value_name = "DEG", allow_hyphen_values = true)]
+    #[arg(
+        long,
+        value_name = "DEG",
+        allow_hyphen_values = true,
+        help_heading = "Stage"
+    )]
     tilt_min: Option<f64>,
     /// High tilt soft limit, degrees.
-    #[arg(long, value_name = "DEG", allow_hyphen_values = true)]
+    #[arg(
+        long,
+        value_name = "DEG",
+        allow_hyphen_values = true,
+        help_heading = "Stage"
+    )]
     tilt_max: Option<f64>,
     /// X and Y soft limits are ±UM micrometres.
-    #[arg(long, value_name = "UM")]
+    #[arg(long, value_name = "UM", help_heading = "Stage")]
     xy_limit: Option<f64>,
     /// Tilt speed, degrees per simulated second.
-    #[arg(long, value_name = "DEG_PER_S")]
+    #[arg(long, value_name = "DEG_PER_S", help_heading = "Stage")]
     tilt_speed: Option<f64>,
     /// X/Y speed, micrometres per simulated second.
-    #[arg(long, value_name = "UM_PER_S")]
+    #[arg(long, value_name = "UM_PER_S", help_heading = "Stage")]
     xy_speed: Option<f64>,
     /// Settle time before on-target, simulated seconds.
-    #[arg(long, value_name = "S")]
+    #[arg(long, value_name = "S", help_heading = "Stage")]
     settle: Option<f64>,
     /// Start unreferenced, as a real controller after power-on (moves refused with error 5).
-    #[arg(long)]
+    #[arg(long, help_heading = "Stage")]
     unreferenced: bool,
     /// Start with the servo off (moves refused with error 5).
-    #[arg(long)]
+    #[arg(long, help_heading = "Stage")]
     servo_off: bool,
+
     /// Drop the reply to these commands (1-based count of commands received).
-    #[arg(long, value_name = "K,..", value_delimiter = ',')]
+    #[arg(
+        long,
+        value_name = "K,..",
+        value_delimiter = ',',
+        help_heading = "Stage faults"
+    )]
     drop_reply_at: Vec<u64>,
     /// Drop any reply with this probability.
-    #[arg(long, value_name = "P")]
+    #[arg(long, value_name = "P", help_heading = "Stage faults")]
     drop_reply_p: Option<f64>,
     /// Garble the reply to these commands.
-    #[arg(long, value_name = "K,..", value_delimiter = ',')]
+    #[arg(
+        long,
+        value_name = "K,..",
+        value_delimiter = ',',
+        help_heading = "Stage faults"
+    )]
     garble_reply_at: Vec<u64>,
     /// Garble any reply with this probability.
-    #[arg(long, value_name = "P")]
+    #[arg(long, value_name = "P", help_heading = "Stage faults")]
     garble_reply_p: Option<f64>,
     /// Delay the reply to these commands.
-    #[arg(long, value_name = "K,..", value_delimiter = ',')]
+    #[arg(
+        long,
+        value_name = "K,..",
+        value_delimiter = ',',
+        help_heading = "Stage faults"
+    )]
     late_reply_at: Vec<u64>,
     /// Delay any reply with this probability.
-    #[arg(long, value_name = "P")]
+    #[arg(long, value_name = "P", help_heading = "Stage faults")]
     late_reply_p: Option<f64>,
     /// Delay of a late reply, real seconds.
-    #[arg(long, value_name = "S")]
+    #[arg(long, value_name = "S", help_heading = "Stage faults")]
     late_reply_delay: Option<f64>,
     /// Silently ignore these moves (1-based count of accepted MOV/MVR).
-    #[arg(long, value_name = "K,..", value_delimiter = ',')]
+    #[arg(
+        long,
+        value_name = "K,..",
+        value_delimiter = ',',
+        help_heading = "Stage faults"
+    )]
     ignore_move_at: Vec<u64>,
     /// Silently ignore any move with this probability.
-    #[arg(long, value_name = "P")]
+    #[arg(long, value_name = "P", help_heading = "Stage faults")]
     ignore_move_p: Option<f64>,
     /// Give these moves a stale on-target flag.
-    #[arg(long, value_name = "K,..", value_delimiter = ',')]
+    #[arg(
+        long,
+        value_name = "K,..",
+        value_delimiter = ',',
+        help_heading = "Stage faults"
+    )]
     stale_ont_at: Vec<u64>,
     /// Give any move a stale on-target flag with this probability.
-    #[arg(long, value_name = "P")]
+    #[arg(long, value_name = "P", help_heading = "Stage faults")]
     stale_ont_p: Option<f64>,
     /// How long a stale on-target flag lasts, simulated seconds.
-    #[arg(long, value_name = "S")]
+    #[arg(long, value_name = "S", help_heading = "Stage faults")]
     stale_ont_duration: Option<f64>,
     /// Refuse these moves with `--move-error-code`.
-    #[arg(long, value_name = "K,..", value_delimiter = ',')]
+    #[arg(
+        long,
+        value_name = "K,..",
+        value_delimiter = ',',
+        help_heading = "Stage faults"
+    )]
     move_error_at: Vec<u64>,
     /// Refuse any move with this probability.
-    #[arg(long, value_name = "P")]
+    #[arg(long, value_name = "P", help_heading = "Stage faults")]
     move_error_p: Option<f64>,
     /// Error code of a refused move (default 1024, motion error: also switches the servo off).
-    #[arg(long, value_name = "CODE", allow_hyphen_values = true)]
+    #[arg(
+        long,
+        value_name = "CODE",
+        allow_hyphen_values = true,
+        help_heading = "Stage faults"
+    )]
     move_error_code: Option<i32>,
     /// Close the link after this many commands (once).
-    #[arg(long, value_name = "N")]
+    #[arg(long, value_name = "N", help_heading = "Stage faults")]
     disconnect_after: Option<u64>,
+
     /// Serve until killed, whatever stdin does.
     #[arg(long)]
     ignore_stdin: bool,
 }
 
-fn trigger(at: Vec<u64>, p: Option<f64>) -> FaultTrigger {
-    FaultTrigger {
-        at,
-        probability: p.unwrap_or(0.0),
+fn parse_frame(s: &str) -> Result<(usize, usize), String> {
+    let (w, h) = s
+        .split_once(['x', 'X'])
+        .ok_or_else(|| format!("{s:?}: expected WxH, e.g. 1280x960"))?;
+    let side = |v: &str| {
+        v.trim()
+            .parse::<usize>()
+            .map_err(|e| format!("{s:?}: {e}; expected WxH, e.g. 1280x960"))
+    };
+    Ok((side(w)?, side(h)?))
+}
+
+fn tcp_endpoint(flag: &str, addr: &str) -> anyhow::Result<SimEndpoint> {
+    let bare = addr.strip_prefix("tcp://").unwrap_or(addr);
+    let addr: SocketAddr = bare
+        .parse()
+        .with_context(|| format!("{flag} {addr:?}: expected IP:PORT, e.g. 127.0.0.1:0"))?;
+    Ok(SimEndpoint::Tcp(addr))
+}
+
+/// Sets the trigger only when a flag asks for it, so the file's stays otherwise.
+fn trigger(slot: &mut FaultTrigger, at: Vec<u64>, p: Option<f64>) {
+    if !at.is_empty() || p.is_some() {
+        *slot = FaultTrigger {
+            at,
+            probability: p.unwrap_or(0.0),
+        };
+    }
+}
+
+/// Reads a [`SimConfig`] from a TOML file: the whole file, or its
+/// `[simulator]` table when it has one (sdsem's configuration file).
+fn load_config(path: &Path) -> anyhow::Result<SimConfig> {
+    let text = std::fs::read_to_string(path)
+        .with_context(|| format!("cannot read the configuration file {}", path.display()))?;
+    let mut table: toml::Table =
+        toml::from_str(&text).with_context(|| format!("{} is not valid TOML", path.display()))?;
+    let table = match table.remove("simulator") {
+        Some(toml::Value::Table(sim)) => sim,
+        Some(_) => anyhow::bail!("{}: `simulator` must be a table", path.display()),
+        None => table,
+    };
+    toml::Value::Table(table)
+        .try_into()
+        .with_context(|| format!("{}: invalid simulator configuration", path.display()))
+}
+
+fn set<T>(slot: &mut T, value: Option<T>) {
+    if let Some(v) = value {
+        *slot = v;
     }
 }
 
 impl Args {
     fn into_config(self) -> anyhow::Result<SimConfig> {
-        let mut c = SimConfig::default();
+        let mut c = match &self.config {
+            Some(path) => load_config(path)?,
+            None => SimConfig::default(),
+        };
         if let Some(addr) = &self.stage_tcp {
-            let addr = addr.strip_prefix("tcp://").unwrap_or(addr);
-            let addr: SocketAddr = addr.parse().with_context(|| {
-                format!("--stage-tcp {addr:?}: expected IP:PORT, e.g. 127.0.0.1:0")
-            })?;
-            c.stage.endpoint = SimEndpoint::Tcp(addr);
+            c.stage.endpoint = tcp_endpoint("--stage-tcp", addr)?;
         }
         if self.stage_pty {
             c.stage.endpoint = SimEndpoint::Pty;
         }
-        c.seed = self.seed.unwrap_or(c.seed);
-        c.time_scale = self.time_scale.unwrap_or(c.time_scale);
+        if let Some(addr) = &self.sem_tcp {
+            c.sem.endpoint = tcp_endpoint("--sem-tcp", addr)?;
+        }
+        set(&mut c.seed, self.seed);
+        set(&mut c.time_scale, self.time_scale);
+
+        let m = &mut c.sem;
+        set(&mut m.scene.kind, self.scene);
+        set(&mut m.scene.field_um, self.scene_field);
+        if let Some((w, h)) = self.frame {
+            (m.optics.width, m.optics.height) = (w, h);
+        }
+        set(&mut m.optics.pixel_size_um, self.pixel_size);
+        set(&mut m.optics.tilt_axis_deg, self.tilt_axis);
+        set(&mut m.optics.scan_rotation_deg, self.scan_rotation);
+        set(&mut m.walk.px_per_deg, self.walk_px_per_deg);
+        set(&mut m.walk.direction_deg, self.walk_direction);
+        set(&mut m.walk.random_px, self.walk_random_px);
+        if let Some(d) = &self.drift {
+            let [x, y] = d.as_slice() else {
+                anyhow::bail!("--drift takes two values, e.g. --drift 0.01,-0.02");
+            };
+            m.drift_um_per_s = [*x, *y];
+        }
+
         let s = &mut c.stage;
         if let Some(names) = &self.axis_names {
             let ids = AxisId::list(names).context("--axis-names")?;
@@ -141,27 +366,34 @@ impl Args {
             };
             (s.axis_x, s.axis_y, s.axis_tilt) = (x.clone(), y.clone(), t.clone());
         }
-        s.tilt_min_deg = self.tilt_min.unwrap_or(s.tilt_min_deg);
-        s.tilt_max_deg = self.tilt_max.unwrap_or(s.tilt_max_deg);
+        set(&mut s.tilt_min_deg, self.tilt_min);
+        set(&mut s.tilt_max_deg, self.tilt_max);
         if let Some(l) = self.xy_limit {
             (s.xy_min_um, s.xy_max_um) = (-l, l);
         }
-        s.tilt_speed_deg_s = self.tilt_speed.unwrap_or(s.tilt_speed_deg_s);
-        s.xy_speed_um_s = self.xy_speed.unwrap_or(s.xy_speed_um_s);
-        s.settle_s = self.settle.unwrap_or(s.settle_s);
+        set(&mut s.tilt_speed_deg_s, self.tilt_speed);
+        set(&mut s.xy_speed_um_s, self.xy_speed);
+        set(&mut s.settle_s, self.settle);
         s.referenced &= !self.unreferenced;
         s.servo_on &= !self.servo_off;
+
         let f = &mut s.faults;
-        f.drop_reply = trigger(self.drop_reply_at, self.drop_reply_p);
-        f.garble_reply = trigger(self.garble_reply_at, self.garble_reply_p);
-        f.late_reply = trigger(self.late_reply_at, self.late_reply_p);
-        f.late_reply_delay_s = self.late_reply_delay.unwrap_or(f.late_reply_delay_s);
-        f.ignore_move = trigger(self.ignore_move_at, self.ignore_move_p);
-        f.stale_on_target = trigger(self.stale_ont_at, self.stale_ont_p);
-        f.stale_on_target_s = self.stale_ont_duration.unwrap_or(f.stale_on_target_s);
-        f.move_error = trigger(self.move_error_at, self.move_error_p);
-        f.move_error_code = self.move_error_code.unwrap_or(f.move_error_code);
-        f.disconnect_after_commands = self.disconnect_after;
+        trigger(&mut f.drop_reply, self.drop_reply_at, self.drop_reply_p);
+        trigger(
+            &mut f.garble_reply,
+            self.garble_reply_at,
+            self.garble_reply_p,
+        );
+        trigger(&mut f.late_reply, self.late_reply_at, self.late_reply_p);
+        set(&mut f.late_reply_delay_s, self.late_reply_delay);
+        trigger(&mut f.ignore_move, self.ignore_move_at, self.ignore_move_p);
+        trigger(&mut f.stale_on_target, self.stale_ont_at, self.stale_ont_p);
+        set(&mut f.stale_on_target_s, self.stale_ont_duration);
+        trigger(&mut f.move_error, self.move_error_at, self.move_error_p);
+        set(&mut f.move_error_code, self.move_error_code);
+        if self.disconnect_after.is_some() {
+            f.disconnect_after_commands = self.disconnect_after;
+        }
         c.validate()?;
         Ok(c)
     }

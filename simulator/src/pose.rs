@@ -16,3 +16,33 @@ pub trait PoseSource: Send + Sync {
     /// The pose at this instant, mid-move included.
     fn pose(&self) -> StagePose;
 }
+
+/// A stage that stays where it is put: for tests and for running the SEM
+/// server without a stage model.
+#[derive(Debug, Default)]
+pub struct FixedPose(std::sync::Mutex<StagePose>);
+
+impl FixedPose {
+    /// A stage at `pose`.
+    #[must_use]
+    pub fn new(pose: StagePose) -> Self {
+        Self(std::sync::Mutex::new(pose))
+    }
+
+    /// Moves the stage (instantly).
+    pub fn set(&self, pose: StagePose) {
+        *self
+            .0
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner) = pose;
+    }
+}
+
+impl PoseSource for FixedPose {
+    fn pose(&self) -> StagePose {
+        *self
+            .0
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+    }
+}

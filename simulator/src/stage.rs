@@ -18,7 +18,9 @@ pub struct SimStage {
 }
 
 impl SimStage {
-    /// A controller per `config` (validated by the caller), seeded, on `clock`.
+    /// A controller per `config` (validated by the caller) on `clock`, its
+    /// fault draws seeded by `seed` ([`crate::Simulator`] passes the resolved
+    /// `stage.seed`).
     pub fn new(config: &StageSimConfig, seed: u64, clock: Arc<dyn Clock>) -> Self {
         Self {
             model: Mutex::new(StageModel::new(config, seed)),

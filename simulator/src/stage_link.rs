@@ -97,10 +97,13 @@ pub(crate) fn serve_tcp(
     stage: Arc<SimStage>,
     stop: Arc<AtomicBool>,
 ) -> Result<ServiceServer, SimError> {
-    let listener = TcpListener::bind(addr).map_err(|error| SimError::Bind { addr, error })?;
-    let local = listener
-        .local_addr()
-        .map_err(|error| SimError::Bind { addr, error })?;
+    let bind = |error| SimError::Bind {
+        service: "stage",
+        addr,
+        error,
+    };
+    let listener = TcpListener::bind(addr).map_err(bind)?;
+    let local = listener.local_addr().map_err(bind)?;
     let wake = if local.ip().is_unspecified() {
         SocketAddr::from(([127, 0, 0, 1], local.port()))
     } else {

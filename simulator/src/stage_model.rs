@@ -179,7 +179,8 @@ pub struct StageModel {
 
 impl StageModel {
     /// A controller at rest at the configured start pose. `config` must have been
-    /// validated (`StageSimConfig::validate`).
+    /// validated (`StageSimConfig::validate`). `seed` seeds the fault draws
+    /// (`config.seed` is the configuration's way to set it; the caller resolves it).
     pub fn new(config: &StageSimConfig, seed: u64) -> Self {
         let axis = |id: &AxisId, role, min, max, speed, start| Axis {
             id: id.clone(),

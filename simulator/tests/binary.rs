@@ -1,9 +1,24 @@
-//! The `sdsem-sim` binary as a user starts it: a process, its printed endpoint, GCS over TCP.
+//! The `sdsem-sim` binary as a user starts it: a process, its printed
+//! endpoints, GCS and the SEM imaging link over TCP.
 
 use std::io::{BufRead, BufReader, Read, Write};
 use std::net::TcpStream;
 use std::process::{Child, ChildStdout, Command, Stdio};
 use std::time::{Duration, Instant};
+
+use sdsem_protocol::sem::{Bits, FrameReply, GrabRequest, Reply, ReplyDecoder, Request, Role};
+
+/// A small specimen and frame: quick to build and to render.
+const SMALL: &[&str] = &[
+    "--scene",
+    "grid",
+    "--scene-field",
+    "60",
+    "--frame",
+    "320x240",
+    "--pixel-size",
+    "0.2",
+];
 
 struct Sim {
     child: Child,
@@ -13,6 +28,7 @@ struct Sim {
 impl Sim {
     fn start(args: &[&str]) -> Self {
         let mut child = Command::new(env!("CARGO_BIN_EXE_sdsem-sim"))
+            .args(SMALL)
             .args(args)
             .stdin(Stdio::piped())
             .stdout(Stdio::piped())
@@ -29,6 +45,18 @@ impl Sim {
             .read_line(&mut line)
             .expect("read endpoint line");
         line.trim_end().to_owned()
+    }
+
+    /// Both endpoint lines, checked: the stage's then the SEM's `host:port`.
+    fn endpoints(&mut self) -> (String, String) {
+        let stage = self.endpoint_line();
+        let sem = self.endpoint_line();
+        assert!(stage.starts_with("stage tcp://127.0.0.1:"), "{stage:?}");
+        let sem = sem
+            .strip_prefix("sem tcp://")
+            .unwrap_or_else(|| panic!("unexpected SEM endpoint line {sem:?}"))
+            .to_owned();
+        (stage, sem)
     }
 
     /// Closes stdin and waits (bounded) for a clean exit.
@@ -87,7 +115,7 @@ fn prints_its_endpoint_serves_gcs_and_exits_when_stdin_closes() {
         "--seed",
         "3",
     ]);
-    let line = sim.endpoint_line();
+    let (line, _) = sim.endpoints();
     let (mut s, mut r) = connect(&line);
     assert!(ask(&mut s, &mut r, "*IDN?\n").contains("sdsem-sim"));
     assert_eq!(ask(&mut s, &mut r, "FRF? X Y T\n"), "X=1 \n");
@@ -125,7 +153,7 @@ fn fault_flags_reach_the_model() {
         "--tilt-max",
         "60",
     ]);
-    let line = sim.endpoint_line();
+    let (line, _) = sim.endpoints();
     let (mut s, mut r) = connect(&line);
     s.set_read_timeout(Some(Duration::from_millis(300)))
         .unwrap();
@@ -151,17 +179,250 @@ fn pty_endpoint_prints_the_slave_path() {
     let path = line.strip_prefix("stage ").expect("stage line");
     assert!(path.starts_with("/dev/"), "{line}");
     assert!(std::path::Path::new(path).exists());
+    assert!(sim.endpoint_line().starts_with("sem tcp://127.0.0.1:"));
     assert!(sim.close_stdin_and_wait().success());
 }
 
 #[test]
 fn bad_flags_fail_with_a_message() {
+    for (args, expect) in [
+        (&["--tilt-min", "80"][..], "tilt"),
+        (&["--scene", "mesh"][..], "particles, grid, rough, dome"),
+        (&["--sem-tcp", "localhost"][..], "--sem-tcp"),
+        (&["--pixel-size", "0"][..], "sem.optics.pixel_size_um"),
+        (&["--frame", "640"][..], "WxH"),
+        (
+            &["--config", "/nonexistent/sim.toml"][..],
+            "/nonexistent/sim.toml",
+        ),
+    ] {
+        let out = Command::new(env!("CARGO_BIN_EXE_sdsem-sim"))
+            .args(args)
+            .stdin(Stdio::null())
+            .output()
+            .expect("run sdsem-sim");
+        assert!(!out.status.success(), "{args:?}");
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(err.contains(expect), "{args:?}: {err}");
+    }
+}
+
+/// A client of the SEM imaging link.
+struct SemLink {
+    stream: TcpStream,
+    decoder: ReplyDecoder,
+}
+
+impl SemLink {
+    fn connect(addr: &str) -> Self {
+        let stream = TcpStream::connect(addr).expect("connect to the SEM link");
+        stream
+            .set_read_timeout(Some(Duration::from_secs(30)))
+            .expect("set a read timeout");
+        Self {
+            stream,
+            decoder: ReplyDecoder::new(),
+        }
+    }
+
+    fn ask(&mut self, request: &Request) -> Reply {
+        self.stream.write_all(&request.encode()).expect("send");
+        let mut buf = vec![0u8; 65536];
+        loop {
+            if let Some(r) = self.decoder.next_reply().expect("a valid reply") {
+                return r;
+            }
+            let n = self.stream.read(&mut buf).expect("reply");
+            assert!(n > 0, "the SEM server closed the link");
+            self.decoder.push(&buf[..n]);
+        }
+    }
+
+    fn grab(&mut self, width: u32, height: u32, dwell_us: f64) -> FrameReply {
+        match self.ask(&Request::Grab(GrabRequest {
+            width,
+            height,
+            dwell_us,
+            role: Role::Tracking,
+            bits: Bits::Sixteen,
+        })) {
+            Reply::Frame(f) => f,
+            other => panic!("expected a frame, got {other:?}"),
+        }
+    }
+}
+
+fn position(s: &mut TcpStream, r: &mut BufReader<TcpStream>, axis: &str) -> f64 {
+    let reply = ask(s, r, &format!("POS? {axis}\n"));
+    reply
+        .trim_end()
+        .strip_prefix(&format!("{axis}="))
+        .and_then(|v| v.parse().ok())
+        .unwrap_or_else(|| panic!("POS? {axis}: {reply:?}"))
+}
+
+fn wait_on_target(s: &mut TcpStream, r: &mut BufReader<TcpStream>) {
+    let deadline = Instant::now() + Duration::from_secs(10);
+    while ask(s, r, "ONT? T\n") != "T=1\n" {
+        assert!(Instant::now() < deadline, "never on target");
+        std::thread::sleep(Duration::from_millis(2));
+    }
+}
+
+#[test]
+fn a_frame_grabbed_after_a_stage_move_shows_the_new_pose() {
+    let mut sim = Sim::start(&["--time-scale", "0.001", "--seed", "5"]);
+    let (stage, sem_addr) = sim.endpoints();
+    let (mut s, mut r) = connect(&stage);
+    let mut sem = SemLink::connect(&sem_addr);
+    assert!(
+        matches!(sem.ask(&Request::Identify), Reply::Identity(id) if id.contains("virtual-sem"))
+    );
+    let before = sem.grab(80, 60, 1.0);
+    assert_eq!((before.meta.tilt_deg, before.meta.stage_x_um), (0.0, 0.0));
+    s.write_all(b"MOV T 6 X 4\n").unwrap();
+    assert_eq!(ask(&mut s, &mut r, "ERR?\n"), "0\n");
+    wait_on_target(&mut s, &mut r);
+    let (x, tilt) = (position(&mut s, &mut r, "X"), position(&mut s, &mut r, "T"));
+    assert_eq!((x, tilt), (4.0, 6.0));
+    let after = sem.grab(80, 60, 1.0);
+    assert_eq!(after.meta.frame, before.meta.frame + 1);
+    assert_eq!(
+        (
+            after.meta.stage_x_um,
+            after.meta.stage_y_um,
+            after.meta.tilt_deg
+        ),
+        (x, 0.0, tilt),
+        "the FRAME metadata carries the stage's pose"
+    );
+    // 80 px of a 320 px, 0.2 µm frame: 0.8 µm pixels.
+    assert!((after.meta.pixel_size_um - 0.8).abs() < 1e-12);
+    let (a, b) = (before.samples_u16(), after.samples_u16());
+    let changed = a
+        .iter()
+        .zip(&b)
+        .filter(|(p, q)| p.abs_diff(**q) > 2000)
+        .count();
+    assert!(
+        changed > a.len() / 20,
+        "tilting 6° and panning 4 µm must change the image: {changed} of {} pixels",
+        a.len()
+    );
+    // The ground truth of that frame is served too, with the same metadata.
+    let Reply::HeightMap(truth) = sem.ask(&Request::GroundTruth {
+        frame: after.meta.frame,
+        path: None,
+    }) else {
+        panic!("no ground truth")
+    };
+    assert_eq!(truth.meta, after.meta);
+    assert!(truth.heights().iter().any(|h| h.is_finite()));
+    drop((s, r, sem));
+    assert!(sim.close_stdin_and_wait().success());
+}
+
+#[test]
+fn the_same_seed_gives_the_same_frames_in_two_processes() {
+    let grab = |seed: &str| {
+        let mut sim = Sim::start(&["--time-scale", "0.001", "--seed", seed]);
+        let (stage, sem_addr) = sim.endpoints();
+        let (mut s, mut r) = connect(&stage);
+        let mut sem = SemLink::connect(&sem_addr);
+        let mut frames = Vec::new();
+        for tilt in [0, 3] {
+            s.write_all(format!("MOV T {tilt}\n").as_bytes()).unwrap();
+            wait_on_target(&mut s, &mut r);
+            frames.push(sem.grab(64, 48, 2.0).data);
+        }
+        drop((s, r, sem));
+        assert!(sim.close_stdin_and_wait().success());
+        frames
+    };
+    let a = grab("9");
+    assert_eq!(a, grab("9"), "same seed, same specimen, walk and noise");
+    assert_ne!(a, grab("10"), "another seed, another specimen");
+}
+
+#[test]
+fn the_time_scale_shortens_the_scan() {
+    // 100 × 100 × 100 µs = 1 simulated second of scan.
+    let scan_ns = |time_scale: &str| {
+        let mut sim = Sim::start(&["--time-scale", time_scale]);
+        let (_, sem_addr) = sim.endpoints();
+        let mut sem = SemLink::connect(&sem_addr);
+        let t = Instant::now();
+        let f = sem.grab(100, 100, 100.0);
+        let real = t.elapsed();
+        drop(sem);
+        assert!(sim.close_stdin_and_wait().success());
+        let stamped = f.meta.scan_end_unix_ns - f.meta.scan_start_unix_ns;
+        assert!(
+            real.as_nanos() >= u128::from(stamped),
+            "{real:?} < {stamped} ns"
+        );
+        stamped
+    };
+    let slow = scan_ns("0.2");
+    let fast = scan_ns("0.02");
+    // Lower bounds are exact (a wait never ends early); upper bounds generous.
+    assert!(slow >= 200_000_000, "{slow} ns at time_scale 0.2");
+    assert!(fast >= 20_000_000, "{fast} ns at time_scale 0.02");
+    assert!(fast < slow, "{fast} ns at 0.02 vs {slow} ns at 0.2");
+    assert!(slow < 1_000_000_000, "{slow} ns: slower than real time");
+}
+
+#[test]
+fn a_config_file_is_read_and_flags_override_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("sdsem.toml");
+    // sdsem's configuration file: the simulator reads its [simulator] table only.
+    std::fs::write(
+        &path,
+        r#"
+[run]
+name = "not the simulator's"
+
+[simulator]
+seed = 4
+time_scale = 0.001
+
+[simulator.stage]
+tilt_max_deg = 60.0
+
+[simulator.sem.optics]
+tilt_axis_deg = 30.0
+scan_rotation_deg = 10.0
+
+[simulator.sem.walk]
+px_per_deg = 2.0
+"#,
+    )
+    .unwrap();
+    let path = path.to_str().unwrap();
+    let mut sim = Sim::start(&["--config", path, "--scan-rotation", "-5"]);
+    let (stage, sem_addr) = sim.endpoints();
+    let (mut s, mut r) = connect(&stage);
+    assert_eq!(ask(&mut s, &mut r, "TMX? T\n"), "T=60.000000\n");
+    let f = SemLink::connect(&sem_addr).grab(32, 24, 1.0);
+    assert_eq!(
+        (f.meta.tilt_axis_deg, f.meta.scan_rotation_deg),
+        (30.0, -5.0)
+    );
+    drop((s, r));
+    assert!(sim.close_stdin_and_wait().success());
+
+    std::fs::write(
+        dir.path().join("bad.toml"),
+        "[sem.walk]\nlinear_um_per_deg = 1\n",
+    )
+    .unwrap();
     let out = Command::new(env!("CARGO_BIN_EXE_sdsem-sim"))
-        .args(["--tilt-min", "80"])
+        .args(["--config", dir.path().join("bad.toml").to_str().unwrap()])
         .stdin(Stdio::null())
         .output()
         .expect("run sdsem-sim");
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
-    assert!(err.contains("tilt"), "{err}");
+    assert!(err.contains("linear_um_per_deg"), "{err}");
 }

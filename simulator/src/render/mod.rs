@@ -6,7 +6,7 @@
 //! use sdsem_sim::render::{self, ShadingParams, View};
 //! use sdsem_sim::scene::{Scene, SceneKind, SceneParams};
 //!
-//! let scene = Scene::generate(&SceneParams { kind: SceneKind::Particles, seed: 7, ..Default::default() })?;
+//! let scene = Scene::generate(&SceneParams { kind: SceneKind::Particles, seed: Some(7), ..Default::default() })?;
 //! let left = View { tilt_deg: -3.0, ..View::default() };
 //! let right = View { tilt_deg: 3.0, ..left };
 //! let image_left = render::render(&scene, &left, &ShadingParams::default()); // f32 in [0, 1], row-major

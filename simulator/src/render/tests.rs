@@ -8,7 +8,7 @@ use crate::walk::WalkParams;
 fn scene(kind: SceneKind, seed: u64) -> Scene {
     Scene::generate(&SceneParams {
         kind,
-        seed,
+        seed: Some(seed),
         field_um: 60.0,
         sample_um: 0.1,
     })
@@ -187,7 +187,7 @@ fn rendered_relief_moves_the_documented_way() {
     // shifts relative to the substrate by h·sin θ along n = (0, 1) for φ = 0.
     let sc = Scene::generate(&SceneParams {
         kind: SceneKind::Dome,
-        seed: 3,
+        seed: Some(3),
         field_um: 80.0,
         sample_um: 0.1,
     })
@@ -291,11 +291,11 @@ fn stage_pan_and_walk_move_the_image_as_documented() {
         (dx - 6.0).abs() < 0.2 && (dy + 3.0).abs() < 0.2,
         "walk: {dx} {dy}"
     );
-    // The walk model feeds the same offset.
+    // The walk model feeds the same offset: 5 px/° of 0.1 µm pixels.
     let w = WalkParams {
-        linear_um_per_deg: 0.5,
+        px_per_deg: 5.0,
         direction_deg: 0.0,
-        random_um: 0.0,
+        random_px: 0.0,
         ..WalkParams::default()
     };
     let v = optics.view(
@@ -305,7 +305,7 @@ fn stage_pan_and_walk_move_the_image_as_documented() {
         },
         192,
         160,
-        w.offset_um(2.0),
+        w.offset_um(2.0, optics.pixel_size_um),
         [0.0, 0.0],
     );
     assert!((v.offset_um[0] - 1.0).abs() < 1e-12 && v.offset_um[1].abs() < 1e-12);

@@ -83,14 +83,15 @@ impl FromStr for SceneKind {
 /// | field | default | effect |
 /// | --- | --- | --- |
 /// | `kind` | `particles` | the specimen |
-/// | `seed` | 1 | same seed, same surface and texture |
+/// | `seed` | derived | same seed, same surface and texture; unset: derived from the SEM's seed (`sem.seed`, itself from `simulator.seed`); [`Scene::generate`] alone treats unset as 0 |
 /// | `field_um` | 200 | side of the square specimen; outside it there is nothing (dark background) |
 /// | `sample_um` | 0.1 | spacing of the height samples; memory ≈ 5 bytes × (field/spacing)² |
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct SceneParams {
     pub kind: SceneKind,
-    pub seed: u64,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub seed: Option<u64>,
     pub field_um: f64,
     pub sample_um: f64,
 }
@@ -99,7 +100,7 @@ impl Default for SceneParams {
     fn default() -> Self {
         Self {
             kind: SceneKind::Particles,
-            seed: 1,
+            seed: None,
             field_um: 200.0,
             sample_um: 0.1,
         }
@@ -233,7 +234,8 @@ impl Scene {
         let n = (params.field_um / spacing).round() as usize + 1;
         #[allow(clippy::cast_precision_loss)]
         let origin = -((n - 1) as f64) * spacing / 2.0;
-        let (model, texture) = kinds::build(params.kind, params.seed, params.field_um);
+        let seed = params.seed.unwrap_or(0);
+        let (model, texture) = kinds::build(params.kind, seed, params.field_um);
         let mut heights = vec![0f32; n * n];
         let mut yields = vec![0u8; n * n];
         heights
@@ -289,7 +291,10 @@ impl Scene {
         let edge_mean = coarse_mean(&heights, n, origin, spacing, 0.3, 0.6);
         let cavity_mean = coarse_mean(&heights, n, origin, spacing, 1.0, 4.0);
         Ok(Self {
-            params: params.clone(),
+            params: SceneParams {
+                seed: Some(seed),
+                ..params.clone()
+            },
             origin,
             spacing,
             n,
@@ -308,10 +313,16 @@ impl Scene {
         })
     }
 
-    /// The parameters this scene was built from.
+    /// The parameters this scene was built from, its seed filled in.
     #[must_use]
     pub fn params(&self) -> &SceneParams {
         &self.params
+    }
+
+    /// The seed the surface and texture were built from.
+    #[must_use]
+    pub fn seed(&self) -> u64 {
+        self.params.seed.unwrap_or(0)
     }
 
     /// Lowest and highest surface height, µm.
@@ -419,7 +430,7 @@ impl Scene {
     /// Material brightness texture at `(s, r)` of a material of yield `yld`,
     /// band-limited to `footprint` µm.
     pub(crate) fn albedo(&self, s: f64, r: f64, footprint: f64, yld: f64) -> f64 {
-        kinds::albedo(&self.texture, self.params.seed, s, r, footprint, yld)
+        kinds::albedo(&self.texture, self.seed(), s, r, footprint, yld)
     }
 }
 
@@ -549,7 +560,7 @@ mod tests {
     fn small(kind: SceneKind, seed: u64) -> Scene {
         Scene::generate(&SceneParams {
             kind,
-            seed,
+            seed: Some(seed),
             field_um: 40.0,
             sample_um: 0.1,
         })

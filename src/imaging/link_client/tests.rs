@@ -2,10 +2,12 @@ use std::io::{Read, Write};
 use std::net::TcpListener;
 use std::sync::Arc;
 
-use sdsem_sim::pose::StagePose;
+use sdsem_sim::SemSimConfig;
+use sdsem_sim::clock::ScaledClock;
+use sdsem_sim::pose::{FixedPose, StagePose};
 use sdsem_sim::render::OpticsParams;
 use sdsem_sim::scene::{Scene, SceneKind, SceneParams};
-use sdsem_sim::sem_server::{self, FixedPose, SemServerHandle, SemSimConfig, SystemClock};
+use sdsem_sim::sem_server::{self, SemServerHandle};
 
 use super::*;
 use crate::imaging::{Pixels, Role};
@@ -13,7 +15,7 @@ use crate::imaging::{Pixels, Role};
 fn server() -> (SemServerHandle, Arc<FixedPose>) {
     let scene = Scene::generate(&SceneParams {
         kind: SceneKind::Particles,
-        seed: 4,
+        seed: Some(4),
         field_um: 50.0,
         sample_um: 0.1,
     })
@@ -33,13 +35,13 @@ fn server() -> (SemServerHandle, Arc<FixedPose>) {
         tilt_deg: -3.0,
     }));
     let listener = TcpListener::bind("127.0.0.1:0").unwrap();
+    // 1000× faster than real time.
     let handle = sem_server::spawn_with_scene(
         listener,
         pose.clone(),
-        cfg,
+        &cfg,
         Arc::new(scene),
-        1000.0,
-        Arc::new(SystemClock),
+        Arc::new(ScaledClock::new(0.001)),
     )
     .unwrap();
     (handle, pose)
