@@ -89,7 +89,7 @@ impl Instruments {
         let (stage_config, imaging_config, simulator) = Self::endpoints(config)?;
         let observer = Arc::new(RunObserver::default());
         let dyn_observer: Arc<dyn StageObserver> = observer.clone();
-        let stage = StageDriver::open(&stage_config, dyn_observer).await?;
+        let stage = StageDriver::open(stage_config, dyn_observer).await?;
         let stage_identity = stage.identity().to_owned();
         let (imaging, sem_identity) = SemLinkClient::connect(imaging_config).await?;
         info!(stage = %stage_identity, sem = %sem_identity, "instruments connected");

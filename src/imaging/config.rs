@@ -72,11 +72,11 @@ impl ImagingConfig {
                 expected,
             }
         };
-        if self.endpoint.trim().is_empty() || !self.endpoint.contains(':') {
+        if self.address().is_empty() || !self.address().contains(':') {
             return Err(invalid(
                 "imaging.endpoint",
                 self.endpoint.clone(),
-                "host:port",
+                "host:port or tcp://host:port",
             ));
         }
         for (name, s) in [
@@ -134,6 +134,14 @@ impl ImagingConfig {
     }
 
     /// [`Self::timeout_ms`] as a duration.
+    /// The `host:port` to connect to: `endpoint` without an optional `tcp://`
+    /// (the form `sdsem-sim` prints).
+    #[must_use]
+    pub fn address(&self) -> &str {
+        let e = self.endpoint.trim();
+        e.strip_prefix("tcp://").unwrap_or(e)
+    }
+
     #[must_use]
     pub fn timeout(&self) -> Duration {
         Duration::from_millis(self.timeout_ms)

@@ -186,7 +186,7 @@ impl SemLinkClient {
         let endpoint = self.cfg.endpoint.clone();
         if self.conn.is_none() {
             let stream =
-                TcpStream::connect(&endpoint)
+                TcpStream::connect(self.cfg.address())
                     .await
                     .map_err(|source| ImagingError::Connect {
                         endpoint: endpoint.clone(),
