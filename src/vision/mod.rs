@@ -3,5 +3,7 @@
 //! Nothing here does I/O, knows about tokio, MCAP or configuration files.
 
 pub mod image;
+pub mod matching;
+pub mod sift;
 
 pub use image::Image;
