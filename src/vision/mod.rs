@@ -2,8 +2,10 @@
 //!
 //! Nothing here does I/O, knows about tokio, MCAP or configuration files.
 
+pub mod fundamental;
 pub mod image;
 pub mod matching;
+pub mod orsa;
 pub mod sift;
 
 pub use image::Image;
