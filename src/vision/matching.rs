@@ -38,17 +38,25 @@ pub struct Match {
     pub ratio: f32,
 }
 
-/// Squared Euclidean distance of two byte descriptors (exact, in integers).
+/// A descriptor widened to `i16`: differences then fit, and the squared distance compiles to
+/// multiply-add of 16-bit pairs (SSE2 `pmaddwd`), ~2.5× faster than on bytes.
+type Wide = [i16; DESCRIPTOR_LEN];
+
+/// Squared Euclidean distance of two descriptors (exact, in integers).
 #[inline]
 #[must_use]
-pub fn distance2(a: &[u8; DESCRIPTOR_LEN], b: &[u8; DESCRIPTOR_LEN]) -> u32 {
-    a.iter()
+fn distance2(a: &Wide, b: &Wide) -> u32 {
+    // Wrapping arithmetic: it cannot wrap here (|d| ≤ 255, sum ≤ 128·255²), and unlike checked
+    // arithmetic (debug and test builds) it leaves the loop free to vectorise.
+    let s: i32 = a
+        .iter()
         .zip(b)
         .map(|(&x, &y)| {
-            let d = i32::from(x) - i32::from(y);
-            d.unsigned_abs() * d.unsigned_abs()
+            let d = i32::from(x.wrapping_sub(y));
+            d.wrapping_mul(d)
         })
-        .sum()
+        .fold(0, i32::wrapping_add);
+    s.unsigned_abs()
 }
 
 /// For each left descriptor, the nearest and second-nearest right ones; for each right
@@ -63,7 +71,7 @@ struct Neighbours {
 
 const BLOCK: usize = 64;
 
-fn neighbours(left: &[[u8; DESCRIPTOR_LEN]], right: &[[u8; DESCRIPTOR_LEN]]) -> Neighbours {
+fn neighbours(left: &[Wide], right: &[Wide]) -> Neighbours {
     let n_right = right.len();
     let blocks: Vec<(Vec<(usize, u32, u32)>, Vec<(usize, u32)>)> = left
         .par_chunks(BLOCK)
@@ -116,8 +124,8 @@ pub fn match_keypoints(left: &[Keypoint], right: &[Keypoint], params: &MatchPara
     if left.is_empty() || right.len() < 2 {
         return Vec::new();
     }
-    let ld: Vec<_> = left.iter().map(|k| k.descriptor).collect();
-    let rd: Vec<_> = right.iter().map(|k| k.descriptor).collect();
+    let ld: Vec<Wide> = left.iter().map(|k| k.descriptor.map(i16::from)).collect();
+    let rd: Vec<Wide> = right.iter().map(|k| k.descriptor.map(i16::from)).collect();
     let nn = neighbours(&ld, &rd);
     let ratio2 = params.ratio * params.ratio;
     nn.left
@@ -225,5 +233,24 @@ mod tests {
         let left = vec![kp(a)];
         let right = vec![kp(a), kp(a), kp(desc(2))];
         assert!(match_keypoints(&left, &right, &MatchParams::default()).is_empty());
+    }
+}
+
+#[cfg(test)]
+mod bench {
+    use super::*;
+    #[test]
+    #[ignore = "timing"]
+    fn time_2000() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
+        let mk = |rng: &mut rand_chacha::ChaCha8Rng| Keypoint { x: 0.0, y: 0.0, sigma: 1.0, theta: 0.0, response: 0.0, descriptor: std::array::from_fn(|_| rng.random_range(0..=255u8)) };
+        let l: Vec<_> = (0..2000).map(|_| mk(&mut rng)).collect();
+        let r: Vec<_> = (0..2000).map(|_| mk(&mut rng)).collect();
+        for _ in 0..3 {
+            let t = std::time::Instant::now();
+            let m = match_keypoints(&l, &r, &MatchParams::default());
+            println!("{:?} {}", t.elapsed(), m.len());
+        }
     }
 }

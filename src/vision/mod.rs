@@ -8,5 +8,7 @@ pub mod matching;
 pub mod orsa;
 pub mod rectify;
 pub mod sift;
+pub mod sparse;
+pub mod warp;
 
 pub use image::Image;

@@ -22,9 +22,10 @@ use serde::{Deserialize, Serialize};
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct RectifyParams {
-    /// Levenberg–Marquardt iterations at most (default 500; the focal length lies in a long
-    /// shallow valley of the cost, so convergence can take a few hundred).
+    /// Levenberg–Marquardt iterations at most (default 200).
     pub max_iterations: usize,
+    /// Stop when one step lowers the cost by less than this fraction (default 1e-9).
+    pub tolerance: f64,
     /// Lower and upper bound of the focal exponent `g` in `f = 3^g (w + h)` (default −2 … 10;
     /// SEM's parallel projection drives `g` to the upper bound, where the homographies are
     /// nearly affine).
@@ -47,7 +48,8 @@ pub struct RectifyParams {
 impl Default for RectifyParams {
     fn default() -> Self {
         Self {
-            max_iterations: 500,
+            max_iterations: 200,
+            tolerance: 1e-9,
             g_range: (-2.0, 10.0),
             max_relative_rotation_deg: 20.0,
             max_out_of_plane_deg: 20.0,
@@ -96,6 +98,9 @@ pub struct Rectification {
     pub canvas: (usize, usize),
     /// Translation applied after `K R K⁻¹` to put both images on the canvas, pixels.
     pub canvas_offset: (f64, f64),
+    /// Extra shift of the right image along x (pixels) that makes the median inlier
+    /// disparity 0; included in `h_right`.
+    pub right_shift_px: f64,
     pub params: QuasiEuclidean,
     /// `f = 3^g (w + h)`, pixels.
     pub focal_px: f64,
@@ -311,6 +316,18 @@ pub fn rectify(
     }
 
     let (hl0, hr0) = frame.homographies(&q);
+    // Horizontal shifts of one image keep rows aligned, and the cost barely sees their
+    // quasi-Euclidean form (opposite y rotations at a long focal): fix this freedom by
+    // shifting the right image so that the median inlier disparity is 0. The dense stage then
+    // searches around 0, and the canvas stays compact.
+    let mut disparities: Vec<f64> = left
+        .iter()
+        .zip(right)
+        .map(|(a, b)| transform(&hr0, b).x - transform(&hl0, a).x)
+        .collect();
+    disparities.sort_by(f64::total_cmp);
+    let median_disparity = disparities[disparities.len() / 2];
+    let hr0 = Matrix3::new(1.0, 0.0, -median_disparity, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0) * hr0;
     // Canvas: the bounding box of both warped images; every corner must stay in front.
     let corners = [
         Vector2::new(0.0, 0.0),
@@ -366,6 +383,7 @@ pub fn rectify(
         h_right,
         canvas,
         canvas_offset: offset,
+        right_shift_px: -median_disparity,
         params: q,
         focal_px: 3f64.powf(q.g) * (frame.w + frame.h),
         initial_error_px,
@@ -464,7 +482,7 @@ fn levenberg_marquardt(
                 std::mem::swap(&mut r, &mut r_try);
                 lambda = (lambda / 10.0).max(1e-15);
                 improved = true;
-                if rel < 1e-12 {
+                if rel < params.tolerance {
                     return (QuasiEuclidean::from_vec(&p), it);
                 }
                 break;

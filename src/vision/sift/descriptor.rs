@@ -33,61 +33,73 @@ pub fn describe(grad: &GradField, e: &Extremum, theta: f64, params: &SiftParams)
     if x_min < 1.0 || y_min < 1.0 || x_max > (w - 2) as f64 || y_max > (h - 2) as f64 {
         return None;
     }
-    let (sin_t, cos_t) = theta.sin_cos();
+    #[allow(clippy::cast_possible_truncation)]
+    let (sin_t, cos_t) = ((theta.sin() / sigma) as f32, (theta.cos() / sigma) as f32);
+    #[allow(clippy::cast_possible_truncation)]
+    let theta32 = theta as f32;
     let mut hist = [0.0f32; DESCRIPTOR_LEN];
     let inv_2l2 = 1.0 / (2.0 * lambda * lambda);
     // Spatial bin width 2λ/n_hist in units of σ; bin i has centre (i − (n_hist − 1)/2)·width.
-    let bin_width = 2.0 * lambda / n_hist as f64;
-    let ori_per_rad = n_ori as f64 / TAU;
+    #[allow(clippy::cast_possible_truncation)]
+    let (inv_bin, centre, half32, ori_per_rad) = (
+        (n_hist as f64 / (2.0 * lambda)) as f32,
+        ((n_hist as f64 - 1.0) / 2.0) as f32,
+        half as f32,
+        (n_ori as f64 / TAU) as f32,
+    );
+    let tau = std::f32::consts::TAU;
+    let nh = n_hist as isize;
     #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
     let (x0, x1, y0, y1) = (x_min as usize, x_max as usize, y_min as usize, y_max as usize);
     // The Gaussian weight is rotation invariant and separable: tabulate it per column and row.
-    let gauss = |d: f64| (-(d * d) / (sigma * sigma) * inv_2l2).exp();
-    let wcol: Vec<f64> = (x0..=x1).map(|x| gauss(x as f64 - e.x_oct)).collect();
+    #[allow(clippy::cast_possible_truncation)]
+    let gauss = |d: f64| (-(d * d) / (sigma * sigma) * inv_2l2).exp() as f32;
+    let wcol: Vec<f32> = (x0..=x1).map(|x| gauss(x as f64 - e.x_oct)).collect();
     for y in y0..=y1 {
         let dy = y as f64 - e.y_oct;
         let wrow = gauss(dy);
-        for (x, wc) in (x0..=x1).zip(&wcol) {
-            let dx = x as f64 - e.x_oct;
-            let xh = (cos_t * dx + sin_t * dy) / sigma;
-            let yh = (-sin_t * dx + cos_t * dy) / sigma;
-            if xh.abs() >= half || yh.abs() >= half {
+        let row_start = y * grad.width;
+        let mag_row = &grad.mag[row_start + x0..=row_start + x1];
+        let ori_row = &grad.ori[row_start + x0..=row_start + x1];
+        #[allow(clippy::cast_possible_truncation)]
+        let (dx0, dy32) = ((x0 as f64 - e.x_oct) as f32, dy as f32);
+        for (i, ((&mag, &ori), &wc)) in mag_row.iter().zip(ori_row).zip(&wcol).enumerate() {
+            #[allow(clippy::cast_precision_loss)]
+            let dx = dx0 + i as f32;
+            let xh = cos_t * dx + sin_t * dy32;
+            let yh = -sin_t * dx + cos_t * dy32;
+            if xh.abs() >= half32 || yh.abs() >= half32 || mag == 0.0 {
                 continue;
             }
-            let (mag, ori) = grad.at(x, y);
-            if mag == 0.0 {
-                continue;
+            let weight = wrow * wc * mag;
+            // ori ∈ (−π, π], θ ∈ [0, 2π): the difference lies in (−3π, π].
+            let mut ang = ori - theta32;
+            while ang < 0.0 {
+                ang += tau;
             }
-            let weight = wrow * wc * f64::from(mag);
-            let ang = (f64::from(ori) - theta).rem_euclid(TAU);
             // Continuous bin coordinates: centres at integers.
-            let bx = xh / bin_width + (n_hist as f64 - 1.0) / 2.0;
-            let by = yh / bin_width + (n_hist as f64 - 1.0) / 2.0;
+            let bx = xh * inv_bin + centre;
+            let by = yh * inv_bin + centre;
             let bo = ang * ori_per_rad;
-            let (ix, iy, io) = (bx.floor(), by.floor(), bo.floor());
-            let (fx, fy, fo) = (bx - ix, by - iy, bo - io);
+            let (fxi, fyi, foi) = (bx.floor(), by.floor(), bo.floor());
+            let (fx, fy, fo) = (bx - fxi, by - fyi, bo - foi);
             #[allow(clippy::cast_possible_truncation)]
-            let (ix, iy, io) = (ix as isize, iy as isize, io as isize);
-            for (ddx, wx) in [(0, 1.0 - fx), (1, fx)] {
-                let cx = ix + ddx;
-                if cx < 0 || cx >= n_hist as isize {
+            let (ix, iy, io) = (fxi as isize, fyi as isize, foi as isize);
+            #[allow(clippy::cast_sign_loss)]
+            let (o0, o1) = ((io as usize) % n_ori, (io as usize + 1) % n_ori);
+            for (cx, wx) in [(ix, 1.0 - fx), (ix + 1, fx)] {
+                if cx < 0 || cx >= nh {
                     continue;
                 }
-                for (ddy, wy) in [(0, 1.0 - fy), (1, fy)] {
-                    let cy = iy + ddy;
-                    if cy < 0 || cy >= n_hist as isize {
+                for (cy, wy) in [(iy, 1.0 - fy), (iy + 1, fy)] {
+                    if cy < 0 || cy >= nh {
                         continue;
                     }
-                    for (ddo, wo) in [(0, 1.0 - fo), (1, fo)] {
-                        #[allow(clippy::cast_sign_loss)]
-                        let co = ((io + ddo) as usize) % n_ori;
-                        #[allow(clippy::cast_sign_loss)]
-                        let idx = (cx as usize * n_hist + cy as usize) * n_ori + co;
-                        #[allow(clippy::cast_possible_truncation)]
-                        {
-                            hist[idx] += (weight * wx * wy * wo) as f32;
-                        }
-                    }
+                    #[allow(clippy::cast_sign_loss)]
+                    let base = (cx as usize * n_hist + cy as usize) * n_ori;
+                    let w = weight * wx * wy;
+                    hist[base + o0] += w * (1.0 - fo);
+                    hist[base + o1] += w * fo;
                 }
             }
         }
