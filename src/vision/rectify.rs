@@ -26,6 +26,9 @@ pub struct RectifyParams {
     pub max_iterations: usize,
     /// Stop when one step lowers the cost by less than this fraction (default 1e-9).
     pub tolerance: f64,
+    /// Weight of the gauge-fixing prior on the out-of-plane rotations, px per radian (default 1;
+    /// 0 is Monasse's cost exactly). See `residuals_with_prior`.
+    pub rotation_prior: f64,
     /// Lower and upper bound of the focal exponent `g` in `f = 3^g (w + h)` (default −2 … 10;
     /// SEM's parallel projection drives `g` to the upper bound, where the homographies are
     /// nearly affine).
@@ -50,6 +53,7 @@ impl Default for RectifyParams {
         Self {
             max_iterations: 200,
             tolerance: 1e-9,
+            rotation_prior: 1.0,
             g_range: (-2.0, 10.0),
             max_relative_rotation_deg: 20.0,
             max_out_of_plane_deg: 20.0,
@@ -189,6 +193,24 @@ impl Frame {
         let e1x = Matrix3::new(0.0, 0.0, 0.0, 0.0, 0.0, -1.0, 0.0, 1.0, 0.0);
         ki.transpose() * rr.transpose() * e1x * rl * ki
     }
+}
+
+/// Signed Sampson residuals of all matches for `q`, then `prior · (left_y, right_x, right_y)`.
+///
+/// The prior is a gauge fix, not part of Monasse's cost: near parallel projection (SEM), opposite
+/// rotations about `y` at a long focal only shift one image along the rows, which the Sampson
+/// error cannot see; without it Levenberg–Marquardt drifts along that valley. At 1 px/rad it
+/// costs what a 1-px residual on one match costs at one radian: nothing where the data decide.
+fn residuals_with_prior(
+    frame: &Frame,
+    q: &QuasiEuclidean,
+    left: &[Vector2<f64>],
+    right: &[Vector2<f64>],
+    prior: f64,
+    out: &mut Vec<f64>,
+) {
+    residuals(frame, q, left, right, out);
+    out.extend([prior * q.left_y, prior * q.right_x, prior * q.right_y]);
 }
 
 /// Signed Sampson residuals of all matches for `q`.
@@ -423,7 +445,7 @@ fn levenberg_marquardt(
     let mut r_plus = Vec::new();
     let mut r_minus = Vec::new();
     let cost = |v: &[f64; 6], buf: &mut Vec<f64>| {
-        residuals(frame, &QuasiEuclidean::from_vec(v), left, right, buf);
+        residuals_with_prior(frame, &QuasiEuclidean::from_vec(v), left, right, params.rotation_prior, buf);
         buf.iter().map(|x| x * x).sum::<f64>()
     };
     let mut c = cost(&p, &mut r);
@@ -444,8 +466,8 @@ fn levenberg_marquardt(
             let (mut a, mut b) = (p, p);
             a[k] += step;
             b[k] -= step;
-            residuals(frame, &QuasiEuclidean::from_vec(&a), left, right, &mut r_plus);
-            residuals(frame, &QuasiEuclidean::from_vec(&b), left, right, &mut r_minus);
+            residuals_with_prior(frame, &QuasiEuclidean::from_vec(&a), left, right, params.rotation_prior, &mut r_plus);
+            residuals_with_prior(frame, &QuasiEuclidean::from_vec(&b), left, right, params.rotation_prior, &mut r_minus);
             cols.push(r_plus.iter().zip(&r_minus).map(|(u, v)| (u - v) / (2.0 * step)).collect());
         }
         for a in 0..6 {

@@ -320,3 +320,192 @@ pub fn rectify_pair(
         right: wr,
     })
 }
+
+#[cfg(test)]
+pub(crate) mod tests {
+    use super::*;
+    use crate::vision::rectify::transform;
+    use crate::vision::sift::scale_space::gaussian_blur;
+    use rand::{Rng, SeedableRng};
+
+    /// A parallel-projection (SEM) pair of a textured surface with a bump, after DESIGN §3's
+    /// model: specimen point (s, r, z), tilt axis at φ, image coordinate along a: s, along n:
+    /// r·cos t + z·sin t. The right shot is also rotated in-plane by `rot_deg` and shifted.
+    pub(crate) struct SemPair {
+        pub left: Image,
+        pub right: Image,
+        /// True correspondences on a grid of left pixels.
+        pub truth: Vec<Correspondence>,
+        /// Left pixel of the bump top and of a flat point.
+        pub top: [f64; 2],
+        pub flat: [f64; 2],
+    }
+
+    pub(crate) fn sem_pair(w: usize, h: usize, phi_deg: f64, tilt_deg: (f64, f64), rot_deg: f64, periodic: bool) -> SemPair {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(17);
+        let tex_n = 2 * w.max(h);
+        let noise = Image::from_fn(tex_n, tex_n, |_, _| rng.random_range(0.0..1.0));
+        let tex = gaussian_blur(&noise, 1.5);
+        let (lo, hi) = tex.finite_range().unwrap();
+        let tex = tex.map(|v| (v - lo) / (hi - lo));
+        let phi = phi_deg.to_radians();
+        let (a, n) = ([phi.cos(), phi.sin()], [-phi.sin(), phi.cos()]);
+        let (cx, cy) = ((w as f64 - 1.0) / 2.0, (h as f64 - 1.0) / 2.0);
+        let bump_r = 0.2 * w.min(h) as f64;
+        let z = |s: f64, r: f64| 0.15 * w.min(h) as f64 * (-(s * s + r * r) / (2.0 * bump_r * bump_r)).exp();
+        let albedo = |s: f64, r: f64| -> f32 {
+            if periodic {
+                (0.5 + 0.25 * ((s * 0.5).sin() + (r * 0.5).sin())) as f32
+            } else {
+                tex.sample_bilinear(s + tex_n as f64 / 2.0, r + tex_n as f64 / 2.0).unwrap_or(0.5)
+            }
+        };
+        // Image offset (relative to the centre) of specimen point (s, r) at tilt t.
+        let project = |s: f64, r: f64, t: f64| {
+            let v = r * t.cos() + z(s, r) * t.sin();
+            (s * a[0] + v * n[0], s * a[1] + v * n[1])
+        };
+        let rot = rot_deg.to_radians();
+        let shift = (6.3, -4.1);
+        let to_right = |(x, y): (f64, f64)| {
+            let (c, s) = (rot.cos(), rot.sin());
+            (c * x - s * y + cx + shift.0, s * x + c * y + cy + shift.1)
+        };
+        let from_right = |px: f64, py: f64| {
+            let (x, y) = (px - cx - shift.0, py - cy - shift.1);
+            let (c, s) = (rot.cos(), rot.sin());
+            (c * x + s * y, -s * x + c * y)
+        };
+        // Inverse projection by fixed point: s is the coordinate along a, r solves v = r cos t + z sin t.
+        let unproject = |x: f64, y: f64, t: f64| {
+            let s = x * a[0] + y * a[1];
+            let v = x * n[0] + y * n[1];
+            let mut r = v / t.cos();
+            for _ in 0..30 {
+                r = (v - z(s, r) * t.sin()) / t.cos();
+            }
+            (s, r)
+        };
+        let (t1, t2) = (tilt_deg.0.to_radians(), tilt_deg.1.to_radians());
+        let left = Image::from_fn(w, h, |x, y| {
+            let (s, r) = unproject(x as f64 - cx, y as f64 - cy, t1);
+            albedo(s, r)
+        });
+        let right = Image::from_fn(w, h, |x, y| {
+            let (u, v) = from_right(x as f64, y as f64);
+            let (s, r) = unproject(u, v, t2);
+            albedo(s, r)
+        });
+        let corr = |x: f64, y: f64| {
+            let (s, r) = unproject(x - cx, y - cy, t1);
+            let (rx, ry) = to_right(project(s, r, t2));
+            Correspondence { left: [x, y], right: [rx, ry] }
+        };
+        let mut truth = Vec::new();
+        for y in (20..h - 20).step_by(10) {
+            for x in (20..w - 20).step_by(10) {
+                truth.push(corr(x as f64, y as f64));
+            }
+        }
+        let top = project(0.0, 0.0, t1);
+        let flat = project(-0.4 * w as f64, 0.0, t1);
+        SemPair {
+            left,
+            right,
+            truth,
+            top: [top.0 + cx, top.1 + cy],
+            flat: [flat.0 + cx, flat.1 + cy],
+        }
+    }
+
+    fn dy_stats(r: &SparseResult, truth: &[Correspondence]) -> (f64, f64) {
+        let rec = &r.rectification;
+        let mut dy: Vec<f64> = truth
+            .iter()
+            .map(|c| {
+                let a = transform(&rec.h_left, &Vector2::new(c.left[0], c.left[1]));
+                let b = transform(&rec.h_right, &Vector2::new(c.right[0], c.right[1]));
+                (a.y - b.y).abs()
+            })
+            .collect();
+        dy.sort_by(f64::total_cmp);
+        (dy[dy.len() / 2], dy[dy.len() * 95 / 100])
+    }
+
+    #[test]
+    fn rectifies_a_simulated_sem_pair_with_the_right_height_sign() {
+        for (phi, model) in [(-90.0, FundamentalModel::Projective), (20.0, FundamentalModel::Affine)] {
+            let pair = sem_pair(320, 256, phi, (-4.0, 4.0), 0.7, false);
+            let mut params = SparseParams::default();
+            params.orsa.model = model;
+            let r = sparse_stage(&pair.left, &pair.right, Some(phi), &params).unwrap();
+            assert!(r.inliers.len() >= 16, "φ {phi}: {} inliers", r.inliers.len());
+            assert!(r.log10_nfa < 0.0);
+            assert!(r.rectification.final_error_px < 0.3, "φ {phi}: final {}", r.rectification.final_error_px);
+            let (med, p95) = dy_stats(&r, &pair.truth);
+            assert!(med < 0.3 && p95 < 1.0, "φ {phi}: true |Δy| median {med}, p95 {p95}");
+            assert!(r.n_rectified.unwrap()[0] > 0.95);
+            // The bump top is higher: larger x_right − x_left on the canvas than a flat point.
+            let rec = &r.rectification;
+            let disparity = |p: [f64; 2]| {
+                let c = pair.truth.iter().min_by(|a, b| {
+                    let da = (a.left[0] - p[0]).hypot(a.left[1] - p[1]);
+                    let db = (b.left[0] - p[0]).hypot(b.left[1] - p[1]);
+                    da.total_cmp(&db)
+                });
+                let c = c.unwrap();
+                transform(&rec.h_right, &Vector2::new(c.right[0], c.right[1])).x
+                    - transform(&rec.h_left, &Vector2::new(c.left[0], c.left[1])).x
+            };
+            assert!(disparity(pair.top) > disparity(pair.flat) + 2.0, "φ {phi}");
+        }
+    }
+
+    #[test]
+    fn same_seed_gives_identical_output() {
+        let pair = sem_pair(256, 200, -90.0, (-3.0, 3.0), 0.3, false);
+        let p = SparseParams::default();
+        let mut a = sparse_stage(&pair.left, &pair.right, Some(-90.0), &p).unwrap();
+        let mut b = sparse_stage(&pair.left, &pair.right, Some(-90.0), &p).unwrap();
+        a.timings = Timings::default();
+        b.timings = Timings::default();
+        assert_eq!(a, b);
+    }
+
+    #[test]
+    fn refusals_name_their_cause() {
+        let pair = sem_pair(200, 160, -90.0, (-3.0, 3.0), 0.0, false);
+        let small = Image::from_fn(180, 160, |x, y| pair.right.get(x, y));
+        let p = SparseParams::default();
+        let e = sparse_stage(&pair.left, &small, None, &p).unwrap_err();
+        assert_eq!(e.to_string(), "images differ in size: 200×160 vs 180×160: left and right must come from the same scan");
+        let blank = Image::filled(200, 160, 0.4);
+        let e = sparse_stage(&pair.left, &blank, None, &p).unwrap_err();
+        assert!(e.to_string().starts_with("right image has no texture: 0 keypoints"), "{e}");
+        let tiny = Image::filled(20, 20, 0.4);
+        let e = sparse_stage(&tiny, &tiny, None, &p).unwrap_err();
+        assert!(matches!(e, SparseError::ImageTooSmall { side: Side::Left, .. }), "{e}");
+        // Unrelated images: no meaningful model or too few matches, never a warp.
+        let other = sem_pair(200, 160, 0.0, (-3.0, 3.0), 0.0, true);
+        let e = sparse_stage(&pair.left, &other.left, None, &p).unwrap_err();
+        assert!(
+            matches!(e, SparseError::TooFewMatches { .. } | SparseError::NotMeaningful { .. }),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn periodic_texture_gives_a_right_warp_or_a_clear_refusal() {
+        let pair = sem_pair(256, 200, -90.0, (-4.0, 4.0), 0.5, true);
+        match sparse_stage(&pair.left, &pair.right, Some(-90.0), &SparseParams::default()) {
+            Ok(r) => {
+                let (med, _) = dy_stats(&r, &pair.truth);
+                assert!(med < 0.5, "a wrong warp was accepted: true |Δy| median {med}");
+            }
+            Err(e) => {
+                let msg = e.to_string();
+                assert!(msg.contains("matches") || msg.contains("meaningful") || msg.contains("implausible"), "{msg}");
+            }
+        }
+    }
+}

@@ -70,7 +70,15 @@ mod tests {
         let inv = h.try_inverse().unwrap();
         Image::from_fn(w, hh, |x, y| {
             let p = inv * Vector3::new(x as f64, y as f64, 1.0);
-            src.sample_bilinear(p.x / p.z, p.y / p.z).unwrap_or(f32::NAN)
+            let (sx, sy) = (p.x / p.z, p.y / p.z);
+            let (mx, my) = ((src.width() - 1) as f64, (src.height() - 1) as f64);
+            // Same 1e-6 px tolerance at the border as the warp.
+            let inside = sx > -1e-6 && sy > -1e-6 && sx < mx + 1e-6 && sy < my + 1e-6;
+            if inside {
+                src.sample_bilinear(sx.clamp(0.0, mx), sy.clamp(0.0, my)).unwrap()
+            } else {
+                f32::NAN
+            }
         })
     }
 
