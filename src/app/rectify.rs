@@ -159,6 +159,7 @@ pub fn rectification_json(r: &SparseResult, tilt_axis_deg: Option<f64>, params: 
         "canvas_offset_px": [rec.canvas_offset.0, rec.canvas_offset.1],
         "right_shift_px": rec.right_shift_px,
         "fundamental_model": r.model,
+        "fallback_reason": r.fallback_reason,
         "F": matrix_rows(&r.f),
         "log10_NFA": r.log10_nfa,
         "NFA": 10f64.powf(r.log10_nfa),

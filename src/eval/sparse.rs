@@ -36,6 +36,10 @@ pub struct PairFigures {
     pub threshold_px: f64,
     pub initial_error_px: f64,
     pub final_error_px: f64,
+    /// Predicted 1σ misalignment of the rows at the image corners.
+    pub predicted_error_px: f64,
+    /// Model used (after any fallback).
+    pub model: String,
     /// Median and 95th percentile of rectified `|Δy|`, pixels.
     pub dy_median_px: f64,
     pub dy_p95_px: f64,
@@ -90,6 +94,8 @@ pub fn evaluate_pair(
         threshold_px: r.threshold_px,
         initial_error_px: rec.initial_error_px,
         final_error_px: rec.final_error_px,
+        predicted_error_px: rec.predicted_error_px,
+        model: format!("{:?}", r.model),
         dy_median_px: percentile(&dy, 0.5),
         dy_p95_px: percentile(&dy, 0.95),
         dy_from_truth: truth.is_some(),
@@ -161,6 +167,128 @@ pub fn timing_1280x960(data_dir: &Path, params: &SparseParams, runs: usize) -> a
     best.ok_or_else(|| anyhow::anyhow!("no run"))
 }
 
+/// CPU seconds this process has used (user + system) from `/proc/self/stat`; 0 elsewhere.
+/// On a shared machine the wall time says little; CPU time / cores bounds the quiet wall time.
+#[must_use]
+pub fn cpu_seconds() -> f64 {
+    let Ok(stat) = std::fs::read_to_string("/proc/self/stat") else {
+        return 0.0;
+    };
+    // After the parenthesised command name: utime and stime are the 12th and 13th numbers.
+    let rest = stat.rsplit_once(')').map_or("", |(_, r)| r);
+    let f: Vec<f64> = rest.split_whitespace().filter_map(|x| x.parse().ok()).collect();
+    (f.get(10).copied().unwrap_or(0.0) + f.get(11).copied().unwrap_or(0.0)) / 100.0
+}
+
+/// One simulated pair: scene kind, tilt difference θ (left at −θ/2, right at +θ/2), tilt axis
+/// φ, in-plane (scan) rotation of the right shot and its eucentric shift.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SimCase {
+    pub kind: sdsem_sim::scene::SceneKind,
+    pub tilt_deg: f64,
+    pub tilt_axis_deg: f64,
+    pub rotation_deg: f64,
+    pub shift_um: [f64; 2],
+}
+
+/// The sweep: every scene kind, θ = 3°, 7°, 11°, tilt axes 0°, 30°, −90°, rotations up to
+/// 1°, eucentric shifts of a few µm.
+#[must_use]
+pub fn simulator_cases() -> Vec<SimCase> {
+    let mut out = Vec::new();
+    for kind in sdsem_sim::scene::SceneKind::ALL {
+        for (tilt_deg, tilt_axis_deg, rotation_deg, shift_um) in
+            [(3.0, 0.0, 0.3, [2.5, -1.7]), (7.0, 30.0, -0.7, [-3.1, 2.2]), (11.0, -90.0, 1.0, [4.0, 3.0])]
+        {
+            out.push(SimCase {
+                kind,
+                tilt_deg,
+                tilt_axis_deg,
+                rotation_deg,
+                shift_um,
+            });
+        }
+    }
+    out
+}
+
+/// A rendered simulator pair with its true correspondences (a grid of left pixels every
+/// `step`, kept where the point is visible in the right frame).
+///
+/// # Errors
+/// When the scene cannot be generated.
+pub fn simulate_pair(
+    case: &SimCase,
+    size: (usize, usize),
+    pixel_size_um: f64,
+    dwell_us: f64,
+    step: usize,
+) -> anyhow::Result<(Image, Image, Vec<Correspondence>)> {
+    use sdsem_sim::render::{self, NoiseParams, ShadingParams, View};
+    use sdsem_sim::scene::{Scene, SceneParams};
+    let scene = Scene::generate(&SceneParams {
+        kind: case.kind,
+        seed: 7,
+        ..SceneParams::default()
+    })?;
+    let left_view = View {
+        width: size.0,
+        height: size.1,
+        pixel_size_um,
+        tilt_deg: -case.tilt_deg / 2.0,
+        tilt_axis_deg: case.tilt_axis_deg,
+        ..View::default()
+    };
+    let right_view = View {
+        tilt_deg: case.tilt_deg / 2.0,
+        scan_rotation_deg: case.rotation_deg,
+        offset_um: case.shift_um,
+        ..left_view
+    };
+    let shading = ShadingParams::default();
+    let noise = NoiseParams::default();
+    let l = render::render_noisy(&scene, &left_view, &shading, &noise, dwell_us, 1);
+    let r = render::render_noisy(&scene, &right_view, &shading, &noise, dwell_us, 2);
+    let mut truth = Vec::new();
+    for y in (0..size.1).step_by(step.max(1)) {
+        for x in (0..size.0).step_by(step.max(1)) {
+            let (xf, yf) = (x as f64, y as f64);
+            if let Some(c) = render::correspondence(&scene, &left_view, &right_view, xf, yf)
+                && c.is_visible()
+            {
+                truth.push(Correspondence {
+                    left: [xf, yf],
+                    right: [c.x, c.y],
+                });
+            }
+        }
+    }
+    Ok((Image::from_vec(size.0, size.1, l)?, Image::from_vec(size.0, size.1, r)?, truth))
+}
+
+/// Evaluates the simulator sweep at `size` (pixel size chosen so the field is 128 µm wide).
+///
+/// # Errors
+/// When a scene cannot be generated; a pair the stage refuses is reported in its row.
+pub fn simulator(
+    cases: &[SimCase],
+    size: (usize, usize),
+    params: &SparseParams,
+) -> anyhow::Result<Vec<(String, Result<PairFigures, SparseError>)>> {
+    let pixel = 128.0 / size.0 as f64;
+    let mut rows = Vec::new();
+    for case in cases {
+        let (l, r, truth) = simulate_pair(case, size, pixel, 10.0, 8)?;
+        let name = format!(
+            "{} θ{} φ{} rot{}",
+            case.kind, case.tilt_deg, case.tilt_axis_deg, case.rotation_deg
+        );
+        let fig = evaluate_pair(&name, &l, &r, Some(case.tilt_axis_deg), params, Some(&truth));
+        rows.push((name, fig));
+    }
+    Ok(rows)
+}
+
 /// A plain-text table of the rows, with the paper's Table 2 range as the last line.
 #[must_use]
 pub fn format_table(rows: &[(String, Result<PairFigures, SparseError>)]) -> String {
@@ -168,8 +296,8 @@ pub fn format_table(rows: &[(String, Result<PairFigures, SparseError>)]) -> Stri
     let mut s = String::new();
     let _ = writeln!(
         s,
-        "{:<22} {:>6} {:>6} {:>6} {:>6} {:>8} {:>7} {:>8} {:>7} {:>7} {:>7} {:>5} | {:>6} {:>6} {:>6} {:>6} {:>6} {:>6}",
-        "pair", "kp L", "kp R", "match", "inl", "log NFA", "thr px", "init px", "fin px", "|dy|50", "|dy|95", "n_x",
+        "{:<26} {:>4} {:>6} {:>6} {:>6} {:>6} {:>8} {:>7} {:>8} {:>7} {:>6} {:>7} {:>7} {:>5} | {:>6} {:>6} {:>6} {:>6} {:>6} {:>6}",
+        "pair", "F", "kp L", "kp R", "match", "inl", "log NFA", "thr px", "init px", "fin px", "unc px", "|dy|50", "|dy|95", "n_x",
         "sift", "match", "orsa", "rect", "warp", "total"
     );
     for (name, r) in rows {
@@ -178,8 +306,9 @@ pub fn format_table(rows: &[(String, Result<PairFigures, SparseError>)]) -> Stri
                 let t = &f.timings;
                 let _ = writeln!(
                     s,
-                    "{:<22} {:>6} {:>6} {:>6} {:>6} {:>8.1} {:>7.2} {:>8.2} {:>7.3} {:>7.3}{} {:>6.3} {:>5} | {:>6.0} {:>6.0} {:>6.0} {:>6.0} {:>6.0} {:>6.0}",
+                    "{:<26} {:>4} {:>6} {:>6} {:>6} {:>6} {:>8.1} {:>7.2} {:>8.2} {:>7.3} {:>6.3} {:>7.3}{} {:>6.3} {:>5} | {:>6.0} {:>6.0} {:>6.0} {:>6.0} {:>6.0} {:>6.0}",
                     name,
+                    &f.model[..4],
                     f.keypoints_left,
                     f.keypoints_right,
                     f.matches,
@@ -188,6 +317,7 @@ pub fn format_table(rows: &[(String, Result<PairFigures, SparseError>)]) -> Stri
                     f.threshold_px,
                     f.initial_error_px,
                     f.final_error_px,
+                    f.predicted_error_px,
                     f.dy_median_px,
                     if f.dy_from_truth { "*" } else { " " },
                     f.dy_p95_px,
@@ -201,7 +331,7 @@ pub fn format_table(rows: &[(String, Result<PairFigures, SparseError>)]) -> Stri
                 );
             }
             Err(e) => {
-                let _ = writeln!(s, "{name:<22} REFUSED: {e}");
+                let _ = writeln!(s, "{name:<26} REFUSED: {e}");
             }
         }
     }
@@ -233,6 +363,32 @@ mod tests {
             rows.push((t.name.clone(), Ok(t)));
             println!("{name}\n{}", format_table(&rows));
         }
+    }
+
+    /// `cargo test -p sdsem --lib eval::sparse::tests::simulator_table -- --ignored --nocapture`
+    #[test]
+    #[ignore = "renders 24 simulator pairs"]
+    fn simulator_table() {
+        let mut params = SparseParams::default();
+        if std::env::var("SDSEM_MODEL").is_ok_and(|m| m == "affine") {
+            params.orsa.model = crate::vision::fundamental::FundamentalModel::Affine;
+        }
+        let cpu = cpu_seconds();
+        let rows = simulator(&simulator_cases(), (640, 480), &params).expect("simulator pairs");
+        println!("{:?}\n{}", params.orsa.model, format_table(&rows));
+        let cases = [SimCase {
+            kind: sdsem_sim::scene::SceneKind::Particles,
+            tilt_deg: 6.0,
+            tilt_axis_deg: 0.0,
+            rotation_deg: 0.5,
+            shift_um: [2.0, -1.0],
+        }];
+        let (l, r, truth) = simulate_pair(&cases[0], (1280, 960), 0.1, 10.0, 8).expect("1280×960 pair");
+        let c0 = cpu_seconds();
+        let f = evaluate_pair("particles 1280×960", &l, &r, Some(0.0), &params, Some(&truth));
+        let c1 = cpu_seconds();
+        println!("{}", format_table(&[("particles 1280×960".to_owned(), f)]));
+        println!("1280×960 sparse stage CPU {:.2} s; whole evaluation CPU {:.1} s", c1 - c0, c1 - cpu);
     }
 
     #[test]

@@ -198,6 +198,11 @@ fn draw(seed: u64, iteration: usize, pool: &[usize], m: usize) -> Vec<usize> {
 
 const BATCH: usize = 64;
 
+/// Any two of the sampled points closer than 1 px.
+fn has_coincident_points(points: &[Vector2<f64>], idx: &[usize]) -> bool {
+    idx.iter().enumerate().any(|(k, &i)| idx[..k].iter().any(|&j| (points[i] - points[j]).norm_squared() < 1.0))
+}
+
 /// Runs batches of samples from `pool` with iteration numbers `first..first + budget`,
 /// improving `best`; returns the number of samples drawn.
 fn sample_phase(
@@ -217,6 +222,11 @@ fn sample_phase(
             .into_par_iter()
             .map_init(Vec::new, |buf, it| {
                 let idx = draw(params.seed, first + it, pool, m);
+                // Two matches at the same place in either image make the sample degenerate: the
+                // solver then fits a family of models that explains nothing.
+                if has_coincident_points(p.left, &idx) || has_coincident_points(p.right, &idx) {
+                    return None;
+                }
                 p.model
                     .fit_minimal(p.left, p.right, &idx)
                     .iter()

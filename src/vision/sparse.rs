@@ -41,6 +41,9 @@ pub struct SparseParams {
     /// Fewest ORSA inliers accepted (default 8: the paper's "eight are enough" — the
     /// rectification has six unknowns). Fewer → [`SparseError::TooFewMatches`].
     pub min_inliers: usize,
+    /// When the projective model (the paper's) is refused, try the affine one before giving up
+    /// (default true). The result names the model used and why the first was refused.
+    pub fallback_to_affine: bool,
 }
 
 impl Default for SparseParams {
@@ -60,6 +63,7 @@ impl Default for SparseParams {
             orsa: OrsaParams::default(),
             rectify: RectifyParams::default(),
             min_inliers: 8,
+            fallback_to_affine: true,
         }
     }
 }
@@ -134,11 +138,15 @@ pub struct SparseResult {
     pub image_size: (usize, usize),
     pub keypoints_left: usize,
     pub keypoints_right: usize,
-    /// Putative matches (ratio test and symmetric check), original pixels.
+    /// Putative matches (ratio test and symmetric check), each pair of positions once,
+    /// original pixels.
     pub matches: Vec<Correspondence>,
     /// ORSA inliers, original pixels.
     pub inliers: Vec<Correspondence>,
+    /// The model that gave the result (the requested one, or affine after a fallback).
     pub model: FundamentalModel,
+    /// Why the requested projective model was abandoned for the affine one, if it was.
+    pub fallback_reason: Option<String>,
     /// The ORSA fundamental matrix, `x_rightᵀ F x_left = 0`.
     pub f: Matrix3<f64>,
     pub log10_nfa: f64,
@@ -233,43 +241,31 @@ pub fn sparse_stage(
             stage: "descriptor matching",
         });
     }
-    let pl: Vec<Vector2<f64>> = matches.iter().map(|m| Vector2::new(kl[m.left].x, kl[m.left].y)).collect();
-    let pr: Vec<Vector2<f64>> = matches.iter().map(|m| Vector2::new(kr[m.right].x, kr[m.right].y)).collect();
-
-    let t = Instant::now();
-    let size = left.dimensions();
-    let found = orsa(&pl, &pr, [size, size], &params.orsa);
-    timings.orsa_ms = ms(t);
-    let found = match found {
-        Ok(f) => f,
-        Err(OrsaError::TooFewMatches { found, need }) => {
-            return Err(SparseError::TooFewMatches {
-                found,
-                need,
-                stage: "ORSA",
-            });
-        }
-        Err(OrsaError::NotMeaningful { best_log10_nfa, inliers }) => {
-            return Err(SparseError::NotMeaningful {
-                log10_nfa: best_log10_nfa,
-                inliers,
-                matches: matches.len(),
-            });
-        }
-    };
-    if found.inliers.len() < need {
+    let (pl, pr) = distinct_positions(&kl, &kr, &matches);
+    if pl.len() < need {
         return Err(SparseError::TooFewMatches {
-            found: found.inliers.len(),
+            found: pl.len(),
             need,
-            stage: "ORSA inliers",
+            stage: "distinct matches",
         });
     }
+
+    let size = left.dimensions();
+    let mut model = params.orsa.model;
+    let mut geometry = epipolar_geometry(&pl, &pr, size, tilt_axis_deg, params, model, need, &mut timings);
+    let mut fallback_reason = None;
+    if params.fallback_to_affine && model == FundamentalModel::Projective {
+        if let Err(e) = &geometry {
+            // SEM is a parallel projection: the affine model is exact and has fewer ways to go
+            // wrong on flat or weakly tilted specimens.
+            fallback_reason = Some(e.to_string());
+            model = FundamentalModel::Affine;
+            geometry = epipolar_geometry(&pl, &pr, size, tilt_axis_deg, params, model, need, &mut timings);
+        }
+    }
+    let (found, rectification) = geometry?;
     let il: Vec<Vector2<f64>> = found.inliers.iter().map(|&i| pl[i]).collect();
     let ir: Vec<Vector2<f64>> = found.inliers.iter().map(|&i| pr[i]).collect();
-
-    let t = Instant::now();
-    let rectification = rectify(&il, &ir, &found.f, size, tilt_axis_deg, &params.rectify)?;
-    timings.rectify_ms = ms(t);
     timings.total_ms = ms(t_total);
 
     let corr = |a: &Vector2<f64>, b: &Vector2<f64>| Correspondence {
@@ -282,7 +278,8 @@ pub fn sparse_stage(
         keypoints_right: kr.len(),
         matches: pl.iter().zip(&pr).map(|(a, b)| corr(a, b)).collect(),
         inliers: il.iter().zip(&ir).map(|(a, b)| corr(a, b)).collect(),
-        model: params.orsa.model,
+        model,
+        fallback_reason,
         f: found.f,
         log10_nfa: found.log10_nfa,
         threshold_px: found.threshold_px,
@@ -291,6 +288,77 @@ pub fn sparse_stage(
         rectification,
         timings,
     })
+}
+
+/// ORSA with `model`, then the rectification of its inliers.
+#[allow(clippy::too_many_arguments)]
+fn epipolar_geometry(
+    pl: &[Vector2<f64>],
+    pr: &[Vector2<f64>],
+    size: (usize, usize),
+    tilt_axis_deg: Option<f64>,
+    params: &SparseParams,
+    model: FundamentalModel,
+    need: usize,
+    timings: &mut Timings,
+) -> Result<(crate::vision::orsa::OrsaResult, Rectification), SparseError> {
+    let t = Instant::now();
+    let orsa_params = OrsaParams {
+        model,
+        ..params.orsa.clone()
+    };
+    let found = orsa(pl, pr, [size, size], &orsa_params);
+    timings.orsa_ms += ms(t);
+    let found = match found {
+        Ok(f) => f,
+        Err(OrsaError::TooFewMatches { found, need }) => {
+            return Err(SparseError::TooFewMatches {
+                found,
+                need: need + 1,
+                stage: "ORSA",
+            });
+        }
+        Err(OrsaError::NotMeaningful { best_log10_nfa, inliers }) => {
+            return Err(SparseError::NotMeaningful {
+                log10_nfa: best_log10_nfa,
+                inliers,
+                matches: pl.len(),
+            });
+        }
+    };
+    if found.inliers.len() < need {
+        return Err(SparseError::TooFewMatches {
+            found: found.inliers.len(),
+            need,
+            stage: "ORSA inliers",
+        });
+    }
+    let il: Vec<Vector2<f64>> = found.inliers.iter().map(|&i| pl[i]).collect();
+    let ir: Vec<Vector2<f64>> = found.inliers.iter().map(|&i| pr[i]).collect();
+    let t = Instant::now();
+    let rectification = rectify(&il, &ir, &found.f, size, tilt_axis_deg, &params.rectify);
+    timings.rectify_ms += ms(t);
+    Ok((found, rectification?))
+}
+
+/// The matched positions, each pair of positions once: a keypoint with several orientations
+/// appears once per orientation, and its matches would otherwise count several times in ORSA
+/// (inflating the NFA's evidence) and can make minimal samples degenerate.
+fn distinct_positions(
+    kl: &[crate::vision::sift::Keypoint],
+    kr: &[crate::vision::sift::Keypoint],
+    matches: &[crate::vision::matching::Match],
+) -> (Vec<Vector2<f64>>, Vec<Vector2<f64>>) {
+    let mut seen = std::collections::HashSet::new();
+    let (mut pl, mut pr) = (Vec::new(), Vec::new());
+    for m in matches {
+        let (a, b) = (&kl[m.left], &kr[m.right]);
+        if seen.insert([a.x.to_bits(), a.y.to_bits(), b.x.to_bits(), b.y.to_bits()]) {
+            pl.push(Vector2::new(a.x, a.y));
+            pr.push(Vector2::new(b.x, b.y));
+        }
+    }
+    (pl, pr)
 }
 
 /// [`sparse_stage`], then both images warped (bilinear) onto the rectified canvas.
