@@ -127,7 +127,14 @@ pub fn potamogeton(
     for (name, l, r) in POTAMOGETON_PAIRS {
         let left = crate::app::rectify::load_gray(&dir.join(l))?;
         let right = crate::app::rectify::load_gray(&dir.join(r))?;
-        let fig = evaluate_pair(name, &left, &right, Some(POTAMOGETON_TILT_AXIS_DEG), params, None);
+        let fig = evaluate_pair(
+            name,
+            &left,
+            &right,
+            Some(POTAMOGETON_TILT_AXIS_DEG),
+            params,
+            None,
+        );
         rows.push((name.to_owned(), fig));
     }
     Ok(rows)
@@ -136,7 +143,10 @@ pub fn potamogeton(
 /// The centre `w × h` of an image.
 #[must_use]
 pub fn crop_centre(img: &Image, w: usize, h: usize) -> Image {
-    let (x0, y0) = (img.width().saturating_sub(w) / 2, img.height().saturating_sub(h) / 2);
+    let (x0, y0) = (
+        img.width().saturating_sub(w) / 2,
+        img.height().saturating_sub(h) / 2,
+    );
     let (w, h) = (w.min(img.width()), h.min(img.height()));
     Image::from_fn(w, h, |x, y| img.get(x0 + x, y0 + y))
 }
@@ -146,10 +156,22 @@ pub fn crop_centre(img: &Image, w: usize, h: usize) -> Image {
 ///
 /// # Errors
 /// When the files cannot be read or the stage fails.
-pub fn timing_1280x960(data_dir: &Path, params: &SparseParams, runs: usize) -> anyhow::Result<PairFigures> {
+pub fn timing_1280x960(
+    data_dir: &Path,
+    params: &SparseParams,
+    runs: usize,
+) -> anyhow::Result<PairFigures> {
     let dir = data_dir.join("potamogeton");
-    let left = crop_centre(&crate::app::rectify::load_gray(&dir.join("pot_02.tif"))?, 1280, 960);
-    let right = crop_centre(&crate::app::rectify::load_gray(&dir.join("pot_04.tif"))?, 1280, 960);
+    let left = crop_centre(
+        &crate::app::rectify::load_gray(&dir.join("pot_02.tif"))?,
+        1280,
+        960,
+    );
+    let right = crop_centre(
+        &crate::app::rectify::load_gray(&dir.join("pot_04.tif"))?,
+        1280,
+        960,
+    );
     let mut best: Option<PairFigures> = None;
     for _ in 0..runs.max(1) {
         let f = evaluate_pair(
@@ -160,7 +182,10 @@ pub fn timing_1280x960(data_dir: &Path, params: &SparseParams, runs: usize) -> a
             params,
             None,
         )?;
-        if best.as_ref().is_none_or(|b| f.timings.total_ms < b.timings.total_ms) {
+        if best
+            .as_ref()
+            .is_none_or(|b| f.timings.total_ms < b.timings.total_ms)
+        {
             best = Some(f);
         }
     }
@@ -176,7 +201,10 @@ pub fn cpu_seconds() -> f64 {
     };
     // After the parenthesised command name: utime and stime are the 12th and 13th numbers.
     let rest = stat.rsplit_once(')').map_or("", |(_, r)| r);
-    let f: Vec<f64> = rest.split_whitespace().filter_map(|x| x.parse().ok()).collect();
+    let f: Vec<f64> = rest
+        .split_whitespace()
+        .filter_map(|x| x.parse().ok())
+        .collect();
     (f.get(10).copied().unwrap_or(0.0) + f.get(11).copied().unwrap_or(0.0)) / 100.0
 }
 
@@ -197,9 +225,11 @@ pub struct SimCase {
 pub fn simulator_cases() -> Vec<SimCase> {
     let mut out = Vec::new();
     for kind in sdsem_sim::scene::SceneKind::ALL {
-        for (tilt_deg, tilt_axis_deg, rotation_deg, shift_um) in
-            [(3.0, 0.0, 0.3, [2.5, -1.7]), (7.0, 30.0, -0.7, [-3.1, 2.2]), (11.0, -90.0, 1.0, [4.0, 3.0])]
-        {
+        for (tilt_deg, tilt_axis_deg, rotation_deg, shift_um) in [
+            (3.0, 0.0, 0.3, [2.5, -1.7]),
+            (7.0, 30.0, -0.7, [-3.1, 2.2]),
+            (11.0, -90.0, 1.0, [4.0, 3.0]),
+        ] {
             out.push(SimCase {
                 kind,
                 tilt_deg,
@@ -263,7 +293,11 @@ pub fn simulate_pair(
             }
         }
     }
-    Ok((Image::from_vec(size.0, size.1, l)?, Image::from_vec(size.0, size.1, r)?, truth))
+    Ok((
+        Image::from_vec(size.0, size.1, l)?,
+        Image::from_vec(size.0, size.1, r)?,
+        truth,
+    ))
 }
 
 /// Evaluates the simulator sweep at `size` (pixel size chosen so the field is 128 µm wide).
@@ -283,7 +317,14 @@ pub fn simulator(
             "{} θ{} φ{} rot{}",
             case.kind, case.tilt_deg, case.tilt_axis_deg, case.rotation_deg
         );
-        let fig = evaluate_pair(&name, &l, &r, Some(case.tilt_axis_deg), params, Some(&truth));
+        let fig = evaluate_pair(
+            &name,
+            &l,
+            &r,
+            Some(case.tilt_axis_deg),
+            params,
+            Some(&truth),
+        );
         rows.push((name, fig));
     }
     Ok(rows)
@@ -297,8 +338,26 @@ pub fn format_table(rows: &[(String, Result<PairFigures, SparseError>)]) -> Stri
     let _ = writeln!(
         s,
         "{:<26} {:>4} {:>6} {:>6} {:>6} {:>6} {:>8} {:>7} {:>8} {:>7} {:>6} {:>7} {:>7} {:>5} | {:>6} {:>6} {:>6} {:>6} {:>6} {:>6}",
-        "pair", "F", "kp L", "kp R", "match", "inl", "log NFA", "thr px", "init px", "fin px", "unc px", "|dy|50", "|dy|95", "n_x",
-        "sift", "match", "orsa", "rect", "warp", "total"
+        "pair",
+        "F",
+        "kp L",
+        "kp R",
+        "match",
+        "inl",
+        "log NFA",
+        "thr px",
+        "init px",
+        "fin px",
+        "unc px",
+        "|dy|50",
+        "|dy|95",
+        "n_x",
+        "sift",
+        "match",
+        "orsa",
+        "rect",
+        "warp",
+        "total"
     );
     for (name, r) in rows {
         match r {
@@ -321,7 +380,8 @@ pub fn format_table(rows: &[(String, Result<PairFigures, SparseError>)]) -> Stri
                     f.dy_median_px,
                     if f.dy_from_truth { "*" } else { " " },
                     f.dy_p95_px,
-                    f.n_rectified_x.map_or_else(|| "-".to_owned(), |x| format!("{x:+.2}")),
+                    f.n_rectified_x
+                        .map_or_else(|| "-".to_owned(), |x| format!("{x:+.2}")),
                     t.sift_ms,
                     t.matching_ms,
                     t.orsa_ms,
@@ -352,12 +412,36 @@ mod tests {
     fn potamogeton_table() {
         use crate::vision::sift::SiftParams;
         let presets = [
-            ("ipol+max3000", SiftParams { max_keypoints: 3000, ..SiftParams::default() }),
-            ("d1s1.6", SiftParams { delta_min: 1.0, sigma_min: 1.6, ..SiftParams::default() }),
-            ("d1s1.6+max2000", SiftParams { delta_min: 1.0, sigma_min: 1.6, max_keypoints: 2000, ..SiftParams::default() }),
+            (
+                "ipol+max3000",
+                SiftParams {
+                    max_keypoints: 3000,
+                    ..SiftParams::default()
+                },
+            ),
+            (
+                "d1s1.6",
+                SiftParams {
+                    delta_min: 1.0,
+                    sigma_min: 1.6,
+                    ..SiftParams::default()
+                },
+            ),
+            (
+                "d1s1.6+max2000",
+                SiftParams {
+                    delta_min: 1.0,
+                    sigma_min: 1.6,
+                    max_keypoints: 2000,
+                    ..SiftParams::default()
+                },
+            ),
         ];
         for (name, sift) in presets {
-            let params = SparseParams { sift, ..SparseParams::default() };
+            let params = SparseParams {
+                sift,
+                ..SparseParams::default()
+            };
             let mut rows = potamogeton(&data_dir(), &params).expect("Potamogeton images");
             let t = timing_1280x960(&data_dir(), &params, 2).expect("timing pair");
             rows.push((t.name.clone(), Ok(t)));
@@ -383,12 +467,24 @@ mod tests {
             rotation_deg: 0.5,
             shift_um: [2.0, -1.0],
         }];
-        let (l, r, truth) = simulate_pair(&cases[0], (1280, 960), 0.1, 10.0, 8).expect("1280×960 pair");
+        let (l, r, truth) =
+            simulate_pair(&cases[0], (1280, 960), 0.1, 10.0, 8).expect("1280×960 pair");
         let c0 = cpu_seconds();
-        let f = evaluate_pair("particles 1280×960", &l, &r, Some(0.0), &params, Some(&truth));
+        let f = evaluate_pair(
+            "particles 1280×960",
+            &l,
+            &r,
+            Some(0.0),
+            &params,
+            Some(&truth),
+        );
         let c1 = cpu_seconds();
         println!("{}", format_table(&[("particles 1280×960".to_owned(), f)]));
-        println!("1280×960 sparse stage CPU {:.2} s; whole evaluation CPU {:.1} s", c1 - c0, c1 - cpu);
+        println!(
+            "1280×960 sparse stage CPU {:.2} s; whole evaluation CPU {:.1} s",
+            c1 - c0,
+            c1 - cpu
+        );
     }
 
     #[test]
@@ -410,7 +506,8 @@ mod bench {
     #[ignore = "reads $SDSEM_DATA; timing"]
     fn sift_phases() {
         let img = crop_centre(
-            &crate::app::rectify::load_gray(&data_dir().join("potamogeton/pot_02.tif")).expect("pot_02"),
+            &crate::app::rectify::load_gray(&data_dir().join("potamogeton/pot_02.tif"))
+                .expect("pot_02"),
             1280,
             960,
         );
@@ -421,13 +518,26 @@ mod bench {
             let t1 = t.elapsed();
             let ex = sift::detector::detect(&ss, &p);
             let t2 = t.elapsed();
-            let g: Vec<_> = ss.octaves.iter().flat_map(|o| o.gauss[1..=p.n_spo].iter().map(sift::orientation::GradField::new)).collect();
+            let g: Vec<_> = ss
+                .octaves
+                .iter()
+                .flat_map(|o| {
+                    o.gauss[1..=p.n_spo]
+                        .iter()
+                        .map(sift::orientation::GradField::new)
+                })
+                .collect();
             let t3 = t.elapsed();
             let kp = sift::sift(&img, &p).expect("sift");
             let t4 = t.elapsed();
             println!(
                 "scale space {t1:?}, detect {:?} ({} extrema), gradients {:?} ({} fields), full sift {:?} ({} keypoints)",
-                t2 - t1, ex.len(), t3 - t2, g.len(), t4 - t3, kp.len()
+                t2 - t1,
+                ex.len(),
+                t3 - t2,
+                g.len(),
+                t4 - t3,
+                kp.len()
             );
         }
         let _ = SiftParams::default();
