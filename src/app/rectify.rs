@@ -287,6 +287,57 @@ mod tests {
     use super::*;
 
     #[test]
+    fn rectify_command_writes_images_and_json() {
+        let pair = crate::vision::sparse::tests::sem_pair(256, 200, -90.0, (-4.0, 4.0), 0.5, false);
+        let dir = tempfile::tempdir().unwrap();
+        let (l, r) = (dir.path().join("l.png"), dir.path().join("r.png"));
+        save_png(&pair.left, &l).unwrap();
+        save_png(&pair.right, &r).unwrap();
+        let out = dir.path().join("out");
+        run_rectify(&l, &r, &out, Some(-90.0), &SparseParams::default()).unwrap();
+        for f in ["rectified_left.png", "rectified_right.png", "matches.png"] {
+            assert!(image::open(out.join(f)).is_ok(), "{f}");
+        }
+        let json: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(out.join("rectification.json")).unwrap()).unwrap();
+        for key in [
+            "keypoints_left",
+            "keypoints_right",
+            "matches",
+            "inliers",
+            "initial_error_px",
+            "final_error_px",
+            "H_left",
+            "H_right",
+            "NFA",
+            "threshold_px",
+            "timings_ms",
+        ] {
+            assert!(json.get(key).is_some(), "missing {key}");
+        }
+        // H_left / H_right from the JSON put the true correspondences on the same row.
+        let h = |k: &str| {
+            let m = &json[k];
+            nalgebra::Matrix3::from_fn(|i, j| m[i][j].as_f64().unwrap())
+        };
+        let (hl, hr) = (h("H_left"), h("H_right"));
+        let mut dy: Vec<f64> = pair
+            .truth
+            .iter()
+            .map(|c| {
+                let a = hl * nalgebra::Vector3::new(c.left[0], c.left[1], 1.0);
+                let b = hr * nalgebra::Vector3::new(c.right[0], c.right[1], 1.0);
+                (a.y / a.z - b.y / b.z).abs()
+            })
+            .collect();
+        dy.sort_by(f64::total_cmp);
+        assert!(dy[dy.len() / 2] < 0.3, "median |Δy| {}", dy[dy.len() / 2]);
+        // The PNG canvas matches the canvas size in the JSON.
+        let rl = image::open(out.join("rectified_left.png")).unwrap();
+        assert_eq!(json["canvas_size"][0].as_u64().unwrap(), u64::from(rl.width()));
+    }
+
+    #[test]
     fn non_image_file_is_a_clear_error() {
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("notes.txt");
