@@ -6,6 +6,16 @@
 //! `|y_left − y_right|` (of the true correspondences when known, else of the inliers),
 //! with per-step timings. Compare with the paper's Table 2 (16–274 inliers, final errors
 //! 0.17–0.72 px).
+//!
+//! Until `sdsem eval` exists, the tables print from ignored tests:
+//!
+//! ```text
+//! SDSEM_DATA=/work/shared/data cargo test -p sdsem --lib eval::sparse::tests::potamogeton_table -- --ignored --nocapture
+//! cargo test -p sdsem --lib eval::sparse::tests::simulator_table -- --ignored --nocapture
+//! ```
+//!
+//! (`--release` for timings; `SDSEM_RECTIFY_OUT=DIR` also writes the `rectify` outputs of the
+//! −3°/+3° pair; `SDSEM_MODEL=affine` runs the simulator sweep with the affine model.)
 
 use std::path::{Path, PathBuf};
 

@@ -51,12 +51,12 @@ impl Default for SparseParams {
         Self {
             // IPOL's scale space without its first, upsampled octave (VLFeat's first_octave 0):
             // the same blur per octave from σ = 1.6 on, four times less work, and on SEM images
-            // the same rectification accuracy (see the report); at most the 2500 keypoints of
+            // the same rectification accuracy (see the report); at most the 2000 keypoints of
             // highest contrast, which bounds the matching time.
             sift: SiftParams {
                 delta_min: 1.0,
                 sigma_min: 1.6,
-                max_keypoints: 2500,
+                max_keypoints: 2000,
                 ..SiftParams::default()
             },
             matching: MatchParams::default(),

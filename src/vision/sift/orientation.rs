@@ -59,7 +59,8 @@ impl GradField {
                     for x in 1..w - 1 {
                         let gx = 0.5 * (row[x + 1] - row[x - 1]);
                         let gy = 0.5 * (down[x] - up[x]);
-                        m[x] = gx.hypot(gy);
+                        // No over/underflow risk for samples in [0, 1]: plain sqrt, not hypot.
+                        m[x] = (gx * gx + gy * gy).sqrt();
                         o[x] = fast_atan2(gy, gx);
                     }
                 });

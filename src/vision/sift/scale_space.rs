@@ -171,8 +171,9 @@ pub fn gaussian_blur(image: &Image, sigma: f64) -> Image {
         || vec![0.0f32; w + 2 * r],
         |padded, (y, out)| {
             let row = image.row(y);
-            for (i, p) in padded.iter_mut().enumerate() {
-                *p = row[mirror(i as isize - r as isize, w)];
+            padded[r..r + w].copy_from_slice(row);
+            for i in (0..r).chain(r + w..w + 2 * r) {
+                padded[i] = row[mirror(i as isize - r as isize, w)];
             }
             // Tap by tap over the whole row: the inner loop vectorises.
             for (k, &g) in kernel.iter().enumerate() {
