@@ -204,7 +204,8 @@ pub fn rectification_json(
         "fallback_reason": r.fallback_reason,
         "F": matrix_rows(&r.f),
         "log10_NFA": r.log10_nfa,
-        "NFA": 10f64.powf(r.log10_nfa),
+        // Far below f64's range on good pairs (10^-3000): written as a power of ten.
+        "NFA": format!("10^{:.1}", r.log10_nfa),
         "threshold_px": r.threshold_px,
         "orsa_iterations": r.orsa_iterations,
         "orsa_seed": params.orsa.seed,
@@ -299,7 +300,8 @@ mod tests {
             assert!(image::open(out.join(f)).is_ok(), "{f}");
         }
         let json: serde_json::Value =
-            serde_json::from_str(&std::fs::read_to_string(out.join("rectification.json")).unwrap()).unwrap();
+            serde_json::from_str(&std::fs::read_to_string(out.join("rectification.json")).unwrap())
+                .unwrap();
         for key in [
             "keypoints_left",
             "keypoints_right",
@@ -334,7 +336,10 @@ mod tests {
         assert!(dy[dy.len() / 2] < 0.3, "median |Δy| {}", dy[dy.len() / 2]);
         // The PNG canvas matches the canvas size in the JSON.
         let rl = image::open(out.join("rectified_left.png")).unwrap();
-        assert_eq!(json["canvas_size"][0].as_u64().unwrap(), u64::from(rl.width()));
+        assert_eq!(
+            json["canvas_size"][0].as_u64().unwrap(),
+            u64::from(rl.width())
+        );
     }
 
     #[test]
