@@ -23,9 +23,11 @@
 //! the stage protocol ([`sdsem_protocol`]) does no I/O; time is an input.
 
 pub mod acquisition;
+pub mod app;
 pub mod cli;
 pub mod config;
 pub mod daemon;
+pub mod eval;
 pub mod export;
 pub mod imaging;
 pub mod record;

@@ -9,7 +9,9 @@ use tracing::info;
 use crate::config::Config;
 use crate::imaging::{ImagingConfig, ImagingError, SemLinkClient};
 use crate::record::RecorderHandle;
-use crate::stage::{StageConfig, StageDriver, StageError, StageIo, StageLink, StageObserver, StageState};
+use crate::stage::{
+    StageConfig, StageDriver, StageError, StageIo, StageLink, StageObserver, StageState,
+};
 
 /// Why the instruments cannot be reached.
 #[derive(Debug, thiserror::Error)]
@@ -56,7 +58,10 @@ impl StageObserver for RunObserver {
     fn io(&self, e: &StageIo) {
         // A record error is reported once, by the recorder's finish().
         self.with(|r| {
-            let t = e.sent_wall_ns.or(e.reply_wall_ns).unwrap_or_else(crate::stage::observer::wall_ns);
+            let t = e
+                .sent_wall_ns
+                .or(e.reply_wall_ns)
+                .unwrap_or_else(crate::stage::observer::wall_ns);
             let _ = r.stage_io(t, e);
         });
     }
@@ -130,4 +135,3 @@ impl Instruments {
         self.simulator.as_ref()
     }
 }
-

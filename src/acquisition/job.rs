@@ -143,7 +143,10 @@ pub async fn run_job(
     }
     drop(rec);
     let record = recorder.finish().map_err(|e| {
-        error!("the run record {} is incomplete: {e}", record_path.display());
+        error!(
+            "the run record {} is incomplete: {e}",
+            record_path.display()
+        );
         e.to_string()
     });
     Ok(JobReport {

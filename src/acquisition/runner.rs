@@ -125,7 +125,11 @@ where
                             tilt_deg = reached,
                             move_s = report.elapsed.as_secs_f64(),
                             "step {step}/{steps}: tilt {reached:.3}° reached{}",
-                            if report.reissued { " (move re-issued)" } else { "" }
+                            if report.reissued {
+                                " (move re-issued)"
+                            } else {
+                                ""
+                            }
                         );
                         Event::TiltReached
                     }
@@ -275,8 +279,7 @@ impl RunState {
 
         let tracked = if role == FrameRole::Tracking {
             let t1 = Instant::now();
-            let tracked =
-                self.track(step, tilt_deg, &image, frame.meta.pixel_size_um, &ctx.phase);
+            let tracked = self.track(step, tilt_deg, &image, frame.meta.pixel_size_um, &ctx.phase);
             self.record.timings.tracking_compute_s += t1.elapsed().as_secs_f64();
             Some(tracked)
         } else {
@@ -410,7 +413,14 @@ impl RunState {
             height: h,
             drift_px: self.pending_drift.take(),
         };
-        let image = Entry::image(topics::SEM_FRAME, t, frame.meta.role.as_str(), &pixels, w, h)?;
+        let image = Entry::image(
+            topics::SEM_FRAME,
+            t,
+            frame.meta.role.as_str(),
+            &pixels,
+            w,
+            h,
+        )?;
         let info = Entry::json(topics::SEM_FRAME_INFO, t, &info)?;
         recorder.send_async(image).await?;
         recorder.send_async(info).await

@@ -185,13 +185,12 @@ impl SemLinkClient {
     ) -> Result<Reply, ImagingError> {
         let endpoint = self.cfg.endpoint.clone();
         if self.conn.is_none() {
-            let stream =
-                TcpStream::connect(self.cfg.address())
-                    .await
-                    .map_err(|source| ImagingError::Connect {
-                        endpoint: endpoint.clone(),
-                        source,
-                    })?;
+            let stream = TcpStream::connect(self.cfg.address())
+                .await
+                .map_err(|source| ImagingError::Connect {
+                    endpoint: endpoint.clone(),
+                    source,
+                })?;
             let _ = stream.set_nodelay(true);
             self.conn = Some(Connection {
                 stream,
