@@ -11,6 +11,7 @@ use crate::config::{Config, LogFormat};
 
 mod acquire;
 mod check_config;
+mod inspect;
 mod logging;
 
 /// Unattended 3D surface reconstruction on a scanning electron microscope.
@@ -56,6 +57,14 @@ pub enum Command {
         #[command(flatten)]
         config: ConfigArgs,
     },
+    /// Summarise a run record: topics, message counts, frames, outcome (works on truncated files).
+    Inspect {
+        /// The record, e.g. runs/sim-…/run.mcap.
+        record: PathBuf,
+        /// Print the summary as JSON.
+        #[arg(long)]
+        json: bool,
+    },
     /// Validate a configuration file (all layers) and print the effective configuration.
     CheckConfig {
         /// The configuration file.
@@ -80,6 +89,7 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
     );
     match cli.command {
         Command::Acquire { config } => acquire::run(&config),
+        Command::Inspect { record, json } => inspect::run(&record, json),
         Command::CheckConfig {
             file,
             overrides,

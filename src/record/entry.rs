@@ -140,7 +140,7 @@ impl Pixels {
 }
 
 /// Severity of a `/log` message (foxglove.Log levels).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, serde::Serialize)]
 pub enum LogLevel {
     Debug,
     Info,

@@ -14,7 +14,7 @@ use super::read::{ScanEnd, ScanItem, image_frame_id, scan};
 use super::topics;
 
 /// One topic of the record.
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize)]
 pub struct TopicInspection {
     pub topic: String,
     pub schema_name: String,
@@ -26,7 +26,7 @@ pub struct TopicInspection {
 }
 
 /// One attachment of the record (without its bytes).
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize)]
 pub struct AttachmentInspection {
     pub name: String,
     pub media_type: String,
@@ -35,7 +35,7 @@ pub struct AttachmentInspection {
 }
 
 /// Summary of a run record, built by a linear read (works on truncated files).
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct RecordInspection {
     pub path: PathBuf,
     pub file_bytes: u64,

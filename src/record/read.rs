@@ -28,7 +28,7 @@ use crate::vision::Image;
 const MIN_RECORD_LIMIT: u64 = 1 << 30;
 
 /// How the linear read of a record ended.
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize)]
 pub struct ScanEnd {
     /// The file ended properly (data end, summary, footer, end magic).
     pub complete: bool,
