@@ -9,6 +9,7 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 
 use crate::acquisition::{PlanError, SeriesConfig, SeriesPlan, TrackingConfig};
+use crate::daemon::DaemonConfig;
 
 /// Where runs go and what they are called.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -69,6 +70,7 @@ pub struct Config {
     pub series: SeriesConfig,
     pub tracking: TrackingConfig,
     pub log: LogConfig,
+    pub daemon: DaemonConfig,
 }
 
 /// Why a configuration cannot be used.
