@@ -10,7 +10,10 @@ use clap::{Args, Parser, Subcommand};
 use crate::config::{Config, LogFormat};
 
 mod check_config;
+mod daemon;
 mod logging;
+mod status;
+mod submit;
 
 /// Unattended 3D surface reconstruction on a scanning electron microscope.
 #[derive(Debug, Parser)]
@@ -60,6 +63,12 @@ pub enum Command {
         #[arg(long, short)]
         quiet: bool,
     },
+    /// The unattended service: run queued jobs one at a time (SIGTERM stops safely, SIGHUP reloads).
+    Daemon(daemon::DaemonArgs),
+    /// Validate a job file and queue it for the daemon (an invalid job is refused, never queued).
+    Submit(submit::SubmitArgs),
+    /// List the spool's jobs (name, state, reason) and what the daemon is doing.
+    Status(status::StatusArgs),
 }
 
 /// Runs one command.
@@ -77,5 +86,8 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             overrides,
             quiet,
         } => check_config::run(&file, &overrides, quiet),
+        Command::Daemon(args) => daemon::run(&args),
+        Command::Submit(args) => submit::run(&args),
+        Command::Status(args) => status::run(&args),
     }
 }
