@@ -37,8 +37,8 @@ impl std::fmt::Display for Basis {
             Self::File(p) => write!(f, "{}", p.display()),
             Self::Daemon(p) => write!(f, "the daemon's configuration ({})", p.display()),
             Self::Defaults => f.write_str(
-                "the built-in defaults (no daemon has published its configuration in this spool; \
-                 pass --config to validate against yours)",
+                "the built-in defaults, as no daemon has published its configuration in this \
+                 spool (pass --config to check against yours)",
             ),
         }
     }
@@ -59,12 +59,12 @@ pub fn run(args: &SubmitArgs) -> anyhow::Result<ExitCode> {
         (Some(config), Some(path)) => (config, Basis::File(path.clone())),
         _ => daemon_or_default_config(&spool_dir)?,
     };
-    spec.effective_config(&base).with_context(|| {
-        format!(
-            "job {} refused, nothing queued (checked against {basis})",
+    if let Err(e) = spec.effective_config(&base) {
+        anyhow::bail!(
+            "job {} refused, nothing queued: {e}; checked against {basis}",
             args.job.display()
-        )
-    })?;
+        );
+    }
     let spool = Spool::open(&spool_dir)?;
     let record = spool.submit(spec, SystemTime::now())?;
     println!(

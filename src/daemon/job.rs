@@ -94,6 +94,13 @@ pub enum JobError {
         key: String,
         reason: String,
     },
+    #[error("[{table}] {key} = {value}: {message}")]
+    BadOverride {
+        table: &'static str,
+        key: String,
+        value: String,
+        message: String,
+    },
     #[error(
         "{key} = {value}° is outside the stage tilt limits [{min}°, {max}°] (stage.tilt_min_deg / stage.tilt_max_deg)"
     )]
@@ -221,20 +228,48 @@ impl JobSpec {
                 t.insert(key.to_owned(), value);
             }
         }
-        for (key, value) in overrides {
-            set_key(&mut root, &key, value).map_err(|reason| JobError::UnknownKey {
-                table: self.table_of(&key),
+        let series_only = root.clone();
+        for (key, value) in &overrides {
+            set_key(&mut root, key, value.clone()).map_err(|reason| JobError::UnknownKey {
+                table: self.table_of(key),
                 key: key.clone(),
                 reason,
             })?;
         }
-        let config: Config = root
-            .try_into()
-            .map_err(|e: toml::de::Error| JobError::Config {
-                message: e.message().trim_end().replace('\n', " "),
-            })?;
+        let config: Config = match root.try_into() {
+            Ok(config) => config,
+            Err(e) => return Err(self.blame_override(&series_only, &overrides, &e)),
+        };
         config.validate().map_err(job_error)?;
         Ok(config)
+    }
+
+    /// Names the override a deserialization error comes from: the first one
+    /// that fails on its own (the error itself does not say which key).
+    fn blame_override(
+        &self,
+        base: &toml::Table,
+        overrides: &[(String, toml::Value)],
+        error: &toml::de::Error,
+    ) -> JobError {
+        let message = |e: &toml::de::Error| e.message().trim_end().replace('\n', " ");
+        for (key, value) in overrides {
+            let mut single = base.clone();
+            if set_key(&mut single, key, value.clone()).is_err() {
+                continue;
+            }
+            if let Err(e) = single.try_into::<Config>() {
+                return JobError::BadOverride {
+                    table: self.table_of(key),
+                    key: key.clone(),
+                    value: value.to_string(),
+                    message: message(&e),
+                };
+            }
+        }
+        JobError::Config {
+            message: message(error),
+        }
     }
 
     fn table_of(&self, key: &str) -> &'static str {
@@ -426,12 +461,19 @@ mod tests {
         let err =
             job("name = \"a\"\nstart_tilt = 0\nend_tilt = 5\n[capture]\ntracking.gian = 0.5\n")
                 .unwrap_err();
-        assert!(err.to_string().contains("gian"), "{err}");
+        assert!(
+            err.to_string()
+                .starts_with("[capture] tracking.gian = 0.5: unknown field `gian`"),
+            "{err}"
+        );
         let err = job(
             "name = \"a\"\nstart_tilt = 0\nend_tilt = 5\n[capture]\ntracking.gain = \"high\"\n",
         )
         .unwrap_err();
-        assert!(err.to_string().contains("invalid type"), "{err}");
+        assert_eq!(
+            err.to_string(),
+            "[capture] tracking.gain = \"high\": invalid type: string \"high\", expected f64"
+        );
         let err =
             job("name = \"a\"\nstart_tilt = 0\nend_tilt = 5\n[capture]\ntracking.gain = 2.0\n")
                 .unwrap_err();
