@@ -121,6 +121,7 @@ fn submit_refuses_invalid_jobs_and_status_lists_the_queue() {
 /// Not a test on its own: the daemon process that the test below starts (this
 /// same binary, with `SDSEM_TEST_DAEMON_CONFIG` set). Without it, it does nothing.
 #[test]
+#[ignore = "helper process of daemon_process_signals_exclusivity_and_crash_recovery"]
 fn daemon_child() {
     let Ok(config) = std::env::var(CHILD_ENV) else {
         return;
@@ -175,7 +176,13 @@ impl Daemon {
             .unwrap();
         let stderr = dir.join(format!("daemon-{tag}.log"));
         let child = Command::new(std::env::current_exe().unwrap())
-            .args(["daemon_child", "--exact", "--nocapture", "--test-threads=1"])
+            .args([
+                "daemon_child",
+                "--exact",
+                "--ignored",
+                "--nocapture",
+                "--test-threads=1",
+            ])
             .env(CHILD_ENV, config)
             .env("NOTIFY_SOCKET", &socket)
             .env("WATCHDOG_USEC", "1000000")
@@ -382,4 +389,63 @@ fn daemon_process_signals_exclusivity_and_crash_recovery() {
     assert_eq!(states, ["interrupted", "interrupted", "done"]);
     assert_eq!(json["daemon"]["state"], "stopped");
     assert_eq!(json["daemon"]["alive"], false);
+}
+
+/// The unit's promises that the daemon's code relies on.
+#[test]
+fn the_service_unit_keeps_the_daemons_promises() {
+    let unit = std::fs::read_to_string(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/systemd/sdsem.service"
+    ))
+    .unwrap();
+    let values = |key: &str| -> Vec<String> {
+        unit.lines()
+            .filter_map(|l| l.strip_prefix(&format!("{key}=")))
+            .map(str::to_owned)
+            .collect()
+    };
+    let one = |key: &str| values(key).pop().unwrap_or_default();
+    assert_eq!(one("Type"), "notify");
+    assert_eq!(one("NotifyAccess"), "main");
+    assert_eq!(one("Restart"), "on-failure");
+    assert!(one("ExecReload").contains("-HUP"));
+    // The 15 s safe stop must fit before systemd escalates to SIGKILL.
+    let stop: u64 = one("TimeoutStopSec").parse().unwrap();
+    assert!(stop >= 20, "TimeoutStopSec={stop}");
+    let watchdog: u64 = one("WatchdogSec").parse().unwrap();
+    assert!(
+        watchdog >= 10,
+        "WatchdogSec={watchdog}: the loop pings every half of it"
+    );
+    // The serial port stays reachable.
+    assert!(values("PrivateDevices").iter().all(|v| v == "no"));
+    assert_eq!(one("DevicePolicy"), "closed");
+    assert!(values("DeviceAllow").contains(&"char-ttyUSB rw".to_owned()));
+    assert!(values("SupplementaryGroups").contains(&"dialout".to_owned()));
+    assert_eq!(one("ProtectSystem"), "strict");
+    assert_eq!(one("StateDirectory"), "sdsem");
+}
+
+/// `systemd/verify.sh`: `systemd-analyze verify` prints nothing for the units.
+/// Skipped (with a note) where systemd-analyze is not installed.
+#[test]
+fn the_units_pass_systemd_analyze_verify() {
+    if Command::new("systemd-analyze")
+        .arg("--version")
+        .output()
+        .is_err()
+    {
+        eprintln!("systemd-analyze not installed: unit verification skipped");
+        return;
+    }
+    let out = Command::new(concat!(env!("CARGO_MANIFEST_DIR"), "/systemd/verify.sh"))
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}{}",
+        text(&out.stdout),
+        text(&out.stderr)
+    );
 }

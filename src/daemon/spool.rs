@@ -223,8 +223,8 @@ pub struct Spool {
 
 impl Spool {
     /// Opens a spool, creating its layout when missing. Directories are
-    /// created group-writable and set-group-id (mode 2775 less the umask) so
-    /// that members of the spool's group may submit.
+    /// created group-writable (mode 775 less the umask; the unit's `UMask=0002`
+    /// keeps it) so that members of the spool's group may submit.
     ///
     /// # Errors
     /// [`SpoolError::Io`] naming the directory that cannot be created.
@@ -233,7 +233,7 @@ impl Spool {
             root: root.to_owned(),
         };
         let mut builder = fs::DirBuilder::new();
-        builder.recursive(true).mode(0o2775);
+        builder.recursive(true).mode(0o775);
         for dir in std::iter::once(spool.root.clone())
             .chain(std::iter::once(spool.root.join("tmp")))
             .chain(JobState::ALL.iter().map(|s| spool.state_dir(*s)))
