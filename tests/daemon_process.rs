@@ -16,7 +16,7 @@ use std::time::{Duration, Instant};
 
 use daemon_support::{Behaviour, FakeRunner, Script};
 use sdsem::daemon::spool::CRASH_REASON;
-use sdsem::daemon::{DaemonOptions, JobState, Spool, run_daemon};
+use sdsem::daemon::{DaemonOptions, JobState, Spool, load_config, run_daemon};
 
 const CHILD_ENV: &str = "SDSEM_TEST_DAEMON_CONFIG";
 
@@ -150,7 +150,9 @@ fn daemon_child() {
         overrides: Vec::new(),
         spool: None,
     };
-    let code = match run_daemon(&options, FakeRunner::new(script)) {
+    let code = match load_config(&options)
+        .and_then(|config| run_daemon(&options, config, FakeRunner::new(script)))
+    {
         Ok(_) => 0,
         Err(e) => {
             eprintln!("error: {e}");

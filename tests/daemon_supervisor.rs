@@ -244,10 +244,9 @@ async fn a_lost_link_fails_its_job_then_the_daemon_reconnects_with_backoff() {
         .collect();
     assert_eq!(gaps, [1, 2, 4, 8]);
     assert!(
-        rig.notices
-            .statuses()
-            .iter()
-            .any(|s| s.contains("check 3 failed: stage: connection refused; retry in 4 s")),
+        rig.notices.statuses().iter().any(|s| s
+            == "job 2 b waits for the links (1 queued): link check 3 failed: \
+                    stage: connection refused; retry in 4 s"),
         "{:#?}",
         rig.notices.statuses()
     );
@@ -565,4 +564,39 @@ async fn a_stop_while_waiting_for_the_links_ends_at_once() {
     assert_eq!(rig.state_of("a"), JobState::Queued);
     // READY came even though the first check failed, and STATUS says so.
     assert!(rig.notices.notices().contains(&Notice::Ready));
+}
+
+#[tokio::test(start_paused = true)]
+async fn links_down_at_start_still_give_ready_and_are_rechecked_while_idle() {
+    let script = Script {
+        link_checks: (0..3).map(|_| Err("stage: refused".to_owned())).collect(),
+        ..Script::default()
+    };
+    let rig = Rig::new(script);
+    let (sup, ctl) = rig.supervisor();
+    let driver = async {
+        sleep(Duration::from_secs(30)).await;
+        ctl.send(stop()).await.unwrap();
+    };
+    let (result, ()) = tokio::join!(sup.run(), driver);
+    result.unwrap();
+    let notices = rig.notices.notices();
+    let ready = notices.iter().position(|n| *n == Notice::Ready).unwrap();
+    assert_eq!(
+        notices[ready - 1],
+        Notice::Status("starting: link check 1 failed: stage: refused; retry in 1 s".into())
+    );
+    let checks = rig.runner.link_check_times();
+    let gaps: Vec<u64> = checks
+        .windows(2)
+        .map(|w| (w[1].0 - w[0].0).as_secs())
+        .collect();
+    assert_eq!(gaps, [1, 2, 4], "then up: no more checks while idle");
+    let statuses = rig.notices.statuses();
+    assert!(
+        statuses.contains(
+            &"idle, 0 queued: link check 3 failed: stage: refused; retry in 4 s".to_owned()
+        )
+    );
+    assert_eq!(statuses[statuses.len() - 2], "idle, 0 queued");
 }

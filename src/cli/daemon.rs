@@ -29,7 +29,7 @@ pub fn run(args: &DaemonArgs) -> anyhow::Result<ExitCode> {
     };
     let config = crate::daemon::load_config(&options)?;
     let runner = acquisition_runner(&config)?;
-    let stopped = run_daemon(&options, runner)?;
+    let stopped = run_daemon(&options, config, runner)?;
     tracing::info!(signal = %stopped.signal, "sdsem daemon exits");
     Ok(ExitCode::SUCCESS)
 }

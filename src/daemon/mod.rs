@@ -81,16 +81,17 @@ pub fn load_config(options: &DaemonOptions) -> Result<Config, DaemonError> {
 
 /// Runs the service until SIGTERM/SIGINT: takes the spool, recovers it,
 /// notifies systemd, runs queued jobs with `runner`, reloads on SIGHUP.
+/// `config` is what [`load_config`] gave for `options` (the caller may need
+/// it to build the runner); reloads read `options` again.
 ///
 /// # Errors
-/// [`DaemonError`] when it cannot start (configuration, spool owned by
-/// another daemon, signals) or had to give up (spool unwritable, a job that
-/// did not stop in time).
+/// [`DaemonError`] when it cannot start (spool owned by another daemon,
+/// signals) or had to give up (spool unwritable, a job that did not stop in time).
 pub fn run_daemon<R: JobRunner>(
     options: &DaemonOptions,
+    config: Config,
     runner: R,
 ) -> Result<Stopped, DaemonError> {
-    let config = load_config(options)?;
     let spool_dir = options
         .spool
         .clone()

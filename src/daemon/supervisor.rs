@@ -181,15 +181,15 @@ impl<R: JobRunner> Supervisor<R> {
         self.core.spool.write_config_snapshot(&self.core.config)?;
         self.core
             .set_status("starting: checking the stage and imaging links");
-        let config = self.core.config.clone();
-        let first = self.check_links(&config).await;
-        if let Err(reason) = &first {
-            warn!(%reason, "stage/imaging links not ready; will retry before the first job");
-        }
-        self.core.links = Some(first);
+        // READY once the links were checked, whatever the answer: a stage that
+        // is off for the night is waited for (with backoff), not a start failure.
         self.core.state = "ready";
+        let links_up = self.links_ready("starting").await;
         self.core.notifier.notify(Notice::Ready);
-        info!(spool = %self.core.spool.root().display(), "daemon ready");
+        info!(spool = %self.core.spool.root().display(), links_up, "daemon ready");
+        if !links_up {
+            self.core.pause_for_backoff().await;
+        }
 
         let mut interrupted = None;
         while self.core.stop.is_none() {
@@ -213,11 +213,13 @@ impl<R: JobRunner> Supervisor<R> {
         let (next, quarantined) = self.core.spool.next_queued()?;
         log_quarantined(&quarantined);
         let Some(job) = next else {
-            let status = match &self.core.links {
-                Some(Err(reason)) => format!("idle, 0 queued; last link check failed: {reason}"),
-                _ => "idle, 0 queued".to_owned(),
-            };
-            self.core.set_status(&status);
+            // Idle with the links down (or unknown after a reload): keep
+            // checking them so "idle, 0 queued" means ready to run.
+            if !self.core.links_known_up() && !self.links_ready("idle, 0 queued").await {
+                self.core.pause_for_backoff().await;
+                return Ok(None);
+            }
+            self.core.set_status("idle, 0 queued");
             let wait = self.core.daemon().poll_interval();
             self.core.pause(wait).await;
             return Ok(None);
@@ -262,34 +264,46 @@ impl<R: JobRunner> Supervisor<R> {
             }
         }
 
-        let daemon_config = self.core.config.clone();
-        if let Err(reason) = self.check_links(&daemon_config).await {
-            if self.core.stop.is_some() {
-                return Ok(None);
-            }
-            self.core.link_failures += 1;
-            let failures = self.core.link_failures;
-            let wait = self.core.daemon().backoff(failures);
-            warn!(attempt = failures, %reason, retry_in_s = wait.as_secs_f64(), "link check failed");
-            self.core.set_status(&format!(
-                "waiting for the links before {label}: check {failures} failed: {reason}; \
-                 retry in {}; {queued} queued",
-                human(wait)
-            ));
-            self.core.links = Some(Err(reason));
-            self.core.pause(wait).await;
+        if !self
+            .links_ready(&format!("{label} waits for the links ({queued} queued)"))
+            .await
+        {
+            self.core.pause_for_backoff().await;
             return Ok(None);
         }
-        if self.core.link_failures > 0 {
-            info!(
-                after_failures = self.core.link_failures,
-                "stage and imaging links are back"
-            );
-        }
-        self.core.link_failures = 0;
-        self.core.links = Some(Ok(()));
-
         self.run_job(job, config, queued.saturating_sub(1)).await
+    }
+
+    /// Checks the links and keeps count of consecutive failures; on failure
+    /// says so in STATUS (prefixed by `doing`). True when they answer.
+    async fn links_ready(&mut self, doing: &str) -> bool {
+        let config = self.core.config.clone();
+        match self.check_links(&config).await {
+            Ok(()) => {
+                if self.core.link_failures > 0 {
+                    info!(
+                        after_failures = self.core.link_failures,
+                        "stage and imaging links are back"
+                    );
+                }
+                self.core.link_failures = 0;
+                self.core.links = Some(Ok(()));
+                true
+            }
+            Err(_) if self.core.stop.is_some() => false,
+            Err(reason) => {
+                self.core.link_failures += 1;
+                let failures = self.core.link_failures;
+                let wait = self.core.daemon().backoff(failures);
+                warn!(attempt = failures, %reason, retry_in_s = wait.as_secs_f64(), "link check failed");
+                self.core.set_status(&format!(
+                    "{doing}: link check {failures} failed: {reason}; retry in {}",
+                    human(wait)
+                ));
+                self.core.links = Some(Err(reason));
+                false
+            }
+        }
     }
 
     /// Checks the links, bounded in time, while answering control messages.
@@ -514,6 +528,19 @@ impl Core {
                 self.status_write_failed = true;
             }
             Err(_) => {}
+        }
+    }
+
+    /// True when the last link check succeeded.
+    fn links_known_up(&self) -> bool {
+        matches!(self.links, Some(Ok(())))
+    }
+
+    /// Waits the backoff due after the current run of link-check failures.
+    async fn pause_for_backoff(&mut self) {
+        if self.stop.is_none() && self.link_failures > 0 {
+            let wait = self.daemon().backoff(self.link_failures);
+            self.pause(wait).await;
         }
     }
 
