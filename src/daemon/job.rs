@@ -134,8 +134,24 @@ impl JobSpec {
     /// # Errors
     /// [`JobError`] naming the problem.
     pub fn parse(text: &str) -> Result<Self, JobError> {
-        let spec: Self = toml::from_str(text).map_err(|e| JobError::Syntax {
-            message: e.to_string().trim_end().replace('\n', " "),
+        let spec: Self = toml::from_str(text).map_err(|e| {
+            // One line: "line 2, column 14: invalid type…", not the multi-line caret drawing.
+            let place = e
+                .span()
+                .and_then(|span| text.get(..span.start))
+                .map(|before| {
+                    let line = before.matches('\n').count() + 1;
+                    let line_start = before.rfind('\n').map_or(0, |i| i + 1);
+                    let column = before[line_start..].chars().count() + 1;
+                    format!("line {line}, column {column}: ")
+                });
+            JobError::Syntax {
+                message: format!(
+                    "{}{}",
+                    place.unwrap_or_default(),
+                    e.message().trim_end().replace('\n', " ")
+                ),
+            }
         })?;
         spec.check_name()?;
         spec.overrides()?;
@@ -416,6 +432,16 @@ mod tests {
         let err =
             JobSpec::parse("name = \"a\"\nstart_tilt = 0\nend_tilt = 5\nstpe = 2\n").unwrap_err();
         assert!(err.to_string().contains("stpe"), "{err}");
+    }
+
+    #[test]
+    fn syntax_errors_say_where_on_one_line() {
+        let err =
+            JobSpec::parse("name = \"x\"\nstart_tilt = \"zero\"\nend_tilt = 7\n").unwrap_err();
+        assert_eq!(
+            err.to_string(),
+            "not a valid job file: line 2, column 14: invalid type: string \"zero\", expected f64"
+        );
     }
 
     #[test]
