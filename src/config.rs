@@ -9,6 +9,7 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 
 use crate::acquisition::{PlanError, SeriesConfig, SeriesPlan, TrackingConfig};
+use crate::daemon::DaemonConfig;
 use crate::imaging::ImagingConfig;
 use crate::stage::StageConfig;
 
@@ -78,6 +79,7 @@ pub struct Config {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub simulator: Option<sdsem_sim::SimConfig>,
     pub log: LogConfig,
+    pub daemon: DaemonConfig,
 }
 
 /// Why a configuration cannot be used.

@@ -54,16 +54,17 @@ impl Cancel {
         self.0.borrow().clone()
     }
 
-    /// Completes with the reason when the run is cancelled.
-    pub async fn cancelled(&mut self) -> String {
-        loop {
-            if let Some(reason) = self.0.borrow_and_update().clone() {
-                return reason;
-            }
-            if self.0.changed().await.is_err() {
-                // Every handle is gone: nobody can cancel any more.
-                std::future::pending::<()>().await;
-            }
+    /// Completes with the reason when the run is cancelled; pending forever
+    /// once nobody can cancel any more.
+    pub async fn cancelled(&self) -> String {
+        let mut rx = self.0.clone();
+        let reason = rx
+            .wait_for(Option::is_some)
+            .await
+            .map(|reason| reason.clone().unwrap_or_default());
+        match reason {
+            Ok(reason) => reason,
+            Err(_) => std::future::pending().await,
         }
     }
 }
@@ -74,7 +75,7 @@ mod tests {
 
     #[tokio::test]
     async fn first_reason_wins_and_is_seen_late() {
-        let (handle, mut cancel) = cancel_pair();
+        let (handle, cancel) = cancel_pair();
         assert!(cancel.reason().is_none());
         handle.cancel("SIGTERM");
         handle.cancel("SIGINT");
@@ -84,7 +85,7 @@ mod tests {
 
     #[tokio::test(start_paused = true)]
     async fn never_does_not_fire() {
-        let mut cancel = Cancel::never();
+        let cancel = Cancel::never();
         let r = tokio::time::timeout(std::time::Duration::from_secs(5), cancel.cancelled()).await;
         assert!(r.is_err());
     }

@@ -98,6 +98,28 @@ fn compact_utc(ns: u64) -> String {
     format!("{}T{}Z", &digits[..8], &digits[8..])
 }
 
+/// What a run reports to, and hears from, whoever started it.
+pub struct RunHooks<'a> {
+    /// The operator's stop request.
+    pub cancel: Cancel,
+    /// Sends the run's log events into its record while it lasts.
+    pub logs: Option<&'a RecordLogSwitch>,
+    /// One line per milestone ("step 3/7: tilt 3.000°"), e.g. for systemd's STATUS.
+    pub progress: &'a (dyn Fn(&str) + Send + Sync),
+}
+
+impl RunHooks<'_> {
+    /// No operator, no log forwarding, no progress listener.
+    #[must_use]
+    pub fn detached() -> RunHooks<'static> {
+        RunHooks {
+            cancel: Cancel::never(),
+            logs: None,
+            progress: &|_| {},
+        }
+    }
+}
+
 /// Runs one acquisition into `run_dir` (which must exist). Connects the
 /// instruments itself unless `instruments` are given (the daemon keeps them).
 ///
@@ -108,9 +130,13 @@ pub async fn run_job(
     config: &Config,
     instruments: Option<&mut Instruments>,
     run_dir: &Path,
-    cancel: Cancel,
-    logs: Option<&RecordLogSwitch>,
+    hooks: RunHooks<'_>,
 ) -> Result<JobReport, JobError> {
+    let RunHooks {
+        cancel,
+        logs,
+        progress,
+    } = hooks;
     let record_path = run_dir.join(files::RECORD);
     let recorder =
         Recorder::create(&record_path, RecorderOptions::default()).map_err(|source| {
@@ -130,7 +156,7 @@ pub async fn run_job(
     let _ = rec.metadata(topics::METADATA_RUN, run_metadata(config, &config_text));
     info!(run_dir = %run_dir.display(), "run started");
 
-    let (outcome, series) = acquire(config, instruments, run_dir, &rec, cancel).await;
+    let (outcome, series) = acquire(config, instruments, run_dir, &rec, cancel, progress).await;
 
     let (status, cause) = match &outcome {
         Outcome::Completed => (RunStatus::Succeeded, None),
@@ -163,7 +189,9 @@ async fn acquire(
     run_dir: &Path,
     rec: &RecorderHandle,
     mut cancel: Cancel,
+    progress: &(dyn Fn(&str) + Send + Sync),
 ) -> (Outcome, Option<SeriesRecord>) {
+    progress("connecting to the instruments");
     let plan = match config.plan() {
         Ok(plan) => plan,
         Err(e) => return (failed(format!("invalid series: {e}")), None),
@@ -192,6 +220,7 @@ async fn acquire(
         imaging_config: &config.imaging,
         recorder: rec,
         phase: PhaseCorrelationParams::default(),
+        progress,
     };
     let record = run_series(&mut series, &mut ctx, &mut cancel).await;
     instruments.observer.detach();

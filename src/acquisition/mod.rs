@@ -10,7 +10,7 @@ pub mod runner;
 
 pub use cancel::{Cancel, CancelHandle, cancel_pair};
 pub use instruments::{Instruments, InstrumentsError, RunObserver};
-pub use job::{JobError, JobReport, create_run_dir, run_job};
+pub use job::{JobError, JobReport, RunHooks, create_run_dir, run_job};
 pub use machine::{Action, Event, FrameRole, Outcome, Series, Tracked, TrackingConfig};
 pub use plan::{PlanError, SeriesConfig, SeriesPlan};
 pub use runner::{Captured, SeriesContext, SeriesRecord, SeriesTimings, TrackingStep, run_series};

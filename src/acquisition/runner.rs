@@ -71,6 +71,8 @@ pub struct SeriesContext<'a, T> {
     pub imaging_config: &'a ImagingConfig,
     pub recorder: &'a RecorderHandle,
     pub phase: PhaseCorrelationParams,
+    /// Told one line per milestone.
+    pub progress: &'a (dyn Fn(&str) + Send + Sync),
 }
 
 /// Runs `series` to its end: completed, failed (with the stage stopped and
@@ -107,6 +109,7 @@ where
                 break;
             }
             Action::MoveTilt { step, tilt_deg } => {
+                (ctx.progress)(&format!("step {step}/{steps}: tilting to {tilt_deg:.3}°"));
                 let t0 = Instant::now();
                 let result = cancellable(cancel, ctx.stage.move_tilt(tilt_deg)).await;
                 run.record.timings.tilt_moves_s += t0.elapsed().as_secs_f64();
@@ -257,6 +260,9 @@ impl RunState {
     where
         T: AsyncRead + AsyncWrite + Unpin + Send,
     {
+        (ctx.progress)(&format!(
+            "step {step}: capturing the {role} frame at {tilt_deg:.3}°"
+        ));
         let request = ctx.imaging_config.request(role);
         let t0 = Instant::now();
         let grabbed = cancellable(cancel, ctx.imaging.grab(request)).await;

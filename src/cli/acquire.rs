@@ -7,7 +7,7 @@ use anyhow::Context;
 use tracing::warn;
 
 use super::{ConfigArgs, logging};
-use crate::acquisition::{CancelHandle, Outcome, cancel_pair, create_run_dir, run_job};
+use crate::acquisition::{CancelHandle, Outcome, RunHooks, cancel_pair, create_run_dir, run_job};
 
 /// Exit code of a run stopped by the operator (as a shell reports SIGINT).
 const EXIT_INTERRUPTED: u8 = 130;
@@ -23,7 +23,12 @@ pub fn run(args: &ConfigArgs) -> anyhow::Result<ExitCode> {
         let run_dir = create_run_dir(&config.run.output_dir, &config.run.name)?;
         let (handle, cancel) = cancel_pair();
         tokio::spawn(cancel_on_signals(handle));
-        let report = run_job(&config, None, &run_dir, cancel, logging::record_logs()).await?;
+        let hooks = RunHooks {
+            cancel,
+            logs: logging::record_logs(),
+            progress: &|_| {},
+        };
+        let report = run_job(&config, None, &run_dir, hooks).await?;
         if let Err(e) = &report.record {
             eprintln!("warning: the run record is incomplete: {e}");
         }

@@ -11,8 +11,11 @@ use crate::config::{Config, LogFormat};
 
 mod acquire;
 mod check_config;
+mod daemon;
 mod inspect;
 mod logging;
+mod status;
+mod submit;
 
 /// Unattended 3D surface reconstruction on a scanning electron microscope.
 #[derive(Debug, Parser)]
@@ -76,6 +79,12 @@ pub enum Command {
         #[arg(long, short)]
         quiet: bool,
     },
+    /// The unattended service: run queued jobs one at a time (SIGTERM stops safely, SIGHUP reloads).
+    Daemon(daemon::DaemonArgs),
+    /// Validate a job file and queue it for the daemon (an invalid job is refused, never queued).
+    Submit(submit::SubmitArgs),
+    /// List the spool's jobs (name, state, reason) and what the daemon is doing.
+    Status(status::StatusArgs),
 }
 
 /// Runs one command.
@@ -95,5 +104,8 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             overrides,
             quiet,
         } => check_config::run(&file, &overrides, quiet),
+        Command::Daemon(args) => daemon::run(&args),
+        Command::Submit(args) => submit::run(&args),
+        Command::Status(args) => status::run(&args),
     }
 }

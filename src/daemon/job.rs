@@ -1,0 +1,519 @@
+//! A job: what a user submits (a small TOML file) and the configuration it runs with.
+//!
+//! ```toml
+//! name = "pollen-7"          # run name: letters, digits, '-', '_', '.'
+//! start_tilt = 0.0           # degrees, first micrograph
+//! end_tilt = 7.0             # degrees, last micrograph
+//! step = 1.0                 # degrees per tilt step (default 1.0)
+//!
+//! [capture]                  # optional: overrides of capture keys
+//! tracking.gain = 0.5
+//!
+//! [reconstruction]           # optional: overrides of reconstruction keys
+//! run.reconstruct = false
+//! ```
+//!
+//! The overrides are configuration keys written as in the configuration file,
+//! merged over the daemon's configuration like `--set key=value`. A job may
+//! only touch the sections listed in [`CAPTURE_KEYS`] and
+//! [`RECONSTRUCTION_KEYS`]: the stage (limits, endpoint, safe tilt), the
+//! daemon and the output directory belong to the instrument's configuration.
+
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+
+use crate::acquisition::PlanError;
+use crate::config::{Config, ConfigError};
+
+/// Configuration keys (sections or single keys) a job's `[capture]` table may
+/// set: how to scan and track, not where the instruments are.
+pub const CAPTURE_KEYS: &[&str] = &[
+    "imaging.micrograph",
+    "imaging.tracking",
+    "imaging.bits",
+    "tracking",
+];
+
+/// Configuration keys a job's `[reconstruction]` table may set. The vision
+/// stages' sections belong here once they are part of [`Config`].
+pub const RECONSTRUCTION_KEYS: &[&str] = &["run.reconstruct"];
+
+/// Longest job name accepted.
+pub const MAX_NAME_LEN: usize = 64;
+
+fn default_step() -> f64 {
+    1.0
+}
+
+/// A job as submitted.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct JobSpec {
+    /// Name of the run (its directory is `<name>-<UTC time>`).
+    pub name: String,
+    /// Stage tilt of the first micrograph, degrees (`series.start_tilt_deg`).
+    pub start_tilt: f64,
+    /// Stage tilt of the last micrograph, degrees (`series.end_tilt_deg`).
+    pub end_tilt: f64,
+    /// Tilt step, degrees (`series.step_deg`). Default 1.
+    #[serde(default = "default_step")]
+    pub step: f64,
+    /// Overrides of capture keys (see [`CAPTURE_KEYS`]).
+    #[serde(default, skip_serializing_if = "toml::Table::is_empty")]
+    pub capture: toml::Table,
+    /// Overrides of reconstruction keys (see [`RECONSTRUCTION_KEYS`]).
+    #[serde(default, skip_serializing_if = "toml::Table::is_empty")]
+    pub reconstruction: toml::Table,
+}
+
+/// Why a job cannot run. Each variant names the job key at fault and what is accepted.
+#[derive(Debug, thiserror::Error)]
+pub enum JobError {
+    #[error("cannot read job file {path}: {source}")]
+    Read {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("not a valid job file: {message}")]
+    Syntax { message: String },
+    #[error(
+        "name = {name:?} {reason}; use letters, digits, '-', '_' and '.', at most {MAX_NAME_LEN} \
+         characters, not starting with '.'"
+    )]
+    Name { name: String, reason: &'static str },
+    #[error("[{table}] {key}: a job may not set this key; allowed in [{table}]: {allowed}")]
+    KeyNotAllowed {
+        table: &'static str,
+        key: String,
+        allowed: String,
+    },
+    #[error("[{table}] {key}: no such configuration key ({reason})")]
+    UnknownKey {
+        table: &'static str,
+        key: String,
+        reason: String,
+    },
+    #[error("[{table}] {key} = {value}: {message}")]
+    BadOverride {
+        table: &'static str,
+        key: String,
+        value: String,
+        message: String,
+    },
+    #[error(
+        "{key} = {value}° is outside the stage tilt limits [{min}°, {max}°] (stage.tilt_min_deg / stage.tilt_max_deg)"
+    )]
+    TiltOutsideLimits {
+        key: &'static str,
+        value: f64,
+        min: f64,
+        max: f64,
+    },
+    #[error("{message}")]
+    Tilts { message: String },
+    #[error("the job's overrides give an invalid configuration: {message}")]
+    Config { message: String },
+}
+
+impl JobSpec {
+    /// Reads and checks a job file (syntax, name, which keys it overrides).
+    ///
+    /// # Errors
+    /// [`JobError`] naming the file's problem.
+    pub fn load(path: &Path) -> Result<Self, JobError> {
+        let text = std::fs::read_to_string(path).map_err(|source| JobError::Read {
+            path: path.to_owned(),
+            source,
+        })?;
+        Self::parse(&text)
+    }
+
+    /// Parses and checks a job (syntax, name, which keys it overrides).
+    ///
+    /// # Errors
+    /// [`JobError`] naming the problem.
+    pub fn parse(text: &str) -> Result<Self, JobError> {
+        let spec: Self = toml::from_str(text).map_err(|e| {
+            // One line: "line 2, column 14: invalid type…", not the multi-line caret drawing.
+            let place = e
+                .span()
+                .and_then(|span| text.get(..span.start))
+                .map(|before| {
+                    let line = before.matches('\n').count() + 1;
+                    let line_start = before.rfind('\n').map_or(0, |i| i + 1);
+                    let column = before[line_start..].chars().count() + 1;
+                    format!("line {line}, column {column}: ")
+                });
+            JobError::Syntax {
+                message: format!(
+                    "{}{}",
+                    place.unwrap_or_default(),
+                    e.message().trim_end().replace('\n', " ")
+                ),
+            }
+        })?;
+        spec.check_name()?;
+        spec.overrides()?;
+        Ok(spec)
+    }
+
+    fn check_name(&self) -> Result<(), JobError> {
+        let name = &self.name;
+        let reason = if name.is_empty() {
+            Some("is empty")
+        } else if name.chars().count() > MAX_NAME_LEN {
+            Some("is too long")
+        } else if name.starts_with('.') {
+            Some("starts with '.'")
+        } else if !name
+            .chars()
+            .all(|c| c.is_alphanumeric() || matches!(c, '-' | '_' | '.'))
+        {
+            Some("has a character that does not belong in a directory name")
+        } else {
+            None
+        };
+        match reason {
+            Some(reason) => Err(JobError::Name {
+                name: name.clone(),
+                reason,
+            }),
+            None => Ok(()),
+        }
+    }
+
+    /// Every override as (dotted configuration key, value), checked against
+    /// the keys a job may set.
+    ///
+    /// # Errors
+    /// [`JobError::KeyNotAllowed`] for a key outside [`CAPTURE_KEYS`] /
+    /// [`RECONSTRUCTION_KEYS`].
+    pub fn overrides(&self) -> Result<Vec<(String, toml::Value)>, JobError> {
+        let mut out = Vec::new();
+        for (table_name, table, allowed) in [
+            ("capture", &self.capture, CAPTURE_KEYS),
+            ("reconstruction", &self.reconstruction, RECONSTRUCTION_KEYS),
+        ] {
+            let mut leaves = Vec::new();
+            flatten(table, "", &mut leaves);
+            for (key, value) in leaves {
+                let permitted = allowed.iter().any(|a| {
+                    key == *a
+                        || key
+                            .strip_prefix(a)
+                            .is_some_and(|rest| rest.starts_with('.'))
+                });
+                if !permitted {
+                    return Err(JobError::KeyNotAllowed {
+                        table: table_name,
+                        key,
+                        allowed: allowed.join(", "),
+                    });
+                }
+                out.push((key, value));
+            }
+        }
+        Ok(out)
+    }
+
+    /// The configuration this job runs with: `base` (the daemon's), with the
+    /// job's tilts and name and its overrides, validated (tilt limits included).
+    ///
+    /// # Errors
+    /// [`JobError`] naming the job key and the limit it breaks.
+    pub fn effective_config(&self, base: &Config) -> Result<Config, JobError> {
+        let overrides = self.overrides()?;
+        let mut root = toml::Table::try_from(base).map_err(|e| JobError::Config {
+            message: format!("the daemon's configuration cannot be rendered: {e}"),
+        })?;
+        for (table, key, value) in [
+            ("run", "name", toml::Value::String(self.name.clone())),
+            (
+                "series",
+                "start_tilt_deg",
+                toml::Value::Float(self.start_tilt),
+            ),
+            ("series", "end_tilt_deg", toml::Value::Float(self.end_tilt)),
+            ("series", "step_deg", toml::Value::Float(self.step)),
+        ] {
+            let section = root
+                .entry(table)
+                .or_insert_with(|| toml::Value::Table(toml::Table::new()));
+            if let toml::Value::Table(t) = section {
+                t.insert(key.to_owned(), value);
+            }
+        }
+        let series_only = root.clone();
+        for (key, value) in &overrides {
+            set_key(&mut root, key, value.clone()).map_err(|reason| JobError::UnknownKey {
+                table: self.table_of(key),
+                key: key.clone(),
+                reason,
+            })?;
+        }
+        let config: Config = match root.try_into() {
+            Ok(config) => config,
+            Err(e) => return Err(self.blame_override(&series_only, &overrides, &e)),
+        };
+        config.validate().map_err(job_error)?;
+        Ok(config)
+    }
+
+    /// Names the override a deserialization error comes from: the first one
+    /// that fails on its own (the error itself does not say which key).
+    fn blame_override(
+        &self,
+        base: &toml::Table,
+        overrides: &[(String, toml::Value)],
+        error: &toml::de::Error,
+    ) -> JobError {
+        let message = |e: &toml::de::Error| e.message().trim_end().replace('\n', " ");
+        for (key, value) in overrides {
+            let mut single = base.clone();
+            if set_key(&mut single, key, value.clone()).is_err() {
+                continue;
+            }
+            if let Err(e) = single.try_into::<Config>() {
+                return JobError::BadOverride {
+                    table: self.table_of(key),
+                    key: key.clone(),
+                    value: value.to_string(),
+                    message: message(&e),
+                };
+            }
+        }
+        JobError::Config {
+            message: message(error),
+        }
+    }
+
+    fn table_of(&self, key: &str) -> &'static str {
+        if CAPTURE_KEYS.iter().any(|a| key.starts_with(a)) {
+            "capture"
+        } else {
+            "reconstruction"
+        }
+    }
+}
+
+/// Leaves of a TOML table as dotted keys (`imaging.micrograph.dwell_us`).
+fn flatten(table: &toml::Table, prefix: &str, out: &mut Vec<(String, toml::Value)>) {
+    for (k, v) in table {
+        let key = if prefix.is_empty() {
+            k.clone()
+        } else {
+            format!("{prefix}.{k}")
+        };
+        match v {
+            toml::Value::Table(t) => flatten(t, &key, out),
+            other => out.push((key, other.clone())),
+        }
+    }
+}
+
+/// Sets a dotted key in the rendered configuration. The key's parent must be
+/// a known section; whether the last part is a known field is left to the
+/// configuration's own `deny_unknown_fields` (so optional fields work).
+fn set_key(root: &mut toml::Table, key: &str, value: toml::Value) -> Result<(), String> {
+    let parts: Vec<&str> = key.split('.').collect();
+    let Some((last, parents)) = parts.split_last() else {
+        return Err("empty key".into());
+    };
+    let mut table = root;
+    let mut walked = String::new();
+    for part in parents {
+        if !walked.is_empty() {
+            walked.push('.');
+        }
+        walked.push_str(part);
+        table = match table.get_mut(*part) {
+            Some(toml::Value::Table(t)) => t,
+            Some(_) => return Err(format!("{walked} is a value, not a section")),
+            None => return Err(format!("the configuration has no section {walked}")),
+        };
+    }
+    if let Some(existing) = table.get(*last)
+        && matches!(existing, toml::Value::Table(_))
+    {
+        return Err(format!("{key} is a section: set its keys one by one"));
+    }
+    table.insert((*last).to_owned(), value);
+    Ok(())
+}
+
+/// The job key a series key comes from.
+fn job_key(series_key: &str) -> &'static str {
+    match series_key {
+        "start_tilt_deg" => "start_tilt",
+        "end_tilt_deg" => "end_tilt",
+        _ => "step",
+    }
+}
+
+/// A configuration error in the words of the job file.
+fn job_error(e: ConfigError) -> JobError {
+    match e {
+        ConfigError::Plan(plan) => match plan {
+            PlanError::OutsideLimits {
+                key,
+                tilt,
+                min,
+                max,
+            } => JobError::TiltOutsideLimits {
+                key: job_key(key),
+                value: tilt,
+                min,
+                max,
+            },
+            PlanError::NonPositiveStep { step } => JobError::Tilts {
+                message: format!("step = {step} must be greater than 0"),
+            },
+            PlanError::StepTooLarge { step } => JobError::Tilts {
+                message: format!(
+                    "step = {step}° is larger than 10°: the tracking frames would lose the specimen"
+                ),
+            },
+            PlanError::NoTiltRange { tilt } => JobError::Tilts {
+                message: format!(
+                    "start_tilt = end_tilt = {tilt}°: a stereo pair needs two different tilts"
+                ),
+            },
+            PlanError::NotFinite { key } => JobError::Tilts {
+                message: format!("{} is not a finite number", job_key(key)),
+            },
+        },
+        other => JobError::Config {
+            message: other.to_string(),
+        },
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn job(text: &str) -> Result<Config, JobError> {
+        JobSpec::parse(text)?.effective_config(&Config::default())
+    }
+
+    #[test]
+    fn minimal_job_gets_step_one_and_its_tilts() {
+        let c = job("name = \"pollen-7\"\nstart_tilt = 2\nend_tilt = 9\n").unwrap();
+        assert_eq!(c.series.step_deg, 1.0);
+        assert_eq!(c.series.start_tilt_deg, 2.0);
+        assert_eq!(c.series.end_tilt_deg, 9.0);
+        assert_eq!(c.run.name, "pollen-7");
+    }
+
+    #[test]
+    fn end_tilt_beyond_the_limit_names_key_and_limit() {
+        let err = job("name = \"a\"\nstart_tilt = 0\nend_tilt = 80\n").unwrap_err();
+        let msg = err.to_string();
+        assert!(msg.starts_with("end_tilt = 80°"), "{msg}");
+        assert!(msg.contains("[-5°, 70°]"), "{msg}");
+    }
+
+    #[test]
+    fn bad_step_and_equal_tilts_are_explained_in_job_keys() {
+        let err = job("name = \"a\"\nstart_tilt = 0\nend_tilt = 5\nstep = 0\n").unwrap_err();
+        assert!(err.to_string().starts_with("step = 0"), "{err}");
+        let err = job("name = \"a\"\nstart_tilt = 3\nend_tilt = 3\n").unwrap_err();
+        assert!(
+            err.to_string().contains("start_tilt = end_tilt = 3"),
+            "{err}"
+        );
+    }
+
+    #[test]
+    fn missing_and_unknown_top_level_keys_are_named() {
+        let err = JobSpec::parse("name = \"a\"\nstart_tilt = 0\n").unwrap_err();
+        assert!(err.to_string().contains("end_tilt"), "{err}");
+        let err =
+            JobSpec::parse("name = \"a\"\nstart_tilt = 0\nend_tilt = 5\nstpe = 2\n").unwrap_err();
+        assert!(err.to_string().contains("stpe"), "{err}");
+    }
+
+    #[test]
+    fn syntax_errors_say_where_on_one_line() {
+        let err =
+            JobSpec::parse("name = \"x\"\nstart_tilt = \"zero\"\nend_tilt = 7\n").unwrap_err();
+        assert_eq!(
+            err.to_string(),
+            "not a valid job file: line 2, column 14: invalid type: string \"zero\", expected f64"
+        );
+    }
+
+    #[test]
+    fn names_that_make_bad_directories_are_refused() {
+        for name in ["", "../x", "a/b", ".hidden", "a b", &"x".repeat(65)] {
+            let text = format!("name = {name:?}\nstart_tilt = 0\nend_tilt = 5\n");
+            let err = JobSpec::parse(&text).unwrap_err();
+            assert!(matches!(err, JobError::Name { .. }), "{name:?}: {err}");
+        }
+        JobSpec::parse("name = \"Probe_Müller.2\"\nstart_tilt = 0\nend_tilt = 5\n").unwrap();
+    }
+
+    #[test]
+    fn overrides_apply_over_the_daemon_configuration() {
+        let c = job("name = \"a\"\nstart_tilt = 0\nend_tilt = 5\n\
+             [capture]\ntracking.gain = 0.5\n[reconstruction]\nrun.reconstruct = false\n")
+        .unwrap();
+        assert_eq!(c.tracking.gain, 0.5);
+        assert!(!c.run.reconstruct);
+        assert_eq!(c.run.output_dir, Config::default().run.output_dir);
+    }
+
+    #[test]
+    fn a_job_cannot_touch_the_stage_or_the_output_directory() {
+        for (table, key) in [
+            ("capture", "series.end_tilt_deg = 80"),
+            ("capture", "run.output_dir = \"/etc\""),
+            ("capture", "imaging.endpoint = \"10.0.0.1:7520\""),
+            ("reconstruction", "daemon.min_free_gib = 0"),
+            ("reconstruction", "run.reconstructed = 1"),
+        ] {
+            let text = format!("name = \"a\"\nstart_tilt = 0\nend_tilt = 5\n[{table}]\n{key}\n");
+            let err = JobSpec::parse(&text).unwrap_err();
+            assert!(
+                err.to_string().contains("a job may not set this key"),
+                "{key}: {err}"
+            );
+        }
+    }
+
+    #[test]
+    fn unknown_and_mistyped_override_keys_are_named() {
+        let err =
+            job("name = \"a\"\nstart_tilt = 0\nend_tilt = 5\n[capture]\ntracking.gian = 0.5\n")
+                .unwrap_err();
+        assert!(
+            err.to_string()
+                .starts_with("[capture] tracking.gian = 0.5: unknown field `gian`"),
+            "{err}"
+        );
+        let err = job(
+            "name = \"a\"\nstart_tilt = 0\nend_tilt = 5\n[capture]\ntracking.gain = \"high\"\n",
+        )
+        .unwrap_err();
+        assert_eq!(
+            err.to_string(),
+            "[capture] tracking.gain = \"high\": invalid type: string \"high\", expected f64"
+        );
+        let err =
+            job("name = \"a\"\nstart_tilt = 0\nend_tilt = 5\n[capture]\ntracking.gain = 2.0\n")
+                .unwrap_err();
+        assert!(err.to_string().contains("tracking.gain = 2"), "{err}");
+    }
+
+    #[test]
+    fn spec_round_trips_through_json() {
+        let spec = JobSpec::parse(
+            "name = \"a\"\nstart_tilt = 0\nend_tilt = 5\nstep = 0.5\n[capture]\ntracking.gain = 0.5\n",
+        )
+        .unwrap();
+        let json = serde_json::to_string(&spec).unwrap();
+        let again: JobSpec = serde_json::from_str(&json).unwrap();
+        assert_eq!(spec, again);
+    }
+}

@@ -1,0 +1,120 @@
+//! What the daemon needs from whoever performs a job: the [`JobRunner`] trait.
+//!
+//! The acquisition run implements it; tests use fakes. The supervisor owns
+//! the runner and drives it from its single main loop, one job at a time.
+//!
+//! # Contract
+//!
+//! [`JobRunner::check_links`]
+//! - connects (or reconnects) the stage and imaging links if needed and proves
+//!   they answer (e.g. a position query and a ping), then returns `Ok(())`;
+//!   otherwise `Err(reason)` naming the link, the endpoint and the cause;
+//! - moves nothing;
+//! - may be dropped at any await point (the supervisor bounds it with
+//!   `daemon.link_check_timeout_s` and abandons it on SIGTERM);
+//! - picks up a changed configuration (the argument is the one in force, which
+//!   SIGHUP may have replaced since the last call).
+//!
+//! [`JobRunner::run`]
+//! - performs the whole job in `run_dir` (which exists and is empty): `run.mcap`,
+//!   the micrographs and the reconstruction outputs;
+//! - reports what it is doing through [`JobContext::progress`] (it becomes the
+//!   systemd STATUS line and `sdsem status`'s daemon line), at least every
+//!   `daemon.stall_timeout_s` (default 30 min) or it is cancelled as stalled;
+//! - keeps the async thread free: CPU-heavy work (reconstruction) goes to
+//!   `spawn_blocking`/rayon and is awaited, so the main loop keeps feeding the
+//!   systemd watchdog;
+//! - once [`JobContext::cancel`] fires: stops motion, returns the stage to its
+//!   safe tilt, finishes the MCAP (`finish()`), and returns
+//!   [`JobOutcome::Interrupted`] within `daemon.stop_timeout_s` (default 12 s).
+//!   A runner that overruns has its future dropped, the job is marked
+//!   interrupted with "stage state unknown", and the daemon exits with failure;
+//! - when a link is lost mid-job: brings the stage to safety if it still can,
+//!   finishes the MCAP and returns [`JobOutcome::Failed`] with the cause; it
+//!   drops the lost connection so the next `check_links` reconnects.
+//!   Never retries a job by itself.
+
+use std::future::Future;
+use std::path::Path;
+
+use tokio::sync::watch;
+
+use super::spool::JobRecord;
+use crate::config::Config;
+
+/// How a job ended: the acquisition's own outcome.
+pub use crate::acquisition::Outcome as JobOutcome;
+
+/// Performs jobs for the daemon. See the [module documentation](self) for the contract.
+pub trait JobRunner {
+    /// Checks (and if needed re-establishes) the stage and imaging links.
+    fn check_links(&mut self, config: &Config) -> impl Future<Output = Result<(), String>>;
+
+    /// Runs one job with its effective configuration, in `run_dir`.
+    fn run(
+        &mut self,
+        job: &JobRecord,
+        config: &Config,
+        run_dir: &Path,
+        ctx: JobContext,
+    ) -> impl Future<Output = JobOutcome>;
+}
+
+/// What the supervisor hands a running job: a way to be told to stop and a
+/// way to say what it is doing.
+#[derive(Debug)]
+pub struct JobContext {
+    pub cancel: CancelSignal,
+    pub progress: Progress,
+}
+
+// Cancellation is the acquisition's: the daemon asks, the run observes.
+pub use crate::acquisition::{Cancel as CancelSignal, CancelHandle as CancelTrigger, cancel_pair};
+
+/// Where a running job says what it is doing ("tilt 3° of 0…7°", "reconstructing").
+#[derive(Debug, Clone)]
+pub struct Progress {
+    tx: watch::Sender<String>,
+}
+
+impl Progress {
+    /// Reports what the job is doing now; also proves it is not stalled.
+    pub fn report(&self, text: impl Into<String>) {
+        self.tx.send_replace(text.into());
+    }
+}
+
+/// A new progress channel: the job reports, the supervisor watches.
+#[must_use]
+pub fn progress_channel() -> (Progress, watch::Receiver<String>) {
+    let (tx, rx) = watch::channel(String::from("starting"));
+    (Progress { tx }, rx)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[tokio::test(start_paused = true)]
+    async fn cancellation_reaches_every_clone_and_keeps_the_first_reason() {
+        let (trigger, signal) = cancel_pair();
+        let clone = signal.clone();
+        assert!(!signal.is_cancelled());
+        let waiter = tokio::spawn(async move { clone.cancelled().await });
+        trigger.cancel("SIGTERM");
+        trigger.cancel("later");
+        assert_eq!(waiter.await.unwrap(), "SIGTERM");
+        assert!(signal.is_cancelled());
+        assert_eq!(signal.reason().as_deref(), Some("SIGTERM"));
+        assert_eq!(signal.cancelled().await, "SIGTERM");
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn a_dropped_trigger_never_cancels() {
+        let (trigger, signal) = cancel_pair();
+        drop(trigger);
+        let waited =
+            tokio::time::timeout(std::time::Duration::from_secs(3600), signal.cancelled()).await;
+        assert!(waited.is_err());
+    }
+}
