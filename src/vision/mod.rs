@@ -5,3 +5,5 @@
 pub mod image;
 
 pub use image::Image;
+pub mod dense_sift;
+pub mod sift_flow;
