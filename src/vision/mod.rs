@@ -5,5 +5,10 @@
 pub mod image;
 
 pub use image::Image;
+pub mod bilateral_grid;
+pub mod consistency;
+pub mod dense;
 pub mod dense_sift;
+pub mod depth;
 pub mod sift_flow;
+pub mod subpixel;

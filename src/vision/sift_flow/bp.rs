@@ -371,6 +371,33 @@ impl<'a> DualLayerBp<'a> {
         [layer(0), layer(1)]
     }
 
+    /// Per pixel of layer `k`: the belief of the best label that is not
+    /// `labels[p]` or next to it, minus the belief of `labels[p]` (0 when the
+    /// window has no such label). Large means unambiguous.
+    #[must_use]
+    pub fn margins(&self, k: usize, labels: &[u16]) -> Vec<f32> {
+        let n = self.space.states(k);
+        (0..labels.len())
+            .into_par_iter()
+            .map_init(
+                || [0f32; MAX_STATES],
+                |buf, p| {
+                    self.belief(k, p, buf);
+                    let best = usize::from(labels[p]);
+                    let second = (0..n)
+                        .filter(|&l| l + 1 < best || l > best + 1)
+                        .map(|l| buf[l])
+                        .fold(f32::INFINITY, f32::min);
+                    if second.is_finite() {
+                        (second - buf[best]).max(0.0)
+                    } else {
+                        0.0
+                    }
+                },
+            )
+            .collect()
+    }
+
     /// Runs `iterations` iterations, recording the energy after each.
     pub fn run(&mut self, iterations: usize) -> BpOutcome {
         let mut energies = Vec::with_capacity(iterations);

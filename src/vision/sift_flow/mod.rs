@@ -1,6 +1,533 @@
 //! SIFT flow (Liu, Yuen, Torralba, PAMI 2011): dense correspondence by
 //! matching dense SIFT descriptors under the energy of eq. (10), minimised by
-//! dual-layer belief propagation, coarse to fine.
+//! dual-layer belief propagation (BP-S), coarse to fine.
+//!
+//! [`sift_flow`] matches two arbitrary images (`sdsem flow`); the rectified
+//! stereo stage ([`crate::vision::dense`]) drives the same engine with a
+//! small vertical window.
 
 pub mod bp;
 pub mod energy;
+pub mod pyramid;
+
+use std::time::Instant;
+
+use serde::{Deserialize, Serialize};
+
+use self::bp::{DualLayerBp, MAX_STATES};
+use self::energy::{DataTerm, EnergyWeights, LabelSpace};
+use super::Image;
+use super::dense::DenseError;
+use super::dense_sift::{DenseSiftParams, DescriptorImage, dense_sift};
+
+/// Which pipeline to run.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Mode {
+    /// The SD-SEM paper's pipeline as published (Liu et al.'s public code):
+    /// descriptors computed once at full resolution and their images blurred
+    /// and subsampled for the pyramid, integer flow, no occlusion handling.
+    Paper,
+    /// This implementation's improvements: descriptors recomputed on each
+    /// level of an image pyramid, sub-pixel flow, and for stereo a left–right
+    /// consistency check, confidence-weighted filtering.
+    #[default]
+    Improved,
+}
+
+/// Parameters of SIFT flow, names as in eq. (10) and the reference code.
+///
+/// | parameter | default | effect |
+/// | --- | --- | --- |
+/// | `mode` | `improved` | `paper` reproduces the published pipeline (see [`Mode`]) |
+/// | `cell_size` | 3 | dense SIFT cell, pixels (descriptor spans 4 cells) |
+/// | `alpha` | 2·255 | α, slope of the truncated L1 smoothness: larger is smoother |
+/// | `d` | 40·255 | truncation of the smoothness: lower keeps flow discontinuities sharper |
+/// | `gamma` | 0.005·255 | η, weight of the small-displacement term \|u\| + \|v\| (doubled per coarser level) |
+/// | `t` | none | truncation of the data term; none = plain L1 as the reference code |
+/// | `levels` | 4 | pyramid levels (the top is 1/2^(levels−1) of the image) |
+/// | `top_window` | 10 | half search window at the top level, top-level pixels |
+/// | `window` | 2 | half search window around the upsampled flow at lower levels |
+/// | `top_iterations` | 60 | BP iterations at the top level |
+/// | `iterations` | 30 | BP iterations at the finest level (falling to 60 % at the coarsest but one) |
+/// | `max_strips` | 4 | parallel row strips of the BP sweeps; 1 = strictly sequential BP-S |
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct FlowParams {
+    pub mode: Mode,
+    pub cell_size: usize,
+    pub alpha: f32,
+    pub d: f32,
+    pub gamma: f32,
+    pub t: Option<f32>,
+    pub levels: usize,
+    pub top_window: usize,
+    pub window: usize,
+    pub top_iterations: usize,
+    pub iterations: usize,
+    pub max_strips: usize,
+}
+
+impl Default for FlowParams {
+    fn default() -> Self {
+        Self {
+            mode: Mode::default(),
+            cell_size: 3,
+            alpha: 2.0 * 255.0,
+            d: 40.0 * 255.0,
+            gamma: 0.005 * 255.0,
+            t: None,
+            levels: 4,
+            top_window: 10,
+            window: 2,
+            top_iterations: 60,
+            iterations: 30,
+            max_strips: 4,
+        }
+    }
+}
+
+/// What one pyramid level did (goes into report.json).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct LevelReport {
+    /// 0 = full resolution.
+    pub level: usize,
+    pub width: usize,
+    pub height: usize,
+    /// Half windows of the u and v layers.
+    pub window_u: usize,
+    pub window_v: usize,
+    pub iterations: usize,
+    /// Energy (10) after every BP iteration (the paper's Fig. 8).
+    pub energy: Vec<f64>,
+    pub descriptor_ms: f64,
+    pub data_term_ms: f64,
+    pub bp_ms: f64,
+}
+
+/// A dense correspondence from image A to image B: pixel `(x, y)` of A
+/// matches `(x + u, y + v)` of B.
+#[derive(Debug, Clone)]
+pub struct Flow {
+    pub u: Image,
+    pub v: Image,
+    /// Finest level first.
+    pub levels: Vec<LevelReport>,
+    pub total_ms: f64,
+}
+
+impl Flow {
+    /// Figures of the flow for report.json (Table 4's v²/u² ratio).
+    #[must_use]
+    pub fn stats(&self) -> FlowStats {
+        FlowStats::of(&self.u, &self.v)
+    }
+}
+
+/// Summary of a flow field: how vertical it is (paper Table 4 reports the
+/// ratio Σv²/Σu² before and after rectification).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct FlowStats {
+    /// Σv² / Σu² over the finite pixels.
+    pub v2_over_u2: f64,
+    /// √(mean v²), pixels.
+    pub rms_v: f64,
+    /// √(mean u²), pixels.
+    pub rms_u: f64,
+}
+
+impl FlowStats {
+    /// Over the pixels where both components are finite.
+    #[must_use]
+    pub fn of(u: &Image, v: &Image) -> Self {
+        let (mut su, mut sv, mut n) = (0f64, 0f64, 0usize);
+        for (&a, &b) in u.data().iter().zip(v.data()) {
+            if a.is_finite() && b.is_finite() {
+                su += f64::from(a).powi(2);
+                sv += f64::from(b).powi(2);
+                n += 1;
+            }
+        }
+        let n = n.max(1) as f64;
+        Self {
+            v2_over_u2: if su > 0.0 { sv / su } else { f64::NAN },
+            rms_v: (sv / n).sqrt(),
+            rms_u: (su / n).sqrt(),
+        }
+    }
+}
+
+/// Per-level plan of the coarse-to-fine engine.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct LevelPlan {
+    pub window: [usize; 2],
+    pub iterations: usize,
+}
+
+/// Everything the engine needs besides the images.
+#[derive(Debug, Clone)]
+pub(crate) struct Engine {
+    pub mode: Mode,
+    pub cell_size: usize,
+    pub alpha: f32,
+    pub d: f32,
+    pub gamma: f32,
+    pub t: Option<f32>,
+    /// Finest first.
+    pub plan: Vec<LevelPlan>,
+    pub max_strips: usize,
+}
+
+/// The finest level's result of the engine.
+pub(crate) struct EngineRun {
+    pub u: Vec<f32>,
+    pub v: Vec<f32>,
+    /// Per pixel, how much worse the second-best distinct u label is than the
+    /// best (belief units); large = unambiguous.
+    pub margin: Vec<f32>,
+    pub levels: Vec<LevelReport>,
+}
+
+/// Rows per BP strip at least (strips below this height would lose more to
+/// late boundary messages than they gain).
+const MIN_STRIP_ROWS: usize = 48;
+/// Smallest side of the top level.
+const MIN_TOP_SIDE: usize = 8;
+
+fn ms(t: Instant) -> f64 {
+    t.elapsed().as_secs_f64() * 1e3
+}
+
+impl FlowParams {
+    /// Iterations of level `l` (0 = finest) as the reference code spreads
+    /// them: the top gets `top_iterations`, the others fall linearly from
+    /// `iterations` at the finest to 60 % of it at the coarsest.
+    fn iterations_at(&self, l: usize) -> usize {
+        if l + 1 == self.levels {
+            return self.top_iterations;
+        }
+        let n = self.iterations as f64;
+        let frac = if self.levels > 1 {
+            l as f64 / (self.levels - 1) as f64
+        } else {
+            0.0
+        };
+        (n - 0.4 * n * frac).round() as usize
+    }
+
+    pub(crate) fn validate(&self) -> Result<(), DenseError> {
+        let bad = |name: &'static str, reason: &str| {
+            Err(DenseError::InvalidParameter {
+                name,
+                reason: reason.to_owned(),
+            })
+        };
+        let max_w = (MAX_STATES - 1) / 2;
+        if self.levels == 0 {
+            return bad("levels", "needs at least 1 pyramid level");
+        }
+        if self.cell_size == 0 {
+            return bad("cell_size", "must be at least 1 pixel");
+        }
+        if self.window > max_w || self.top_window > max_w {
+            return bad("window", "half windows are limited to 63 labels");
+        }
+        if !(self.alpha >= 0.0 && self.d >= 0.0 && self.gamma >= 0.0) {
+            return bad("alpha/d/gamma", "must be finite and non-negative");
+        }
+        if self.t.is_some_and(|t| !(t >= 0.0)) {
+            return bad("t", "must be non-negative");
+        }
+        if self.max_strips == 0 {
+            return bad("max_strips", "must be at least 1");
+        }
+        Ok(())
+    }
+
+    pub(crate) fn engine(&self, vertical: Option<(usize, usize)>) -> Engine {
+        let plan = (0..self.levels)
+            .map(|l| {
+                let top = l + 1 == self.levels;
+                let wu = if top { self.top_window } else { self.window };
+                let wv = match vertical {
+                    Some((w_low, w_top)) => {
+                        if top {
+                            w_top
+                        } else {
+                            w_low
+                        }
+                    }
+                    None => wu,
+                };
+                LevelPlan {
+                    window: [wu, wv],
+                    iterations: self.iterations_at(l),
+                }
+            })
+            .collect();
+        Engine {
+            mode: self.mode,
+            cell_size: self.cell_size,
+            alpha: self.alpha,
+            d: self.d,
+            gamma: self.gamma,
+            t: self.t,
+            plan,
+            max_strips: self.max_strips,
+        }
+    }
+}
+
+/// Checks that the top level of `levels` still has a usable size.
+pub(crate) fn check_size(w: usize, h: usize, levels: usize) -> Result<(), DenseError> {
+    let (mut tw, mut th) = (w, h);
+    for _ in 1..levels {
+        tw = pyramid::half_size(tw);
+        th = pyramid::half_size(th);
+    }
+    if tw < MIN_TOP_SIDE || th < MIN_TOP_SIDE {
+        return Err(DenseError::TooSmall {
+            width: w,
+            height: h,
+            levels,
+            min_top: MIN_TOP_SIDE,
+        });
+    }
+    Ok(())
+}
+
+/// The descriptor images of both inputs at every level, computed as the mode says.
+enum Descriptors {
+    /// Full-resolution descriptors and their blurred, subsampled pyramid
+    /// (the reference code), finest first.
+    Downsampled(Vec<DescriptorImage>, Vec<DescriptorImage>),
+    /// Image pyramids; descriptors are computed per level when needed.
+    PerLevel(Vec<Image>, Vec<Image>),
+}
+
+impl Engine {
+    /// Runs coarse to fine from `a` to `b`. `valid_a`/`valid_b` mark usable
+    /// pixels (row-major); an invalid pixel of `a` has no data term (its flow
+    /// comes from its neighbours), one of `b` cannot be matched.
+    pub(crate) fn run(
+        &self,
+        a: &Image,
+        b: &Image,
+        valid_a: Option<&[bool]>,
+        valid_b: Option<&[bool]>,
+    ) -> EngineRun {
+        let levels = self.plan.len();
+        let sift = DenseSiftParams {
+            cell_size: self.cell_size,
+        };
+        let t0 = Instant::now();
+        let desc = match self.mode {
+            Mode::Paper => {
+                let (mut da, mut db) =
+                    rayon::join(|| vec![dense_sift(a, &sift)], || vec![dense_sift(b, &sift)]);
+                for l in 1..levels {
+                    let (x, y) = rayon::join(
+                        || pyramid::halve_descriptors(&da[l - 1]),
+                        || pyramid::halve_descriptors(&db[l - 1]),
+                    );
+                    da.push(x);
+                    db.push(y);
+                }
+                Descriptors::Downsampled(da, db)
+            }
+            Mode::Improved => {
+                let (mut ia, mut ib) = (vec![a.clone()], vec![b.clone()]);
+                for l in 1..levels {
+                    let x = pyramid::halve_image(&ia[l - 1]);
+                    let y = pyramid::halve_image(&ib[l - 1]);
+                    ia.push(x);
+                    ib.push(y);
+                }
+                Descriptors::PerLevel(ia, ib)
+            }
+        };
+        let pyramid_ms = ms(t0);
+        let mut masks_a = vec![valid_a.map(<[bool]>::to_vec)];
+        let mut masks_b = vec![valid_b.map(<[bool]>::to_vec)];
+        let (mut wa, mut ha, mut wb, mut hb) = (a.width(), a.height(), b.width(), b.height());
+        let mut sizes = vec![(wa, ha, wb, hb)];
+        for _ in 1..levels {
+            let ma = masks_a
+                .last()
+                .and_then(|m| m.as_ref().map(|m| pyramid::halve_mask(m, wa, ha)));
+            let mb = masks_b
+                .last()
+                .and_then(|m| m.as_ref().map(|m| pyramid::halve_mask(m, wb, hb)));
+            masks_a.push(ma);
+            masks_b.push(mb);
+            (wa, ha, wb, hb) = (
+                pyramid::half_size(wa),
+                pyramid::half_size(ha),
+                pyramid::half_size(wb),
+                pyramid::half_size(hb),
+            );
+            sizes.push((wa, ha, wb, hb));
+        }
+
+        let mut reports = Vec::with_capacity(levels);
+        let mut flow: [Vec<f32>; 2] = [Vec::new(), Vec::new()];
+        let mut margin = Vec::new();
+        for l in (0..levels).rev() {
+            let (w, h, w2, h2) = sizes[l];
+            let plan = self.plan[l];
+            let offset = if l + 1 == levels {
+                // Top: proportional correspondence when the sizes differ.
+                let ou = (0..w * h).map(|p| proportional(p % w, w, w2)).collect();
+                let ov = (0..w * h).map(|p| proportional(p / w, h, h2)).collect();
+                [ou, ov]
+            } else {
+                let (wc, hc, _, _) = sizes[l + 1];
+                [
+                    pyramid::upsample_offsets(&flow[0], wc, hc, w, h),
+                    pyramid::upsample_offsets(&flow[1], wc, hc, w, h),
+                ]
+            };
+            let space = LabelSpace {
+                width: w,
+                height: h,
+                window: plan.window,
+                offset,
+            };
+            let td = Instant::now();
+            let computed;
+            let (da, db) = match &desc {
+                Descriptors::Downsampled(da, db) => (&da[l], &db[l]),
+                Descriptors::PerLevel(ia, ib) => {
+                    computed =
+                        rayon::join(|| dense_sift(&ia[l], &sift), || dense_sift(&ib[l], &sift));
+                    (&computed.0, &computed.1)
+                }
+            };
+            let descriptor_ms = ms(td) + if l + 1 == levels { pyramid_ms } else { 0.0 };
+            let tdata = Instant::now();
+            let mut data = DataTerm::compute(da, db, &space, masks_b[l].as_deref(), self.t);
+            if let Some(ma) = &masks_a[l] {
+                let per = space.states(0) * space.states(1);
+                for (p, _) in ma.iter().enumerate().filter(|(_, v)| !**v) {
+                    data.cost[p * per..(p + 1) * per].fill(0);
+                }
+            }
+            let data_term_ms = ms(tdata);
+            let weights = EnergyWeights {
+                alpha: self.alpha,
+                d: self.d,
+                gamma: self.gamma * (1u32 << l.min(31)) as f32,
+            };
+            let tbp = Instant::now();
+            let mut bp = DualLayerBp::new(&space, &data, weights, MIN_STRIP_ROWS, self.max_strips);
+            let outcome = bp.run(plan.iterations);
+            let bp_ms = ms(tbp);
+            flow = if l == 0 && self.mode == Mode::Improved {
+                super::subpixel::refine(&data, &space, &outcome.labels)
+            } else {
+                [0, 1].map(|k| {
+                    (0..w * h)
+                        .map(|p| space.flow(k, p, usize::from(outcome.labels[k][p])) as f32)
+                        .collect()
+                })
+            };
+            if l == 0 {
+                margin = bp.margins(0, &outcome.labels[0]);
+            }
+            reports.push(LevelReport {
+                level: l,
+                width: w,
+                height: h,
+                window_u: plan.window[0],
+                window_v: plan.window[1],
+                iterations: plan.iterations,
+                energy: outcome.energy,
+                descriptor_ms,
+                data_term_ms,
+                bp_ms,
+            });
+        }
+        reports.reverse();
+        let [u, v] = flow;
+        EngineRun {
+            u,
+            v,
+            margin,
+            levels: reports,
+        }
+    }
+}
+
+/// Offset that maps coordinate `i` of a side of `n` to the same relative
+/// position of a side of `n2` (0 when the sizes agree).
+fn proportional(i: usize, n: usize, n2: usize) -> i32 {
+    if n == n2 || n < 2 {
+        return 0;
+    }
+    let target = i as f64 * (n2 - 1) as f64 / (n - 1) as f64;
+    (target - i as f64).round() as i32
+}
+
+/// Dense SIFT flow from `a` to `b` (two arbitrary images, no rectification).
+///
+/// # Errors
+/// [`DenseError::InvalidParameter`] for unusable parameters,
+/// [`DenseError::TooSmall`] when an image is too small for the pyramid.
+pub fn sift_flow(a: &Image, b: &Image, params: &FlowParams) -> Result<Flow, DenseError> {
+    params.validate()?;
+    check_size(a.width(), a.height(), params.levels)?;
+    check_size(b.width(), b.height(), params.levels)?;
+    let t0 = Instant::now();
+    let a = fill_non_finite(a);
+    let b = fill_non_finite(b);
+    let run = params.engine(None).run(&a, &b, None, None);
+    let (w, h) = a.dimensions();
+    Ok(Flow {
+        u: Image::from_vec(w, h, run.u).expect("flow has the size of image A"),
+        v: Image::from_vec(w, h, run.v).expect("flow has the size of image A"),
+        levels: run.levels,
+        total_ms: ms(t0),
+    })
+}
+
+/// Replaces non-finite samples by the nearest finite one on the same row (or
+/// the image mean when a row has none), so that no false edge enters a descriptor.
+pub(crate) fn fill_non_finite(img: &Image) -> Image {
+    if img.data().iter().all(|v| v.is_finite()) {
+        return img.clone();
+    }
+    let (sum, n) = img
+        .data()
+        .iter()
+        .filter(|v| v.is_finite())
+        .fold((0f64, 0usize), |(s, n), &v| (s + f64::from(v), n + 1));
+    let mean = if n == 0 { 0.0 } else { (sum / n as f64) as f32 };
+    let mut out = img.clone();
+    let w = img.width();
+    let mut left = vec![None; w];
+    for y in 0..img.height() {
+        let src = img.row(y);
+        let mut last = None;
+        for x in 0..w {
+            if src[x].is_finite() {
+                last = Some(x);
+            }
+            left[x] = last;
+        }
+        let row = out.row_mut(y);
+        let mut next = None;
+        for x in (0..w).rev() {
+            if src[x].is_finite() {
+                next = Some(x);
+                continue;
+            }
+            row[x] = match (left[x], next) {
+                (Some(l), Some(r)) => src[if x - l <= r - x { l } else { r }],
+                (Some(l), None) => src[l],
+                (None, Some(r)) => src[r],
+                (None, None) => mean,
+            };
+        }
+    }
+    out
+}

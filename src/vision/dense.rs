@@ -1,0 +1,363 @@
+//! The dense stage of SD-SEM as one call: rectified pair in, disparity out
+//! (steps 4–5 of DESIGN §6; step 6, depth, is [`super::depth`]).
+//!
+//! Dense SIFT at every pixel, SIFT flow with a small vertical window (the
+//! pair is rectified, so correspondences share a row up to the rectification
+//! error), then — in the improved mode — sub-pixel disparity, a left–right
+//! consistency check that masks occlusions, and a per-pixel confidence; last,
+//! the bilateral-grid filter of the disparity.
+
+use std::time::Instant;
+
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use super::Image;
+use super::bilateral_grid::{BilateralParams, GridInfo, bilateral_filter};
+use super::consistency::left_right_check;
+use super::sift_flow::{self, FlowParams, FlowStats, LevelReport, Mode};
+
+/// Errors of the dense stage, each naming the cause and the remedy.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum DenseError {
+    #[error(
+        "rectified images differ in size ({left_width}×{left_height} vs {right_width}×{right_height}); rectify both onto one canvas"
+    )]
+    SizeMismatch {
+        left_width: usize,
+        left_height: usize,
+        right_width: usize,
+        right_height: usize,
+    },
+    #[error(
+        "image of {width}×{height} is too small for {levels} pyramid levels (the top level needs {min_top}×{min_top} pixels); lower `levels`"
+    )]
+    TooSmall {
+        width: usize,
+        height: usize,
+        levels: usize,
+        min_top: usize,
+    },
+    #[error("invalid dense parameter `{name}`: {reason}")]
+    InvalidParameter { name: &'static str, reason: String },
+    #[error(
+        "validity mask holds {len} entries for a {width}×{height} image; pass one entry per pixel"
+    )]
+    MaskSize {
+        width: usize,
+        height: usize,
+        len: usize,
+    },
+    #[error("no valid pixel in the rectified left image; check the rectification homographies")]
+    NoValidPixels,
+    #[error(
+        "the right rectification homography is singular; the sparse stage produced an unusable H_right"
+    )]
+    SingularHomography,
+}
+
+/// Parameters of the dense stage (SIFT flow on the rectified pair, then the
+/// filter). Names as in SIFT flow eq. (10) and the reference code.
+///
+/// | parameter | default | effect |
+/// | --- | --- | --- |
+/// | `mode` | `improved` | `paper`: integer disparity, no occlusion handling, descriptor pyramid as the reference code, plain bilateral filter; `improved`: sub-pixel, left–right check, confidence-weighted filter |
+/// | `cell_size` | 3 | dense SIFT cell, pixels |
+/// | `alpha` | 2·255 | α, truncated-L1 smoothness slope |
+/// | `d` | 40·255 | smoothness truncation |
+/// | `gamma` | 0.005·255 | η, small-displacement weight |
+/// | `t` | none | data-term truncation |
+/// | `levels` | 4 | pyramid levels |
+/// | `top_window` / `window` | 10 / 2 | half search window of the disparity at the top / lower levels |
+/// | `vertical_top_window` / `vertical_window` | 2 / 1 | half search window of the vertical flow (improved mode; the paper searches v as widely as u) |
+/// | `top_iterations` / `iterations` | 60 / 30 | BP iterations |
+/// | `lr_tolerance` | 1.0 | left–right disagreement (pixels) above which a pixel is masked as occluded |
+/// | `bilateral` | σs = σr = 3 | bilateral grid filter of the disparity |
+/// | `max_strips` | 4 | parallel row strips of the BP sweeps (1 = sequential BP-S) |
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct DenseParams {
+    pub mode: Mode,
+    pub cell_size: usize,
+    pub alpha: f32,
+    pub d: f32,
+    pub gamma: f32,
+    pub t: Option<f32>,
+    pub levels: usize,
+    pub top_window: usize,
+    pub window: usize,
+    pub vertical_top_window: usize,
+    pub vertical_window: usize,
+    pub top_iterations: usize,
+    pub iterations: usize,
+    pub lr_tolerance: f32,
+    pub bilateral: BilateralParams,
+    pub max_strips: usize,
+}
+
+impl Default for DenseParams {
+    fn default() -> Self {
+        let f = FlowParams::default();
+        Self {
+            mode: Mode::default(),
+            cell_size: f.cell_size,
+            alpha: f.alpha,
+            d: f.d,
+            gamma: f.gamma,
+            t: f.t,
+            levels: f.levels,
+            top_window: f.top_window,
+            window: f.window,
+            vertical_top_window: 2,
+            vertical_window: 1,
+            top_iterations: f.top_iterations,
+            iterations: f.iterations,
+            lr_tolerance: 1.0,
+            bilateral: BilateralParams::default(),
+            max_strips: f.max_strips,
+        }
+    }
+}
+
+impl DenseParams {
+    /// The SIFT-flow part of these parameters.
+    #[must_use]
+    pub fn flow_params(&self) -> FlowParams {
+        FlowParams {
+            mode: self.mode,
+            cell_size: self.cell_size,
+            alpha: self.alpha,
+            d: self.d,
+            gamma: self.gamma,
+            t: self.t,
+            levels: self.levels,
+            top_window: self.top_window,
+            window: self.window,
+            top_iterations: self.top_iterations,
+            iterations: self.iterations,
+            max_strips: self.max_strips,
+        }
+    }
+}
+
+/// Timings of the dense stage, milliseconds.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Default)]
+pub struct DenseTimings {
+    pub matching_ms: f64,
+    pub consistency_ms: f64,
+    pub filter_ms: f64,
+    pub total_ms: f64,
+}
+
+/// Figures of the dense stage for report.json.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct DenseStats {
+    pub mode: Mode,
+    /// Left-to-right SIFT flow per level, finest first (energies: Fig. 8).
+    pub levels: Vec<LevelReport>,
+    /// Right-to-left SIFT flow per level (improved mode only).
+    pub levels_right_to_left: Option<Vec<LevelReport>>,
+    /// v²/u² and RMS of the flow on the rectified pair (Table 4, "after").
+    pub flow: FlowStats,
+    /// Fraction of valid left pixels with a disparity.
+    pub coverage: f64,
+    /// Fraction of valid left pixels rejected by the left–right check.
+    pub rejected_fraction: f64,
+    pub grid: GridInfo,
+    pub timings: DenseTimings,
+}
+
+/// The dense stage's result, on the rectified left image's grid.
+#[derive(Debug, Clone)]
+pub struct Disparity {
+    /// Filtered disparity `x_right − x_left`, rectified pixels, `NaN` unknown.
+    pub disparity: Image,
+    /// The disparity before the bilateral filter.
+    pub raw: Image,
+    /// Vertical flow (rectification residual), pixels.
+    pub vertical: Image,
+    /// Per-pixel confidence in `[0, 1]` (0 where unknown).
+    pub confidence: Image,
+    /// Pixels masked by the left–right check (occlusions and mismatches).
+    pub occluded: Vec<bool>,
+    pub stats: DenseStats,
+}
+
+fn ms(t: Instant) -> f64 {
+    t.elapsed().as_secs_f64() * 1e3
+}
+
+/// Combined validity: the mask (if any) and a finite sample.
+fn validity(img: &Image, mask: Option<&[bool]>) -> Result<Vec<bool>, DenseError> {
+    if let Some(m) = mask {
+        if m.len() != img.len() {
+            return Err(DenseError::MaskSize {
+                width: img.width(),
+                height: img.height(),
+                len: m.len(),
+            });
+        }
+    }
+    Ok(img
+        .data()
+        .iter()
+        .enumerate()
+        .map(|(p, v)| v.is_finite() && mask.is_none_or(|m| m[p]))
+        .collect())
+}
+
+/// Dense disparity of a rectified pair.
+///
+/// `valid_left`/`valid_right` mark the canvas pixels that come from the
+/// micrographs (row-major; `None`: every finite pixel). Non-finite samples
+/// count as invalid too.
+///
+/// # Errors
+/// [`DenseError`] for mismatched sizes or masks, too small images, invalid
+/// parameters, or a left image without valid pixels.
+pub fn dense_disparity(
+    left_rect: &Image,
+    right_rect: &Image,
+    valid_left: Option<&[bool]>,
+    valid_right: Option<&[bool]>,
+    params: &DenseParams,
+) -> Result<Disparity, DenseError> {
+    let t0 = Instant::now();
+    let (w, h) = left_rect.dimensions();
+    if right_rect.dimensions() != (w, h) {
+        return Err(DenseError::SizeMismatch {
+            left_width: w,
+            left_height: h,
+            right_width: right_rect.width(),
+            right_height: right_rect.height(),
+        });
+    }
+    let fp = params.flow_params();
+    fp.validate()?;
+    if params.vertical_window > 63 || params.vertical_top_window > 63 {
+        return Err(DenseError::InvalidParameter {
+            name: "vertical_window",
+            reason: "half windows are limited to 63 labels".to_owned(),
+        });
+    }
+    if !(params.lr_tolerance >= 0.0) {
+        return Err(DenseError::InvalidParameter {
+            name: "lr_tolerance",
+            reason: "must be non-negative".to_owned(),
+        });
+    }
+    sift_flow::check_size(w, h, params.levels)?;
+    let va = validity(left_rect, valid_left)?;
+    let vb = validity(right_rect, valid_right)?;
+    let n_valid = va.iter().filter(|&&v| v).count();
+    if n_valid == 0 {
+        return Err(DenseError::NoValidPixels);
+    }
+    let a = sift_flow::fill_non_finite(left_rect);
+    let b = sift_flow::fill_non_finite(right_rect);
+    let improved = params.mode == Mode::Improved;
+    let engine =
+        fp.engine(improved.then_some((params.vertical_window, params.vertical_top_window)));
+
+    // Matching: both directions at once in the improved mode (two cores, two
+    // sequential sweeps: the backward field is almost free in wall time).
+    let tm = Instant::now();
+    let (fwd, bwd) = if improved {
+        let (f, b) = rayon::join(
+            || engine.run(&a, &b, Some(&va), Some(&vb)),
+            || engine.run(&b, &a, Some(&vb), Some(&va)),
+        );
+        (f, Some(b))
+    } else {
+        (engine.run(&a, &b, Some(&va), Some(&vb)), None)
+    };
+    let matching_ms = ms(tm);
+
+    let u = Image::from_vec(w, h, fwd.u).expect("flow has the canvas size");
+    let v = Image::from_vec(w, h, fwd.v).expect("flow has the canvas size");
+    let flow_stats = FlowStats::of(&u, &v);
+
+    // Consistency and confidence.
+    let tc = Instant::now();
+    let alpha = params.alpha.max(1e-6);
+    let ambiguity: Vec<f32> = fwd
+        .margin
+        .iter()
+        .map(|&m| 1.0 - (-m / alpha).exp())
+        .collect();
+    let (rejected, agreement) = match &bwd {
+        Some(bw) => {
+            let ur = Image::from_vec(w, h, bw.u.clone()).expect("flow has the canvas size");
+            let vr = Image::from_vec(w, h, bw.v.clone()).expect("flow has the canvas size");
+            let c = left_right_check(&u, &v, &ur, &vr, params.lr_tolerance);
+            let tol = params.lr_tolerance.max(1e-3);
+            let agreement: Vec<f32> = c
+                .residual
+                .data()
+                .iter()
+                .map(|&r| {
+                    if r.is_finite() {
+                        (-(r / tol).powi(2)).exp()
+                    } else {
+                        0.0
+                    }
+                })
+                .collect();
+            (c.rejected, agreement)
+        }
+        None => (vec![false; w * h], vec![1.0; w * h]),
+    };
+    let mut raw = u.clone();
+    let mut confidence = Image::zeros(w, h);
+    raw.data_mut()
+        .par_iter_mut()
+        .zip(confidence.data_mut().par_iter_mut())
+        .enumerate()
+        .for_each(|(p, (d, c))| {
+            let x = (p % w) as f32 + *d;
+            let y = (p / w) as f32 + v.data()[p];
+            let lands = x >= 0.0 && y >= 0.0 && x <= (w - 1) as f32 && y <= (h - 1) as f32 && {
+                // Nearest right pixel must be a real one.
+                let q = (y.round() as usize) * w + x.round() as usize;
+                vb[q]
+            };
+            if !va[p] || rejected[p] || !lands {
+                *d = f32::NAN;
+                *c = 0.0;
+            } else {
+                *c = ambiguity[p] * agreement[p];
+            }
+        });
+    let consistency_ms = ms(tc);
+
+    let tf = Instant::now();
+    let weights = if improved { Some(&confidence) } else { None };
+    let (disparity, grid) = bilateral_filter(&raw, weights, &params.bilateral);
+    let filter_ms = ms(tf);
+
+    let known = raw.data().iter().filter(|d| d.is_finite()).count();
+    let n_rejected = va.iter().zip(&rejected).filter(|(v, r)| **v && **r).count();
+    let stats = DenseStats {
+        mode: params.mode,
+        levels: fwd.levels,
+        levels_right_to_left: bwd.map(|b| b.levels),
+        flow: flow_stats,
+        coverage: known as f64 / n_valid as f64,
+        rejected_fraction: n_rejected as f64 / n_valid as f64,
+        grid,
+        timings: DenseTimings {
+            matching_ms,
+            consistency_ms,
+            filter_ms,
+            total_ms: ms(t0),
+        },
+    };
+    Ok(Disparity {
+        disparity,
+        raw,
+        vertical: v,
+        confidence,
+        occluded: rejected,
+        stats,
+    })
+}
