@@ -24,6 +24,7 @@
 
 pub mod acquisition;
 pub mod daemon;
+pub mod eval;
 pub mod export;
 pub mod imaging;
 pub mod record;

@@ -1,1 +1,2 @@
 //! Writers (and readers, for verification) of the result files.
+pub mod flo;

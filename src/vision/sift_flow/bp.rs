@@ -21,7 +21,7 @@
 
 use rayon::prelude::*;
 
-use super::energy::{DataTerm, EnergyWeights, LabelSpace, energy};
+use super::energy::{DataTerm, EnergyWeights, LabelSpace, clamp_label, energy};
 
 /// Incoming message slots of a node: from the left, right, upper, lower
 /// neighbour on the same layer, and from the other layer.
@@ -43,6 +43,8 @@ pub struct DualLayerBp<'a> {
     /// Per layer: `msgs[k][(p · SLOTS + slot) · n_k + l]`.
     msgs: [Vec<f32>; 2],
     strips: Vec<(usize, usize)>,
+    min_strip_rows: usize,
+    max_strips: usize,
 }
 
 /// What [`DualLayerBp::run`] returns.
@@ -112,26 +114,24 @@ fn spatial_message(h: &mut [f32], shift: i32, s: f32, d: f32, out: &mut [f32]) {
 }
 
 /// The message from layer `k` to the other layer of the same pixel:
-/// `m(l') = min_l h(l) + D(l, l')`, normalised. `cost` is `[l_v][l_u]`.
+/// `m(l') = min_l h(l) + scale · D(l, l')`, normalised. `cost` is `[l_v][l_u]`.
 #[inline]
-fn dual_message(k: usize, h: &[f32], cost: &[u16], nu: usize, nv: usize, out: &mut [f32]) {
+fn dual_message(k: usize, h: &[f32], cost: &[u16], scale: f32, nu: usize, out: &mut [f32]) {
     if k == 0 {
         // u → v: for every l_v, min over l_u (contiguous).
-        for (lv, o) in out.iter_mut().enumerate().take(nv) {
-            let row = &cost[lv * nu..(lv + 1) * nu];
+        for (o, row) in out.iter_mut().zip(cost.chunks_exact(nu)) {
             *o = row
                 .iter()
                 .zip(h)
-                .map(|(&c, &a)| a + f32::from(c))
+                .map(|(&c, &a)| a + scale * f32::from(c))
                 .fold(f32::INFINITY, f32::min);
         }
     } else {
         // v → u: running minimum over l_v, vectorised along l_u.
-        out[..nu].fill(f32::INFINITY);
-        for (lv, &a) in h.iter().enumerate().take(nv) {
-            let row = &cost[lv * nu..(lv + 1) * nu];
-            for (o, &c) in out[..nu].iter_mut().zip(row) {
-                *o = o.min(a + f32::from(c));
+        out.fill(f32::INFINITY);
+        for (&a, row) in h.iter().zip(cost.chunks_exact(nu)) {
+            for (o, &c) in out.iter_mut().zip(row) {
+                *o = o.min(a + scale * f32::from(c));
             }
         }
     }
@@ -163,86 +163,94 @@ impl Sweep<'_> {
         let (nu, nv) = (sp.states(0), sp.states(1));
         let stride = SLOTS * n;
         let (s, d, gamma) = (self.weights.alpha, self.weights.d, self.weights.gamma);
+        let scale = self.data.scale;
+        let wk = sp.window[k] as i32;
+        let offsets = &sp.offset[k];
         let mut outbox = vec![0f32; w * n];
-        let mut sum = [0f32; MAX_STATES];
-        let mut tmp = [0f32; MAX_STATES];
-
-        let rows: Vec<usize> = if self.forward {
-            (y0..y1).collect()
+        // Scratch, allocated once per strip: belief sum, the three outgoing
+        // costs (along the row, across rows, to the other layer), one message.
+        let mut scratch = vec![0f32; 5 * n];
+        let (sum, rest) = scratch.split_at_mut(n);
+        let (horiz, rest) = rest.split_at_mut(n);
+        let (vert, rest) = rest.split_at_mut(n);
+        let (dual_h, msg) = rest.split_at_mut(n);
+        let (skip_h, skip_v) = if self.forward {
+            (FROM_RIGHT, FROM_DOWN)
         } else {
-            (y0..y1).rev().collect()
+            (FROM_LEFT, FROM_UP)
         };
-        for y in rows {
+
+        for r in 0..y1 - y0 {
+            let y = if self.forward { y0 + r } else { y1 - 1 - r };
             for i in 0..w {
                 let x = if self.forward { i } else { w - 1 - i };
                 let p = y * w + x;
                 let pl = (y - y0) * w + x;
                 let node = &mk[pl * stride..(pl + 1) * stride];
-                for (l, a) in sum[..n].iter_mut().enumerate() {
-                    *a = gamma * sp.flow(k, p, l).unsigned_abs() as f32;
+                let base = offsets[p] - wk;
+                for (l, a) in sum.iter_mut().enumerate() {
+                    *a = gamma * (base + l as i32).unsigned_abs() as f32;
                 }
-                for slot in 0..SLOTS {
-                    for (a, &m) in sum[..n].iter_mut().zip(&node[slot * n..(slot + 1) * n]) {
-                        *a += m;
+                for m in node.chunks_exact(n) {
+                    for (a, &v) in sum.iter_mut().zip(m) {
+                        *a += v;
                     }
                 }
-                // Copies of the slots needed below, before `mk` is written.
-                let mut excl = [[0f32; MAX_STATES]; 3];
-                let slots = if self.forward {
-                    [FROM_RIGHT, FROM_DOWN, FROM_DUAL]
-                } else {
-                    [FROM_LEFT, FROM_UP, FROM_DUAL]
-                };
-                for (e, &slot) in excl.iter_mut().zip(&slots) {
-                    for l in 0..n {
-                        e[l] = sum[l] - node[slot * n + l];
-                    }
+                let slot = |j: usize| &node[j * n..(j + 1) * n];
+                for (((hz, vt), (du, &a)), ((&mh, &mv), &md)) in horiz
+                    .iter_mut()
+                    .zip(vert.iter_mut())
+                    .zip(dual_h.iter_mut().zip(sum.iter()))
+                    .zip(slot(skip_h).iter().zip(slot(skip_v)).zip(slot(FROM_DUAL)))
+                {
+                    *hz = a - mh;
+                    *vt = a - mv;
+                    *du = a - md;
                 }
-                let [mut horiz, mut vert, dual_h] = excl;
 
-                if self.forward {
-                    if x + 1 < w {
-                        let q = p + 1;
-                        let shift = sp.offset[k][q] - sp.offset[k][p];
-                        let dst = (pl + 1) * stride + FROM_LEFT * n;
-                        spatial_message(&mut horiz[..n], shift, s, d, &mut tmp[..n]);
-                        mk[dst..dst + n].copy_from_slice(&tmp[..n]);
-                    }
-                    if y + 1 < h {
-                        let q = p + w;
-                        let shift = sp.offset[k][q] - sp.offset[k][p];
-                        spatial_message(&mut vert[..n], shift, s, d, &mut tmp[..n]);
-                        if y + 1 < y1 {
-                            let dst = (pl + w) * stride + FROM_UP * n;
-                            mk[dst..dst + n].copy_from_slice(&tmp[..n]);
-                        } else {
-                            outbox[x * n..(x + 1) * n].copy_from_slice(&tmp[..n]);
-                        }
-                    }
+                // Along the row.
+                let along = if self.forward {
+                    (x + 1 < w).then(|| p + 1)
                 } else {
-                    if x > 0 {
-                        let q = p - 1;
-                        let shift = sp.offset[k][q] - sp.offset[k][p];
-                        let dst = (pl - 1) * stride + FROM_RIGHT * n;
-                        spatial_message(&mut horiz[..n], shift, s, d, &mut tmp[..n]);
-                        mk[dst..dst + n].copy_from_slice(&tmp[..n]);
-                    }
-                    if y > 0 {
-                        let q = p - w;
-                        let shift = sp.offset[k][q] - sp.offset[k][p];
-                        spatial_message(&mut vert[..n], shift, s, d, &mut tmp[..n]);
-                        if y > y0 {
-                            let dst = (pl - w) * stride + FROM_DOWN * n;
-                            mk[dst..dst + n].copy_from_slice(&tmp[..n]);
+                    (x > 0).then(|| p - 1)
+                };
+                if let Some(q) = along {
+                    let shift = offsets[q] - offsets[p];
+                    spatial_message(horiz, shift, s, d, msg);
+                    let (ql, into) = if self.forward {
+                        (pl + 1, FROM_LEFT)
+                    } else {
+                        (pl - 1, FROM_RIGHT)
+                    };
+                    let dst = ql * stride + into * n;
+                    mk[dst..dst + n].copy_from_slice(msg);
+                }
+                // Across rows.
+                let across = if self.forward {
+                    (y + 1 < h).then(|| p + w)
+                } else {
+                    (y > 0).then(|| p - w)
+                };
+                if let Some(q) = across {
+                    let shift = offsets[q] - offsets[p];
+                    spatial_message(vert, shift, s, d, msg);
+                    let inside = if self.forward { y + 1 < y1 } else { y > y0 };
+                    if inside {
+                        let (ql, into) = if self.forward {
+                            (pl + w, FROM_UP)
                         } else {
-                            outbox[x * n..(x + 1) * n].copy_from_slice(&tmp[..n]);
-                        }
+                            (pl - w, FROM_DOWN)
+                        };
+                        let dst = ql * stride + into * n;
+                        mk[dst..dst + n].copy_from_slice(msg);
+                    } else {
+                        outbox[x * n..(x + 1) * n].copy_from_slice(msg);
                     }
                 }
                 if self.dual {
                     let cost = self.data.pixel(p, nu * nv);
                     let dst = (pl * SLOTS + FROM_DUAL) * no;
-                    dual_message(k, &dual_h[..n], cost, nu, nv, &mut mo[dst..dst + no]);
+                    dual_message(k, dual_h, cost, scale, nu, &mut mo[dst..dst + no]);
                 }
             }
         }
@@ -277,6 +285,60 @@ impl<'a> DualLayerBp<'a> {
             weights,
             msgs,
             strips: strips_for(space.height, min_strip_rows, max_strips),
+            min_strip_rows,
+            max_strips,
+        }
+    }
+
+    /// Multigrid initialisation (the reference code's "hierarchy"): solves
+    /// the problem on `hierarchy` successively coarser grids of 2 × 2 nodes,
+    /// where the data term is 4× stronger against the smoothness, `iterations`
+    /// each, and starts this grid's messages from the coarse ones. Without it,
+    /// a strong smoothness lets the first sweeps lock the flow at its initial
+    /// offsets.
+    pub fn warm_start(&mut self, hierarchy: usize, iterations: usize) {
+        if hierarchy == 0 || self.space.width < 2 || self.space.height < 2 {
+            return;
+        }
+        let (cspace, cdata) = self.data.coarsen(self.space);
+        let cweights = EnergyWeights {
+            gamma: self.weights.gamma / 2.0,
+            ..self.weights
+        };
+        let mut coarse = DualLayerBp::new(
+            &cspace,
+            &cdata,
+            cweights,
+            self.min_strip_rows,
+            self.max_strips,
+        );
+        coarse.warm_start(hierarchy - 1, iterations);
+        for count in 0..iterations {
+            coarse.iterate(count);
+        }
+        // Every node takes the messages of its coarse parent, label-aligned.
+        let w = self.space.width;
+        for k in 0..2 {
+            let n = self.space.states(k);
+            let src = &coarse.msgs[k];
+            let cw = cspace.width;
+            let offsets = &self.space.offset[k];
+            let coffsets = &cspace.offset[k];
+            self.msgs[k]
+                .par_chunks_mut(w * SLOTS * n)
+                .enumerate()
+                .for_each(|(y, row)| {
+                    for (x, node) in row.chunks_exact_mut(SLOTS * n).enumerate() {
+                        let c = (y / 2) * cw + x / 2;
+                        let shift = offsets[y * w + x] - coffsets[c];
+                        let cnode = &src[c * SLOTS * n..(c + 1) * SLOTS * n];
+                        for slot in 0..SLOTS {
+                            for l in 0..n {
+                                node[slot * n + l] = cnode[slot * n + clamp_label(l, shift, n)];
+                            }
+                        }
+                    }
+                });
         }
     }
 
@@ -466,7 +528,7 @@ mod tests {
         let hu: Vec<f32> = (0..nu).map(|i| (i as f32 - 2.0).abs() * 1.5).collect();
         let hv: Vec<f32> = vec![3.0, 0.0, 1.0];
         let mut got = vec![0f32; nv];
-        dual_message(0, &hu, &cost, nu, nv, &mut got);
+        dual_message(0, &hu, &cost, 1.0, nu, &mut got);
         let want: Vec<f32> = (0..nv)
             .map(|lv| {
                 (0..nu)
@@ -478,7 +540,7 @@ mod tests {
         assert_eq!(got, want.iter().map(|v| v - m).collect::<Vec<_>>());
 
         let mut got = vec![0f32; nu];
-        dual_message(1, &hv, &cost, nu, nv, &mut got);
+        dual_message(1, &hv, &cost, 1.0, nu, &mut got);
         let want: Vec<f32> = (0..nu)
             .map(|lu| {
                 (0..nv)
@@ -518,6 +580,7 @@ mod tests {
             space,
             DataTerm {
                 cost,
+                scale: 1.0,
                 outside_cost: 0,
             },
         )

@@ -59,6 +59,9 @@ impl LabelSpace {
 #[derive(Debug, Clone)]
 pub struct DataTerm {
     pub cost: Vec<u16>,
+    /// The energy counts `scale · cost` (1 at a pyramid level; `4^j` on the
+    /// grids of the multigrid BP, which store the mean of `4^j` pixels).
+    pub scale: f32,
     /// Cost given to matches that fall outside the second image (or on its
     /// invalid pixels): the median of the inside matches, as in the reference code.
     pub outside_cost: u16,
@@ -131,7 +134,89 @@ impl DataTerm {
                 (*c).min(cap)
             };
         });
-        Self { cost, outside_cost }
+        Self {
+            cost,
+            scale: 1.0,
+            outside_cost,
+        }
+    }
+
+    /// The data term of the next coarser grid of the multigrid BP (Felzenszwalb
+    /// & Huttenlocher 2006, as the reference code): a coarse node stands for
+    /// 2 × 2 pixels and its cost is theirs summed, label by label (each child's
+    /// label aligned through its own offset). Stored as the mean with `scale`
+    /// multiplied by 4. Returns the coarse label space too.
+    #[must_use]
+    pub fn coarsen(&self, space: &LabelSpace) -> (LabelSpace, Self) {
+        let (w, h) = (space.width, space.height);
+        let (cw, ch) = (w.div_ceil(2), h.div_ceil(2));
+        let (nu, nv) = (space.states(0), space.states(1));
+        let per = nu * nv;
+        let children = |cx: usize, cy: usize| {
+            [(0, 0), (1, 0), (0, 1), (1, 1)]
+                .into_iter()
+                .map(move |(dx, dy)| (2 * cx + dx, 2 * cy + dy))
+                .filter(move |&(x, y)| x < w && y < h)
+                .map(move |(x, y)| y * w + x)
+        };
+        let mut offset = [vec![0i32; cw * ch], vec![0i32; cw * ch]];
+        for k in 0..2 {
+            for cy in 0..ch {
+                for cx in 0..cw {
+                    let (sum, n) = children(cx, cy).fold((0i64, 0i64), |(s, n), p| {
+                        (s + i64::from(space.offset[k][p]), n + 1)
+                    });
+                    // A mean of i32 offsets.
+                    #[allow(clippy::cast_possible_truncation)]
+                    let mean = (sum as f64 / n as f64).round() as i32;
+                    offset[k][cy * cw + cx] = mean;
+                }
+            }
+        }
+        let coarse_space = LabelSpace {
+            width: cw,
+            height: ch,
+            window: space.window,
+            offset,
+        };
+        let mut cost = vec![0u16; cw * ch * per];
+        cost.par_chunks_mut(cw * per)
+            .enumerate()
+            .for_each(|(cy, row)| {
+                let mut acc = vec![0u32; per];
+                for cx in 0..cw {
+                    let c = cy * cw + cx;
+                    acc.fill(0);
+                    let mut n = 0u32;
+                    for p in children(cx, cy) {
+                        let du = coarse_space.offset[0][c] - space.offset[0][p];
+                        let dv = coarse_space.offset[1][c] - space.offset[1][p];
+                        let src = self.pixel(p, per);
+                        for lv in 0..nv {
+                            let sv = clamp_label(lv, dv, nv);
+                            for lu in 0..nu {
+                                let su = clamp_label(lu, du, nu);
+                                acc[lv * nu + lu] += u32::from(src[sv * nu + su]);
+                            }
+                        }
+                        n += 1;
+                    }
+                    for (o, &a) in row[cx * per..(cx + 1) * per].iter_mut().zip(&acc) {
+                        // The mean of u16 values.
+                        #[allow(clippy::cast_possible_truncation)]
+                        let m = ((a + n / 2) / n) as u16;
+                        *o = m;
+                    }
+                }
+            });
+        (
+            coarse_space,
+            Self {
+                cost,
+                scale: self.scale * 4.0,
+                outside_cost: self.outside_cost,
+            },
+        )
     }
 
     /// The costs of pixel `p`, `[l_v][l_u]`.
@@ -140,6 +225,16 @@ impl DataTerm {
     pub fn pixel(&self, p: usize, per_pixel: usize) -> &[u16] {
         &self.cost[p * per_pixel..(p + 1) * per_pixel]
     }
+}
+
+/// Label `l + shift` clamped into `0..n`.
+#[inline]
+pub fn clamp_label(l: usize, shift: i32, n: usize) -> usize {
+    let n_i = i32::try_from(n).unwrap_or(i32::MAX);
+    // Clamped into 0..n.
+    #[allow(clippy::cast_sign_loss)]
+    let c = (l as i32 + shift).clamp(0, n_i - 1) as usize;
+    c
 }
 
 /// The median of the entries that are not [`OUTSIDE`] (a histogram over u16);
@@ -197,7 +292,7 @@ pub fn energy(
             for x in 0..w {
                 let p = y * w + x;
                 let (lu, lv) = (usize::from(labels[0][p]), usize::from(labels[1][p]));
-                e += f64::from(data.cost[p * nu * nv + lv * nu + lu]);
+                e += f64::from(data.scale) * f64::from(data.cost[p * nu * nv + lv * nu + lu]);
                 for k in 0..2 {
                     let f = space.flow(k, p, usize::from(labels[k][p]));
                     e += f64::from(weights.gamma) * f64::from(f.abs());

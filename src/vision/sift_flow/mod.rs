@@ -162,7 +162,12 @@ impl FlowStats {
 pub(crate) struct LevelPlan {
     pub window: [usize; 2],
     pub iterations: usize,
+    /// Coarser grids of the multigrid BP initialisation.
+    pub hierarchy: usize,
 }
+
+/// BP iterations on each coarser grid of the multigrid initialisation (reference code).
+const HIERARCHY_ITERATIONS: usize = 20;
 
 /// Everything the engine needs besides the images.
 #[derive(Debug, Clone)]
@@ -262,6 +267,8 @@ impl FlowParams {
                 LevelPlan {
                     window: [wu, wv],
                     iterations: self.iterations_at(l),
+                    // The reference code: 2 grids at the top, levels − 1 − l below.
+                    hierarchy: if top { 2 } else { self.levels - 1 - l },
                 }
             })
             .collect();
@@ -420,6 +427,7 @@ impl Engine {
             };
             let tbp = Instant::now();
             let mut bp = DualLayerBp::new(&space, &data, weights, MIN_STRIP_ROWS, self.max_strips);
+            bp.warm_start(plan.hierarchy, HIERARCHY_ITERATIONS);
             let outcome = bp.run(plan.iterations);
             let bp_ms = ms(tbp);
             flow = if l == 0 && self.mode == Mode::Improved {
@@ -530,4 +538,79 @@ pub(crate) fn fill_non_finite(img: &Image) -> Image {
         }
     }
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Smooth random texture (sum of a few hundred random blobs).
+    pub(crate) fn texture(w: usize, h: usize, seed: u64) -> Image {
+        let mut s = seed.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1);
+        let mut rnd = move || {
+            s = s
+                .wrapping_mul(6_364_136_223_846_793_005)
+                .wrapping_add(1_442_695_040_888_963_407);
+            (s >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let blobs: Vec<(f64, f64, f64, f64)> = (0..(w * h / 40).max(20))
+            .map(|_| {
+                (
+                    rnd() * w as f64,
+                    rnd() * h as f64,
+                    1.0 + 3.0 * rnd(),
+                    rnd() - 0.5,
+                )
+            })
+            .collect();
+        let mut img = Image::zeros(w, h);
+        for &(cx, cy, r, a) in &blobs {
+            let (x0, x1) = (
+                (cx - 3.0 * r).max(0.0) as usize,
+                ((cx + 3.0 * r) as usize).min(w - 1),
+            );
+            let (y0, y1) = (
+                (cy - 3.0 * r).max(0.0) as usize,
+                ((cy + 3.0 * r) as usize).min(h - 1),
+            );
+            for y in y0..=y1 {
+                for x in x0..=x1 {
+                    let d2 = ((x as f64 - cx).powi(2) + (y as f64 - cy).powi(2)) / (r * r);
+                    let v = img.get(x, y) + (a * (-d2 / 2.0).exp()) as f32;
+                    img.set(x, y, v);
+                }
+            }
+        }
+        img.map(|v| 0.5 + 0.5 * v)
+    }
+
+    #[test]
+    fn recovers_a_global_shift() {
+        let (w, h) = (96, 80);
+        let big = texture(w + 20, h + 20, 5);
+        let a = Image::from_fn(w, h, |x, y| big.get(x + 10, y + 10));
+        // b(x + 3, y − 2) = a(x, y): the flow is (3, −2).
+        let b = Image::from_fn(w, h, |x, y| big.get(x + 7, y + 12));
+        for mode in [Mode::Paper, Mode::Improved] {
+            let params = FlowParams {
+                mode,
+                levels: 3,
+                ..FlowParams::default()
+            };
+            let f = sift_flow(&a, &b, &params).unwrap();
+            let good = (10..h - 10)
+                .flat_map(|y| (10..w - 10).map(move |x| (x, y)))
+                .filter(|&(x, y)| {
+                    (f.u.get(x, y) - 3.0).abs() < 0.25 && (f.v.get(x, y) + 2.0).abs() < 0.25
+                })
+                .count();
+            let total = (w - 20) * (h - 20);
+            assert!(
+                good * 100 >= 98 * total,
+                "{mode:?}: {good} of {total} correct; u(40,40) = {}, v = {}",
+                f.u.get(40, 40),
+                f.v.get(40, 40)
+            );
+        }
+    }
 }

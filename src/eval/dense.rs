@@ -1,0 +1,1 @@
+//! Accuracy of the dense stage against ground truth (filled in below).
