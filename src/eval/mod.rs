@@ -3,6 +3,7 @@
 
 pub mod dense;
 pub mod flow;
+pub mod synthetic;
 
 use std::path::PathBuf;
 

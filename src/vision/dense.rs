@@ -361,3 +361,214 @@ pub fn dense_disparity(
         stats,
     })
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::eval::synthetic::{Layer, Texture, dome, raised_band, render};
+
+    fn small_params(mode: Mode) -> DenseParams {
+        DenseParams {
+            mode,
+            levels: 3,
+            ..DenseParams::default()
+        }
+    }
+
+    fn errors(d: &Image, truth: &Image, visible: &[bool]) -> (Vec<f32>, usize) {
+        let mut e: Vec<f32> = d
+            .data()
+            .iter()
+            .zip(truth.data())
+            .zip(visible)
+            .filter(|((a, _), v)| a.is_finite() && **v)
+            .map(|((a, b), _)| (a - b).abs())
+            .collect();
+        e.sort_by(f32::total_cmp);
+        let n = e.len();
+        (e, n)
+    }
+
+    #[test]
+    fn subpixel_disparity_of_a_shifted_texture() {
+        let layers = vec![Layer {
+            disparity: Box::new(|x, _| 4.3 + 0.01 * x),
+            region: Box::new(|_, _| true),
+        }];
+        let pair = render(160, 120, Texture::new(11), &layers, 0.0, 0.0);
+        let out = dense_disparity(
+            &pair.left,
+            &pair.right,
+            None,
+            None,
+            &small_params(Mode::Improved),
+        )
+        .unwrap();
+        let (e, n) = errors(&out.raw, &pair.disparity, &pair.visible);
+        let median = e[n / 2];
+        assert!(median < 0.1, "median error {median} px");
+        assert!(n as f64 > 0.9 * 160.0 * 120.0, "only {n} pixels known");
+        // The paper's integer disparity cannot do better than rounding.
+        let paper = dense_disparity(
+            &pair.left,
+            &pair.right,
+            None,
+            None,
+            &small_params(Mode::Paper),
+        )
+        .unwrap();
+        let (ep, np) = errors(&paper.raw, &pair.disparity, &pair.visible);
+        assert!(
+            ep[np / 2] > 2.0 * median,
+            "paper {} vs improved {median}",
+            ep[np / 2]
+        );
+        assert!(
+            paper
+                .raw
+                .data()
+                .iter()
+                .all(|v| !v.is_finite() || v.fract() == 0.0)
+        );
+    }
+
+    #[test]
+    fn left_right_check_masks_an_occluded_band() {
+        let (w, h) = (160, 96);
+        let pair = render(
+            w,
+            h,
+            Texture::new(3),
+            &raised_band(60.0, 100.0, 2.0, 8.0),
+            0.0,
+            0.0,
+        );
+        let out = dense_disparity(
+            &pair.left,
+            &pair.right,
+            None,
+            None,
+            &small_params(Mode::Improved),
+        )
+        .unwrap();
+        let interior = |p: usize| {
+            let (x, y) = (p % w, p / w);
+            (8..w - 16).contains(&x) && (8..h - 8).contains(&y)
+        };
+        let (mut occ, mut occ_masked, mut vis, mut vis_masked) = (0, 0, 0, 0);
+        for p in (0..w * h).filter(|&p| interior(p)) {
+            if pair.visible[p] {
+                vis += 1;
+                vis_masked += usize::from(out.occluded[p]);
+            } else {
+                occ += 1;
+                occ_masked += usize::from(out.occluded[p]);
+            }
+        }
+        assert!(occ > 0);
+        assert!(
+            occ_masked * 100 >= 70 * occ,
+            "{occ_masked} of {occ} occluded pixels masked"
+        );
+        assert!(
+            vis_masked * 100 <= 5 * vis,
+            "{vis_masked} of {vis} visible pixels masked"
+        );
+    }
+
+    #[test]
+    fn dome_disparity_is_accurate_after_filtering() {
+        let (w, h) = (192, 144);
+        let pair = render(
+            w,
+            h,
+            Texture::new(5),
+            &dome(w, h, -3.0, 9.0, 0.4),
+            0.3,
+            0.01,
+        );
+        let out = dense_disparity(
+            &pair.left,
+            &pair.right,
+            None,
+            None,
+            &small_params(Mode::Improved),
+        )
+        .unwrap();
+        let (e, n) = errors(&out.disparity, &pair.disparity, &pair.visible);
+        assert!(e[n / 2] < 0.2, "median {}", e[n / 2]);
+        let bad = e.iter().filter(|&&v| v > 1.0).count();
+        assert!(bad * 100 <= 3 * n, "{bad} of {n} off by more than 1 px");
+        assert!(out.stats.coverage > 0.95, "coverage {}", out.stats.coverage);
+        assert!(
+            out.stats.flow.rms_v < 0.6,
+            "vertical residual {}",
+            out.stats.flow.rms_v
+        );
+    }
+
+    #[test]
+    fn refuses_mismatched_inputs() {
+        let a = Image::zeros(64, 64);
+        let b = Image::zeros(64, 60);
+        assert!(matches!(
+            dense_disparity(&a, &b, None, None, &DenseParams::default()),
+            Err(DenseError::SizeMismatch { .. })
+        ));
+        assert!(matches!(
+            dense_disparity(&a, &a, Some(&[true; 3]), None, &DenseParams::default()),
+            Err(DenseError::MaskSize { .. })
+        ));
+        let tiny = Image::zeros(20, 20);
+        assert!(matches!(
+            dense_disparity(&tiny, &tiny, None, None, &DenseParams::default()),
+            Err(DenseError::TooSmall { .. })
+        ));
+    }
+
+    /// Wall time of the whole dense stage on a 1280 × 960 pair.
+    /// `cargo test -p sdsem --release --lib vision::dense::tests::timing -- --ignored --nocapture`
+    #[test]
+    #[ignore = "timing; prints figures"]
+    fn timing_1280x960() {
+        let (w, h) = (1280, 960);
+        let pair = render(
+            w,
+            h,
+            Texture::new(9),
+            &dome(w, h, 0.0, 20.0, 0.4),
+            0.2,
+            0.01,
+        );
+        for mode in [Mode::Paper, Mode::Improved] {
+            let params = DenseParams {
+                mode,
+                ..DenseParams::default()
+            };
+            let t = Instant::now();
+            let out = dense_disparity(&pair.left, &pair.right, None, None, &params).unwrap();
+            let (e, n) = errors(&out.disparity, &pair.disparity, &pair.visible);
+            println!(
+                "{mode:?}: {:.0} ms wall (matching {:.0}, consistency {:.0}, filter {:.0}); median err {:.3}, >1px {:.2} %",
+                ms(t),
+                out.stats.timings.matching_ms,
+                out.stats.timings.consistency_ms,
+                out.stats.timings.filter_ms,
+                e[n / 2],
+                100.0 * e.iter().filter(|&&v| v > 1.0).count() as f64 / n as f64
+            );
+            for l in &out.stats.levels {
+                println!(
+                    "  L{} {}x{} it {} desc {:.0} data {:.0} bp {:.0} ms",
+                    l.level,
+                    l.width,
+                    l.height,
+                    l.iterations,
+                    l.descriptor_ms,
+                    l.data_term_ms,
+                    l.bp_ms
+                );
+            }
+        }
+    }
+}
