@@ -42,6 +42,8 @@ pub struct DualLayerBp<'a> {
     weights: EnergyWeights,
     /// Per layer: `msgs[k][(p · SLOTS + slot) · n_k + l]`.
     msgs: [Vec<f32>; 2],
+    /// Per layer: the argmin of every pixel's belief, kept current by the sweeps.
+    labels: [Vec<u16>; 2],
     strips: Vec<(usize, usize)>,
     min_strip_rows: usize,
     max_strips: usize,
@@ -57,11 +59,11 @@ pub struct BpOutcome {
 }
 
 /// Splits `v` into consecutive mutable row blocks, one per strip.
-fn split_strips<'b>(
-    mut v: &'b mut [f32],
+fn split_strips<'b, T>(
+    mut v: &'b mut [T],
     strips: &[(usize, usize)],
     row_len: usize,
-) -> Vec<&'b mut [f32]> {
+) -> Vec<&'b mut [T]> {
     let mut out = Vec::with_capacity(strips.len());
     for &(y0, y1) in strips {
         let (a, b) = std::mem::take(&mut v).split_at_mut((y1 - y0) * row_len);
@@ -80,33 +82,64 @@ fn strips_for(height: usize, min_rows: usize, max_strips: usize) -> Vec<(usize, 
         .collect()
 }
 
+/// `min` that compiles to one instruction (no NaN handling: messages are finite).
+#[inline(always)]
+fn fmin(a: f32, b: f32) -> f32 {
+    if b < a { b } else { a }
+}
+
+/// Index of the smallest entry (the first one on ties).
+#[inline(always)]
+fn argmin(v: &[f32]) -> u16 {
+    let mut best = 0;
+    for l in 1..v.len() {
+        if v[l] < v[best] {
+            best = l;
+        }
+    }
+    // Fewer than MAX_STATES < 2^16 states.
+    #[allow(clippy::cast_possible_truncation)]
+    let b = best as u16;
+    b
+}
+
 /// The message from a node with cost `h` (over its `n` labels) to a
 /// neighbour whose offset is `shift` labels further: distance transform with
 /// slope `s`, truncation at `min h + d`, normalised to a zero minimum.
-#[inline]
+#[inline(always)]
 fn spatial_message(h: &mut [f32], shift: i32, s: f32, d: f32, out: &mut [f32]) {
     let n = h.len();
-    let cap = h.iter().copied().fold(f32::INFINITY, f32::min) + d;
+    let mut cap = h[0];
     for l in 1..n {
-        h[l] = h[l].min(h[l - 1] + s);
+        cap = fmin(cap, h[l]);
+        h[l] = fmin(h[l], h[l - 1] + s);
     }
+    let cap = cap + d;
     for l in (0..n - 1).rev() {
-        h[l] = h[l].min(h[l + 1] + s);
+        h[l] = fmin(h[l], h[l + 1] + s);
     }
-    let n_i = n as i32;
     let mut min = f32::INFINITY;
-    for (l1, o) in out.iter_mut().enumerate() {
-        let lp = l1 as i32 + shift;
-        let v = if lp < 0 {
-            h[0] + s * (-lp) as f32
-        } else if lp >= n_i {
-            h[n - 1] + s * (lp - n_i + 1) as f32
-        } else {
-            h[lp as usize]
-        };
-        let v = v.min(cap);
-        min = min.min(v);
-        *o = v;
+    if shift == 0 {
+        for (o, &v) in out.iter_mut().zip(h.iter()) {
+            let v = fmin(v, cap);
+            min = fmin(min, v);
+            *o = v;
+        }
+    } else {
+        let n_i = n as i32;
+        for (l1, o) in out.iter_mut().enumerate() {
+            let lp = l1 as i32 + shift;
+            let v = if lp < 0 {
+                h[0] + s * (-lp) as f32
+            } else if lp >= n_i {
+                h[n - 1] + s * (lp - n_i + 1) as f32
+            } else {
+                h[lp as usize]
+            };
+            let v = fmin(v, cap);
+            min = fmin(min, v);
+            *o = v;
+        }
     }
     for o in out.iter_mut() {
         *o -= min;
@@ -115,32 +148,36 @@ fn spatial_message(h: &mut [f32], shift: i32, s: f32, d: f32, out: &mut [f32]) {
 
 /// The message from layer `k` to the other layer of the same pixel:
 /// `m(l') = min_l h(l) + scale · D(l, l')`, normalised. `cost` is `[l_v][l_u]`.
-#[inline]
+#[inline(always)]
 fn dual_message(k: usize, h: &[f32], cost: &[u16], scale: f32, nu: usize, out: &mut [f32]) {
     if k == 0 {
         // u → v: for every l_v, min over l_u (contiguous).
         for (o, row) in out.iter_mut().zip(cost.chunks_exact(nu)) {
-            *o = row
-                .iter()
-                .zip(h)
-                .map(|(&c, &a)| a + scale * f32::from(c))
-                .fold(f32::INFINITY, f32::min);
+            let mut m = f32::INFINITY;
+            for (&c, &a) in row.iter().zip(h) {
+                m = fmin(m, a + scale * f32::from(c));
+            }
+            *o = m;
         }
     } else {
         // v → u: running minimum over l_v, vectorised along l_u.
         out.fill(f32::INFINITY);
         for (&a, row) in h.iter().zip(cost.chunks_exact(nu)) {
             for (o, &c) in out.iter_mut().zip(row) {
-                *o = o.min(a + scale * f32::from(c));
+                *o = fmin(*o, a + scale * f32::from(c));
             }
         }
     }
-    let min = out.iter().copied().fold(f32::INFINITY, f32::min);
+    let mut min = out[0];
+    for &o in out.iter() {
+        min = fmin(min, o);
+    }
     for o in out.iter_mut() {
         *o -= min;
     }
 }
 
+/// One sweep's read-only context.
 struct Sweep<'c> {
     space: &'c LabelSpace,
     data: &'c DataTerm,
@@ -150,30 +187,59 @@ struct Sweep<'c> {
     dual: bool,
 }
 
+/// The mutable rows of one strip.
+struct StripRows<'m> {
+    y0: usize,
+    y1: usize,
+    /// Layer `k`'s messages and labels, layer `1 − k`'s messages and labels.
+    mk: &'m mut [f32],
+    mo: &'m mut [f32],
+    lk: &'m mut [u16],
+    lo: &'m mut [u16],
+}
+
 impl Sweep<'_> {
-    /// Sweeps the rows `y0..y1` of layer `k`. `mk` holds those rows of layer
-    /// `k`, `mo` of the other layer. Returns the messages that leave the strip
-    /// (downwards from its last row or upwards from its first), one per column.
-    fn strip(&self, y0: usize, y1: usize, mk: &mut [f32], mo: &mut [f32]) -> Vec<f32> {
+    /// Sweeps the rows of one strip of layer `k`, keeping the labels of both
+    /// layers current. Returns the messages that leave the strip (downwards
+    /// from its last row or upwards from its first), one per column.
+    ///
+    /// `N`/`NO` are the state counts of layer `k` and of the other layer when
+    /// known at compile time (0: read them from the label space); the common
+    /// sizes are monomorphised so the short loops unroll.
+    #[inline(always)]
+    fn strip<const N: usize, const NO: usize>(&self, rows: StripRows<'_>) -> Vec<f32> {
+        let StripRows {
+            y0,
+            y1,
+            mk,
+            mo,
+            lk,
+            lo,
+        } = rows;
         let sp = self.space;
         let (w, h) = (sp.width, sp.height);
         let k = self.k;
-        let n = sp.states(k);
-        let no = sp.states(1 - k);
-        let (nu, nv) = (sp.states(0), sp.states(1));
+        let n = if N > 0 { N } else { sp.states(k) };
+        let no = if NO > 0 { NO } else { sp.states(1 - k) };
+        let nu = if k == 0 { n } else { no };
+        let per = n * no;
         let stride = SLOTS * n;
+        let stride_o = SLOTS * no;
         let (s, d, gamma) = (self.weights.alpha, self.weights.d, self.weights.gamma);
         let scale = self.data.scale;
         let wk = sp.window[k] as i32;
+        let wo = sp.window[1 - k] as i32;
         let offsets = &sp.offset[k];
+        let offsets_o = &sp.offset[1 - k];
         let mut outbox = vec![0f32; w * n];
-        // Scratch, allocated once per strip: belief sum, the three outgoing
-        // costs (along the row, across rows, to the other layer), one message.
-        let mut scratch = vec![0f32; 5 * n];
+        let mut scratch = [0f32; 5 * MAX_STATES];
         let (sum, rest) = scratch.split_at_mut(n);
         let (horiz, rest) = rest.split_at_mut(n);
         let (vert, rest) = rest.split_at_mut(n);
-        let (dual_h, msg) = rest.split_at_mut(n);
+        let (dual_h, rest) = rest.split_at_mut(n);
+        let msg = &mut rest[..n];
+        let mut belief_o = [0f32; MAX_STATES];
+        let belief_o = &mut belief_o[..no];
         let (skip_h, skip_v) = if self.forward {
             (FROM_RIGHT, FROM_DOWN)
         } else {
@@ -186,7 +252,7 @@ impl Sweep<'_> {
                 let x = if self.forward { i } else { w - 1 - i };
                 let p = y * w + x;
                 let pl = (y - y0) * w + x;
-                let node = &mk[pl * stride..(pl + 1) * stride];
+                let node = &mk[pl * stride..pl * stride + stride];
                 let base = offsets[p] - wk;
                 for (l, a) in sum.iter_mut().enumerate() {
                     *a = gamma * (base + l as i32).unsigned_abs() as f32;
@@ -196,16 +262,16 @@ impl Sweep<'_> {
                         *a += v;
                     }
                 }
-                let slot = |j: usize| &node[j * n..(j + 1) * n];
-                for (((hz, vt), (du, &a)), ((&mh, &mv), &md)) in horiz
-                    .iter_mut()
-                    .zip(vert.iter_mut())
-                    .zip(dual_h.iter_mut().zip(sum.iter()))
-                    .zip(slot(skip_h).iter().zip(slot(skip_v)).zip(slot(FROM_DUAL)))
-                {
-                    *hz = a - mh;
-                    *vt = a - mv;
-                    *du = a - md;
+                // Every message into this node is final for this sweep: its
+                // belief's argmin is the layer's new label.
+                lk[pl] = argmin(sum);
+                let mh = &node[skip_h * n..skip_h * n + n];
+                let mv = &node[skip_v * n..skip_v * n + n];
+                let md = &node[FROM_DUAL * n..FROM_DUAL * n + n];
+                for l in 0..n {
+                    horiz[l] = sum[l] - mh[l];
+                    vert[l] = sum[l] - mv[l];
+                    dual_h[l] = sum[l] - md[l];
                 }
 
                 // Along the row.
@@ -215,8 +281,7 @@ impl Sweep<'_> {
                     (x > 0).then(|| p - 1)
                 };
                 if let Some(q) = along {
-                    let shift = offsets[q] - offsets[p];
-                    spatial_message(horiz, shift, s, d, msg);
+                    spatial_message(horiz, offsets[q] - offsets[p], s, d, msg);
                     let (ql, into) = if self.forward {
                         (pl + 1, FROM_LEFT)
                     } else {
@@ -232,8 +297,7 @@ impl Sweep<'_> {
                     (y > 0).then(|| p - w)
                 };
                 if let Some(q) = across {
-                    let shift = offsets[q] - offsets[p];
-                    spatial_message(vert, shift, s, d, msg);
+                    spatial_message(vert, offsets[q] - offsets[p], s, d, msg);
                     let inside = if self.forward { y + 1 < y1 } else { y > y0 };
                     if inside {
                         let (ql, into) = if self.forward {
@@ -244,17 +308,51 @@ impl Sweep<'_> {
                         let dst = ql * stride + into * n;
                         mk[dst..dst + n].copy_from_slice(msg);
                     } else {
-                        outbox[x * n..(x + 1) * n].copy_from_slice(msg);
+                        outbox[x * n..x * n + n].copy_from_slice(msg);
                     }
                 }
                 if self.dual {
-                    let cost = self.data.pixel(p, nu * nv);
-                    let dst = (pl * SLOTS + FROM_DUAL) * no;
-                    dual_message(k, dual_h, cost, scale, nu, &mut mo[dst..dst + no]);
+                    let cost = &self.data.cost[p * per..p * per + per];
+                    let onode = &mut mo[pl * stride_o..pl * stride_o + stride_o];
+                    dual_message(
+                        k,
+                        dual_h,
+                        cost,
+                        scale,
+                        nu,
+                        &mut onode[FROM_DUAL * no..FROM_DUAL * no + no],
+                    );
+                    // The other layer's belief changed only through this message.
+                    let base_o = offsets_o[p] - wo;
+                    for (l, b) in belief_o.iter_mut().enumerate() {
+                        *b = gamma * (base_o + l as i32).unsigned_abs() as f32;
+                    }
+                    for m in onode.chunks_exact(no) {
+                        for (b, &v) in belief_o.iter_mut().zip(m) {
+                            *b += v;
+                        }
+                    }
+                    lo[pl] = argmin(belief_o);
                 }
             }
         }
         outbox
+    }
+
+    /// [`Self::strip`] for the state counts at hand.
+    fn strip_dispatch(&self, rows: StripRows<'_>) -> Vec<f32> {
+        let n = self.space.states(self.k);
+        let no = self.space.states(1 - self.k);
+        match (n, no) {
+            (3, 3) => self.strip::<3, 3>(rows),
+            (5, 3) => self.strip::<5, 3>(rows),
+            (3, 5) => self.strip::<3, 5>(rows),
+            (5, 5) => self.strip::<5, 5>(rows),
+            (21, 5) => self.strip::<21, 5>(rows),
+            (5, 21) => self.strip::<5, 21>(rows),
+            (21, 21) => self.strip::<21, 21>(rows),
+            _ => self.strip::<0, 0>(rows),
+        }
     }
 }
 
@@ -279,15 +377,18 @@ impl<'a> DualLayerBp<'a> {
             vec![0f32; area * SLOTS * space.states(0)],
             vec![0f32; area * SLOTS * space.states(1)],
         ];
-        Self {
+        let mut bp = Self {
             space,
             data,
             weights,
             msgs,
+            labels: [Vec::new(), Vec::new()],
             strips: strips_for(space.height, min_strip_rows, max_strips),
             min_strip_rows,
             max_strips,
-        }
+        };
+        bp.labels = bp.all_labels();
+        bp
     }
 
     /// Multigrid initialisation (the reference code's "hierarchy"): solves
@@ -340,6 +441,7 @@ impl<'a> DualLayerBp<'a> {
                     }
                 });
         }
+        self.labels = self.all_labels();
     }
 
     /// One iteration `count` of the BP-S schedule.
@@ -358,19 +460,38 @@ impl<'a> DualLayerBp<'a> {
             dual,
         };
         let [m0, m1] = &mut self.msgs;
-        let (mk, mo) = if k == 0 { (m0, m1) } else { (m1, m0) };
+        let [l0, l1] = &mut self.labels;
+        let (mk, mo, lk, lo) = if k == 0 {
+            (m0, m1, l0, l1)
+        } else {
+            (m1, m0, l1, l0)
+        };
         let strips = self.strips.clone();
         let outboxes: Vec<Vec<f32>> = {
-            let sk = split_strips(mk, &strips, w * SLOTS * n[k]);
-            let so = split_strips(mo, &strips, w * SLOTS * n[1 - k]);
-            sk.into_par_iter()
-                .zip(so)
+            let smk = split_strips(mk, &strips, w * SLOTS * n[k]);
+            let smo = split_strips(mo, &strips, w * SLOTS * n[1 - k]);
+            let slk = split_strips(lk, &strips, w);
+            let slo = split_strips(lo, &strips, w);
+            smk.into_par_iter()
+                .zip(smo)
+                .zip(slk.into_par_iter().zip(slo))
                 .zip(strips.par_iter())
-                .map(|((a, b), &(y0, y1))| sweep.strip(y0, y1, a, b))
+                .map(|(((mk, mo), (lk, lo)), &(y0, y1))| {
+                    sweep.strip_dispatch(StripRows {
+                        y0,
+                        y1,
+                        mk,
+                        mo,
+                        lk,
+                        lo,
+                    })
+                })
                 .collect()
         };
-        // Deliver the messages that crossed a strip boundary.
+        // Deliver the messages that crossed a strip boundary, and refresh the
+        // labels of the rows that received them.
         let nk = n[k];
+        let mut refreshed = Vec::new();
         for (i, outbox) in outboxes.iter().enumerate() {
             let (y0, y1) = strips[i];
             let (row, slot) = if forward {
@@ -388,6 +509,14 @@ impl<'a> DualLayerBp<'a> {
                 let dst = ((row * w + x) * SLOTS + slot) * nk;
                 mk[dst..dst + nk].copy_from_slice(&outbox[x * nk..(x + 1) * nk]);
             }
+            refreshed.push(row);
+        }
+        let mut buf = [0f32; MAX_STATES];
+        for row in refreshed {
+            for p in row * w..(row + 1) * w {
+                self.belief(k, p, &mut buf);
+                self.labels[k][p] = argmin(&buf[..nk]);
+            }
         }
     }
 
@@ -404,28 +533,18 @@ impl<'a> DualLayerBp<'a> {
         }
     }
 
-    /// The argmin of the beliefs of every pixel, per layer.
-    #[must_use]
-    pub fn labels(&self) -> [Vec<u16>; 2] {
+    /// The argmin of the beliefs of every pixel, per layer, from scratch.
+    fn all_labels(&self) -> [Vec<u16>; 2] {
         let area = self.space.width * self.space.height;
         let layer = |k: usize| -> Vec<u16> {
+            let n = self.space.states(k);
             (0..area)
                 .into_par_iter()
                 .map_init(
                     || [0f32; MAX_STATES],
                     |buf, p| {
                         self.belief(k, p, buf);
-                        let n = self.space.states(k);
-                        let mut best = 0;
-                        for l in 1..n {
-                            if buf[l] < buf[best] {
-                                best = l;
-                            }
-                        }
-                        // best < MAX_STATES < 2^16.
-                        #[allow(clippy::cast_possible_truncation)]
-                        let b = best as u16;
-                        b
+                        argmin(&buf[..n])
                     },
                 )
                 .collect()
@@ -433,12 +552,19 @@ impl<'a> DualLayerBp<'a> {
         [layer(0), layer(1)]
     }
 
-    /// Per pixel of layer `k`: the belief of the best label that is not
-    /// `labels[p]` or next to it, minus the belief of `labels[p]` (0 when the
-    /// window has no such label). Large means unambiguous.
+    /// The current labels (argmin of the beliefs), per layer.
     #[must_use]
-    pub fn margins(&self, k: usize, labels: &[u16]) -> Vec<f32> {
+    pub fn labels(&self) -> &[Vec<u16>; 2] {
+        &self.labels
+    }
+
+    /// Per pixel of layer `k`: the belief of the best label that is not the
+    /// current one or next to it, minus the belief of the current label (0
+    /// when the window has no such label). Large means unambiguous.
+    #[must_use]
+    pub fn margins(&self, k: usize) -> Vec<f32> {
         let n = self.space.states(k);
+        let labels = &self.labels[k];
         (0..labels.len())
             .into_par_iter()
             .map_init(
@@ -463,14 +589,12 @@ impl<'a> DualLayerBp<'a> {
     /// Runs `iterations` iterations, recording the energy after each.
     pub fn run(&mut self, iterations: usize) -> BpOutcome {
         let mut energies = Vec::with_capacity(iterations);
-        let mut labels = self.labels();
         for count in 0..iterations {
             self.iterate(count);
-            labels = self.labels();
-            energies.push(energy(self.data, self.space, &labels, &self.weights));
+            energies.push(energy(self.data, self.space, &self.labels, &self.weights));
         }
         BpOutcome {
-            labels,
+            labels: self.labels.clone(),
             energy: energies,
         }
     }

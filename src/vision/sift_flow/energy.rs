@@ -275,7 +275,7 @@ fn median_inside(cost: &[u16]) -> u16 {
     0
 }
 
-/// Energy (10) of a labelling (`labels[k][p]`), summed in f64.
+/// Energy (10) of a labelling (`labels[k][p]`).
 #[must_use]
 pub fn energy(
     data: &DataTerm,
@@ -285,32 +285,37 @@ pub fn energy(
 ) -> f64 {
     let (w, h) = (space.width, space.height);
     let (nu, nv) = (space.states(0), space.states(1));
+    let per = nu * nv;
+    let window = [space.window[0] as i32, space.window[1] as i32];
+    let flow = |k: usize, p: usize| space.offset[k][p] + i32::from(labels[k][p]) - window[k];
+    let (alpha, d) = (weights.alpha, weights.d);
     (0..h)
         .into_par_iter()
         .map(|y| {
-            let mut e = 0f64;
+            let mut data_sum = 0u64;
+            let mut range = 0u64;
+            let mut smooth = 0f64;
+            let row = y * w;
             for x in 0..w {
-                let p = y * w + x;
+                let p = row + x;
                 let (lu, lv) = (usize::from(labels[0][p]), usize::from(labels[1][p]));
-                e += f64::from(data.scale) * f64::from(data.cost[p * nu * nv + lv * nu + lu]);
+                data_sum += u64::from(data.cost[p * per + lv * nu + lu]);
+                let mut s = 0f32;
                 for k in 0..2 {
-                    let f = space.flow(k, p, usize::from(labels[k][p]));
-                    e += f64::from(weights.gamma) * f64::from(f.abs());
-                    let pair = |q: usize| {
-                        let g = space.flow(k, q, usize::from(labels[k][q]));
-                        #[allow(clippy::cast_precision_loss)]
-                        let diff = (f - g).unsigned_abs() as f32;
-                        f64::from((weights.alpha * diff).min(weights.d))
-                    };
+                    let f = flow(k, p);
+                    range += u64::from(f.unsigned_abs());
                     if x + 1 < w {
-                        e += pair(p + 1);
+                        s += (alpha * (f - flow(k, p + 1)).unsigned_abs() as f32).min(d);
                     }
                     if y + 1 < h {
-                        e += pair(p + w);
+                        s += (alpha * (f - flow(k, p + w)).unsigned_abs() as f32).min(d);
                     }
                 }
+                smooth += f64::from(s);
             }
-            e
+            f64::from(data.scale) * data_sum as f64
+                + f64::from(weights.gamma) * range as f64
+                + smooth
         })
         .sum()
 }

@@ -440,7 +440,7 @@ impl Engine {
                 })
             };
             if l == 0 {
-                margin = bp.margins(0, &outcome.labels[0]);
+                margin = bp.margins(0);
             }
             reports.push(LevelReport {
                 level: l,
