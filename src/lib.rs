@@ -23,6 +23,7 @@
 //! the stage protocol ([`sdsem_protocol`]) does no I/O; time is an input.
 
 pub mod acquisition;
+pub mod app;
 pub mod daemon;
 pub mod eval;
 pub mod export;

@@ -2,3 +2,7 @@
 //! real instruments, so `sdsem` runs and is tested without hardware.
 
 pub mod pose;
+pub mod render;
+pub mod scene;
+pub mod sem_server;
+pub mod walk;

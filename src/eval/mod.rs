@@ -1,8 +1,10 @@
 //! Evaluations against ground truth: figures the reports quote, printed by
-//! ignored tests (they read `$SDSEM_DATA`, see [`data_dir`]).
+//! ignored tests and evaluation functions (not run by `cargo test`); they read
+//! `$SDSEM_DATA`, see [`data_dir`].
 
 pub mod dense;
 pub mod flow;
+pub mod sparse;
 pub mod synthetic;
 
 use std::path::PathBuf;

@@ -2,7 +2,14 @@
 //!
 //! Nothing here does I/O, knows about tokio, MCAP or configuration files.
 
+pub mod fundamental;
 pub mod image;
+pub mod matching;
+pub mod orsa;
+pub mod rectify;
+pub mod sift;
+pub mod sparse;
+pub mod warp;
 
 pub use image::Image;
 pub mod bilateral_grid;

@@ -1,0 +1,3 @@
+//! Commands of the `sdsem` binary as library functions (anyhow at this edge only).
+
+pub mod rectify;

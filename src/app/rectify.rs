@@ -1,0 +1,265 @@
+//! `sdsem rectify LEFT RIGHT --out DIR [--tilt-axis DEG]`: the sparse stage alone (DESIGN §4).
+
+use std::path::Path;
+
+use anyhow::{Context, bail};
+
+use crate::vision::Image;
+use crate::vision::sparse::{Correspondence, SparseParams, SparseResult, rectify_pair};
+
+/// Loads a grey micrograph as samples in `[0, 1]`: 8/16-bit grey or palette TIFF (the palette
+/// turned into luminance), or anything the `image` crate reads (PNG …), converted to luma.
+///
+/// Interim loader until `imaging::file` (SEM TIFF with metadata) is merged.
+///
+/// # Errors
+/// When the file cannot be read or decoded, naming the file.
+pub fn load_gray(path: &Path) -> anyhow::Result<Image> {
+    let bytes = std::fs::read(path).with_context(|| format!("cannot read {}", path.display()))?;
+    if bytes.starts_with(b"II*\0") || bytes.starts_with(b"MM\0*") {
+        return load_tiff(&bytes).with_context(|| format!("cannot decode TIFF {}", path.display()));
+    }
+    let img = image::load_from_memory(&bytes)
+        .with_context(|| format!("{} is not an image this program reads (PNG or TIFF)", path.display()))?;
+    let luma = img.to_luma16();
+    let (w, h) = luma.dimensions();
+    Ok(Image::from_u16(w as usize, h as usize, luma.as_raw())?)
+}
+
+fn load_tiff(bytes: &[u8]) -> anyhow::Result<Image> {
+    use tiff::ColorType;
+    use tiff::decoder::{Decoder, DecodingResult};
+    use tiff::tags::Tag;
+    // The `tiff` crate refuses palette images; read the indices as grey samples by
+    // relabelling the photometric interpretation in a copy, then apply the colour map.
+    let mut bytes = bytes.to_vec();
+    let palette_file = relabel_palette_as_grey(&mut bytes);
+    let mut dec = Decoder::new(std::io::Cursor::new(bytes))?;
+    let (w, h) = dec.dimensions()?;
+    let (w, h) = (w as usize, h as usize);
+    let color = dec.colortype()?;
+    let (color, palette) = match color {
+        ColorType::Gray(8) if palette_file => (ColorType::Palette(8), Some(dec.get_tag_u16_vec(Tag::ColorMap)?)),
+        c => (c, None),
+    };
+    let data = dec.read_image()?;
+    match (color, data) {
+        (ColorType::Gray(8), DecodingResult::U8(v)) => Ok(Image::from_u8(w, h, &v)?),
+        (ColorType::Gray(16), DecodingResult::U16(v)) => Ok(Image::from_u16(w, h, &v)?),
+        (ColorType::Palette(8), DecodingResult::U8(v)) => {
+            let map = palette.unwrap_or_default();
+            let n = map.len() / 3;
+            if n == 0 {
+                bail!("palette TIFF without a colour map");
+            }
+            // Luminance of each palette entry (Rec. 601), in [0, 1].
+            let lum: Vec<f32> = (0..n)
+                .map(|i| {
+                    let (r, g, b) = (f32::from(map[i]), f32::from(map[n + i]), f32::from(map[2 * n + i]));
+                    (0.299 * r + 0.587 * g + 0.114 * b) / 65535.0
+                })
+                .collect();
+            let samples = v.iter().map(|&i| lum.get(usize::from(i)).copied().unwrap_or(0.0)).collect();
+            Ok(Image::from_vec(w, h, samples)?)
+        }
+        (ColorType::RGB(8), DecodingResult::U8(v)) => {
+            let samples = v
+                .chunks_exact(3)
+                .map(|p| (0.299 * f32::from(p[0]) + 0.587 * f32::from(p[1]) + 0.114 * f32::from(p[2])) / 255.0)
+                .collect();
+            Ok(Image::from_vec(w, h, samples)?)
+        }
+        (c, _) => bail!("unsupported TIFF colour type {c:?}: expected 8/16-bit grey, 8-bit palette or 8-bit RGB"),
+    }
+}
+
+/// In the first IFD, changes PhotometricInterpretation 3 (RGB palette) into 1 (grey);
+/// true when it did.
+fn relabel_palette_as_grey(bytes: &mut [u8]) -> bool {
+    let le = bytes.starts_with(b"II");
+    let u16_at = |b: &[u8], i: usize| -> Option<u16> {
+        let a: [u8; 2] = b.get(i..i + 2)?.try_into().ok()?;
+        Some(if le { u16::from_le_bytes(a) } else { u16::from_be_bytes(a) })
+    };
+    let u32_at = |b: &[u8], i: usize| -> Option<u32> {
+        let a: [u8; 4] = b.get(i..i + 4)?.try_into().ok()?;
+        Some(if le { u32::from_le_bytes(a) } else { u32::from_be_bytes(a) })
+    };
+    let Some(ifd) = u32_at(bytes, 4) else { return false };
+    let ifd = ifd as usize;
+    let Some(n) = u16_at(bytes, ifd) else { return false };
+    for k in 0..usize::from(n) {
+        let e = ifd + 2 + 12 * k;
+        // Tag 262, type SHORT, count 1, value 3 stored in the first two value bytes.
+        if u16_at(bytes, e) == Some(262) && u16_at(bytes, e + 2) == Some(3) && u16_at(bytes, e + 8) == Some(3) {
+            let one = if le { 1u16.to_le_bytes() } else { 1u16.to_be_bytes() };
+            bytes[e + 8..e + 10].copy_from_slice(&one);
+            return true;
+        }
+    }
+    false
+}
+
+/// `sdsem rectify`: loads both micrographs, runs the sparse stage, and writes into `out`
+/// `rectified_left.png`, `rectified_right.png` (the canvas, 0 where an image does not reach),
+/// `matches.png` (both originals side by side, inlier matches as lines) and
+/// `rectification.json` (figures, homographies, timings; see [`rectification_json`]).
+///
+/// # Errors
+/// When a file cannot be read or written, or the sparse stage refuses the pair (its one-line
+/// cause is the error message).
+pub fn run_rectify(
+    left: &Path,
+    right: &Path,
+    out: &Path,
+    tilt_axis_deg: Option<f64>,
+    params: &SparseParams,
+) -> anyhow::Result<()> {
+    let l = load_gray(left)?;
+    let r = load_gray(right)?;
+    let pair = rectify_pair(&l, &r, tilt_axis_deg, params)?;
+    std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
+    save_png(&pair.left.filled(0.0), &out.join("rectified_left.png"))?;
+    save_png(&pair.right.filled(0.0), &out.join("rectified_right.png"))?;
+    let matches = draw_matches(&l, &r, &pair.sparse.inliers);
+    let path = out.join("matches.png");
+    matches
+        .save(&path)
+        .with_context(|| format!("cannot write {}", path.display()))?;
+    let json = rectification_json(&pair.sparse, tilt_axis_deg, params);
+    let path = out.join("rectification.json");
+    std::fs::write(&path, serde_json::to_string_pretty(&json)? + "\n")
+        .with_context(|| format!("cannot write {}", path.display()))?;
+    Ok(())
+}
+
+fn matrix_rows(m: &nalgebra::Matrix3<f64>) -> [[f64; 3]; 3] {
+    std::array::from_fn(|i| std::array::from_fn(|j| m[(i, j)]))
+}
+
+/// The content of `rectification.json` (DESIGN §4): counts, errors, ORSA figures, both
+/// homographies as row-major nested arrays (original pixel → rectified canvas), canvas, the
+/// orientation rule and per-step timings.
+#[must_use]
+pub fn rectification_json(r: &SparseResult, tilt_axis_deg: Option<f64>, params: &SparseParams) -> serde_json::Value {
+    let rec = &r.rectification;
+    serde_json::json!({
+        "image_size": [r.image_size.0, r.image_size.1],
+        "keypoints_left": r.keypoints_left,
+        "keypoints_right": r.keypoints_right,
+        "matches": r.matches.len(),
+        "inliers": r.inliers.len(),
+        "initial_error_px": rec.initial_error_px,
+        "final_error_px": rec.final_error_px,
+        "error_definition": "RMS of y_left − y_right over the ORSA inliers, before (identity) and after rectification",
+        "final_sampson_error_px": rec.final_sampson_px,
+        "H_left": matrix_rows(&rec.h_left),
+        "H_right": matrix_rows(&rec.h_right),
+        "canvas_size": [rec.canvas.0, rec.canvas.1],
+        "canvas_offset_px": [rec.canvas_offset.0, rec.canvas_offset.1],
+        "right_shift_px": rec.right_shift_px,
+        "fundamental_model": r.model,
+        "F": matrix_rows(&r.f),
+        "log10_NFA": r.log10_nfa,
+        "NFA": 10f64.powf(r.log10_nfa),
+        "threshold_px": r.threshold_px,
+        "orsa_iterations": r.orsa_iterations,
+        "orsa_seed": params.orsa.seed,
+        "focal_px": rec.focal_px,
+        "rotations_deg": {
+            "left_y": rec.params.left_y.to_degrees(),
+            "left_z": rec.params.left_z.to_degrees(),
+            "right_x": rec.params.right_x.to_degrees(),
+            "right_y": rec.params.right_y.to_degrees(),
+            "right_z": rec.params.right_z.to_degrees(),
+        },
+        "lm_iterations": rec.iterations,
+        "tilt_axis_deg": tilt_axis_deg,
+        "n_rectified": r.n_rectified,
+        "disparity_rule": if r.n_rectified.is_some() {
+            "d = x_right − x_left on the canvas grows with height (towards the beam) when n_rectified[0] > 0"
+        } else {
+            "tilt axis unknown: the sign of height versus d = x_right − x_left is undetermined"
+        },
+        "timings_ms": r.timings,
+        "inlier_correspondences": r.inliers,
+    })
+}
+
+fn save_png(img: &Image, path: &Path) -> anyhow::Result<()> {
+    let (w, h) = img.dimensions();
+    let buf = image::GrayImage::from_raw(
+        u32::try_from(w)?,
+        u32::try_from(h)?,
+        img.to_u8(),
+    )
+    .context("image buffer size")?;
+    buf.save(path).with_context(|| format!("cannot write {}", path.display()))
+}
+
+/// Both originals side by side (left | right) with each inlier match drawn as a line.
+#[must_use]
+pub fn draw_matches(left: &Image, right: &Image, inliers: &[Correspondence]) -> image::RgbImage {
+    let (wl, hl) = left.dimensions();
+    let (wr, hr) = right.dimensions();
+    let (w, h) = (wl + wr, hl.max(hr));
+    #[allow(clippy::cast_possible_truncation)]
+    let mut canvas = image::RgbImage::new(w as u32, h as u32);
+    for (img, x0) in [(left, 0usize), (right, wl)] {
+        let bytes = img.to_u8();
+        for y in 0..img.height() {
+            for x in 0..img.width() {
+                let v = bytes[y * img.width() + x];
+                #[allow(clippy::cast_possible_truncation)]
+                canvas.put_pixel((x0 + x) as u32, y as u32, image::Rgb([v, v, v]));
+            }
+        }
+    }
+    for (i, c) in inliers.iter().enumerate() {
+        // A few distinct hues so neighbouring lines can be told apart.
+        let colour = [[40, 220, 40], [240, 200, 0], [0, 200, 255], [255, 80, 200]][i % 4];
+        draw_line(&mut canvas, c.left, [c.right[0] + wl as f64, c.right[1]], image::Rgb(colour));
+    }
+    canvas
+}
+
+fn draw_line(img: &mut image::RgbImage, a: [f64; 2], b: [f64; 2], colour: image::Rgb<u8>) {
+    let steps = (b[0] - a[0]).abs().max((b[1] - a[1]).abs()).ceil().max(1.0);
+    #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
+    let n = steps as usize;
+    for k in 0..=n {
+        let t = k as f64 / steps;
+        let (x, y) = (a[0] + t * (b[0] - a[0]), a[1] + t * (b[1] - a[1]));
+        if x >= 0.0 && y >= 0.0 && x < f64::from(img.width()) && y < f64::from(img.height()) {
+            #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
+            img.put_pixel(x as u32, y as u32, colour);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn non_image_file_is_a_clear_error() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("notes.txt");
+        std::fs::write(&p, "hello").unwrap();
+        let err = load_gray(&p).unwrap_err();
+        assert!(format!("{err:#}").contains("notes.txt"), "{err:#}");
+    }
+
+    #[test]
+    fn reads_png_and_palette_relabelling_is_local() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("a.png");
+        image::GrayImage::from_raw(3, 2, vec![0, 51, 102, 153, 204, 255]).unwrap().save(&p).unwrap();
+        let img = load_gray(&p).unwrap();
+        assert_eq!(img.dimensions(), (3, 2));
+        assert!((img.get(1, 0) - 0.2).abs() < 1e-3);
+        // A buffer that is not a TIFF is left alone.
+        let mut junk = b"II*\0\x08\0\0\0".to_vec();
+        assert!(!relabel_palette_as_grey(&mut junk));
+    }
+}

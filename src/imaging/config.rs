@@ -1,0 +1,189 @@
+//! Settings of the SEM imaging link.
+
+use std::time::Duration;
+
+use sdsem_protocol::sem::{Bits, GrabRequest, Role};
+use serde::{Deserialize, Serialize};
+
+use super::ImagingError;
+
+/// Default TCP port of the SEM imaging server (the simulator listens here).
+pub const DEFAULT_PORT: u16 = 7520;
+
+/// Size and dwell of one kind of scan.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ScanSettings {
+    pub width: u32,
+    pub height: u32,
+    /// Pixel dwell, µs: longer is less noisy and slower (width × height × dwell).
+    pub dwell_us: f64,
+}
+
+/// How to reach the SEM and how to scan.
+///
+/// | key | default | effect |
+/// | --- | --- | --- |
+/// | `endpoint` | `127.0.0.1:7520` | host:port of the SEM imaging server (sdsem-sim's or a microscope adapter's) |
+/// | `micrograph` | 1280 × 960, 10 µs | the left and right micrographs (12.3 s per frame) |
+/// | `tracking` | 320 × 240, 1 µs | the quick frame after each tilt step (77 ms) |
+/// | `bits` | 16 | sample depth, 8 or 16 |
+/// | `timeout_ms` | 5000 | connecting, and waiting for a reply beyond the scan time itself |
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ImagingConfig {
+    pub endpoint: String,
+    pub micrograph: ScanSettings,
+    pub tracking: ScanSettings,
+    pub bits: u8,
+    pub timeout_ms: u64,
+}
+
+impl Default for ImagingConfig {
+    fn default() -> Self {
+        Self {
+            endpoint: format!("127.0.0.1:{DEFAULT_PORT}"),
+            micrograph: ScanSettings {
+                width: 1280,
+                height: 960,
+                dwell_us: 10.0,
+            },
+            tracking: ScanSettings {
+                width: 320,
+                height: 240,
+                dwell_us: 1.0,
+            },
+            bits: 16,
+            timeout_ms: 5000,
+        }
+    }
+}
+
+impl ImagingConfig {
+    /// Checks every setting.
+    ///
+    /// # Errors
+    /// [`ImagingError::InvalidConfig`] naming the setting and what it should be.
+    pub fn validate(&self) -> Result<(), ImagingError> {
+        let invalid = |name: &'static str, value: String, expected: &'static str| {
+            ImagingError::InvalidConfig {
+                name,
+                value,
+                expected,
+            }
+        };
+        if self.endpoint.trim().is_empty() || !self.endpoint.contains(':') {
+            return Err(invalid(
+                "imaging.endpoint",
+                self.endpoint.clone(),
+                "host:port",
+            ));
+        }
+        for (name, s) in [
+            ("imaging.micrograph", &self.micrograph),
+            ("imaging.tracking", &self.tracking),
+        ] {
+            let max = sdsem_protocol::sem::MAX_SIDE;
+            if !(1..=max).contains(&s.width) || !(1..=max).contains(&s.height) {
+                return Err(invalid(
+                    name,
+                    format!("{}×{}", s.width, s.height),
+                    "width and height from 1 to 16384",
+                ));
+            }
+            if !(s.dwell_us > 0.0 && s.dwell_us <= sdsem_protocol::sem::MAX_DWELL_US) {
+                return Err(invalid(
+                    name,
+                    format!("dwell_us {}", s.dwell_us),
+                    "dwell_us in (0, 10000]",
+                ));
+            }
+        }
+        if self.bits != 8 && self.bits != 16 {
+            return Err(invalid("imaging.bits", self.bits.to_string(), "8 or 16"));
+        }
+        if self.timeout_ms == 0 {
+            return Err(invalid(
+                "imaging.timeout_ms",
+                "0".to_owned(),
+                "a positive number of milliseconds",
+            ));
+        }
+        Ok(())
+    }
+
+    /// The scan request for a frame of `role`: micrograph settings for left and
+    /// right, tracking settings for tracking.
+    #[must_use]
+    pub fn request(&self, role: Role) -> GrabRequest {
+        let s = match role {
+            Role::Tracking => &self.tracking,
+            Role::Left | Role::Right => &self.micrograph,
+        };
+        GrabRequest {
+            width: s.width,
+            height: s.height,
+            dwell_us: s.dwell_us,
+            role,
+            bits: if self.bits == 8 {
+                Bits::Eight
+            } else {
+                Bits::Sixteen
+            },
+        }
+    }
+
+    /// [`Self::timeout_ms`] as a duration.
+    #[must_use]
+    pub fn timeout(&self) -> Duration {
+        Duration::from_millis(self.timeout_ms)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn requests_follow_the_role() {
+        let c = ImagingConfig::default();
+        assert_eq!(c.request(Role::Left).width, 1280);
+        assert_eq!(c.request(Role::Tracking).width, 320);
+        assert_eq!(c.request(Role::Right).bits, Bits::Sixteen);
+        c.validate().unwrap();
+    }
+
+    #[test]
+    fn invalid_settings_are_named() {
+        let c = ImagingConfig {
+            bits: 12,
+            ..ImagingConfig::default()
+        };
+        assert!(
+            c.validate()
+                .unwrap_err()
+                .to_string()
+                .contains("imaging.bits")
+        );
+        let c = ImagingConfig {
+            endpoint: "localhost".to_owned(),
+            ..ImagingConfig::default()
+        };
+        assert!(c.validate().unwrap_err().to_string().contains("host:port"));
+        let mut c = ImagingConfig::default();
+        c.tracking.dwell_us = 0.0;
+        assert!(
+            c.validate()
+                .unwrap_err()
+                .to_string()
+                .contains("imaging.tracking")
+        );
+    }
+
+    #[test]
+    fn partial_config_takes_defaults_and_unknown_keys_fail() {
+        let c: ImagingConfig = serde_json::from_str(r#"{"endpoint":"10.0.0.5:9000"}"#).unwrap();
+        assert_eq!(c.tracking.dwell_us, 1.0);
+        assert!(serde_json::from_str::<ImagingConfig>(r#"{"endpont":"x:1"}"#).is_err());
+    }
+}

@@ -1,0 +1,146 @@
+//! A frame from the SEM: its pixels and how it was taken.
+
+use sdsem_protocol::sem::{Bits, FrameReply};
+pub use sdsem_protocol::sem::{FrameMeta, Role};
+
+use crate::vision::Image;
+
+/// The samples of a frame, row-major, x right, y down.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Pixels {
+    U8(Vec<u8>),
+    U16(Vec<u16>),
+}
+
+impl Pixels {
+    /// Number of samples.
+    #[must_use]
+    pub fn len(&self) -> usize {
+        match self {
+            Self::U8(v) => v.len(),
+            Self::U16(v) => v.len(),
+        }
+    }
+
+    #[must_use]
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Bits per sample.
+    #[must_use]
+    pub fn bits(&self) -> u32 {
+        match self {
+            Self::U8(_) => 8,
+            Self::U16(_) => 16,
+        }
+    }
+}
+
+/// One scanned frame with its metadata (pixel size µm, dwell µs, stage X/Y µm
+/// and tilt ° at the start of the scan, role, frame number, scan start and
+/// end in ns since the Unix epoch; see [`FrameMeta`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Frame {
+    pub width: usize,
+    pub height: usize,
+    pub pixels: Pixels,
+    pub meta: FrameMeta,
+    /// When the client had received the whole frame, ns since the Unix epoch.
+    pub received_unix_ns: u64,
+}
+
+impl Frame {
+    /// Builds a frame from a decoded `FRAME` reply.
+    #[must_use]
+    pub fn from_reply(reply: FrameReply, received_unix_ns: u64) -> Self {
+        let pixels = match reply.bits {
+            Bits::Eight => Pixels::U8(reply.data),
+            Bits::Sixteen => Pixels::U16(
+                reply
+                    .data
+                    .chunks_exact(2)
+                    .map(|c| u16::from_le_bytes([c[0], c[1]]))
+                    .collect(),
+            ),
+        };
+        Self {
+            width: reply.width as usize,
+            height: reply.height as usize,
+            pixels,
+            meta: reply.meta,
+            received_unix_ns,
+        }
+    }
+
+    /// The frame as the vision core's image, intensities scaled to `[0, 1]`.
+    #[must_use]
+    pub fn to_image(&self) -> Image {
+        let scale = match &self.pixels {
+            Pixels::U8(_) => 1.0 / 255.0,
+            Pixels::U16(_) => 1.0 / 65535.0,
+        };
+        let data: Vec<f32> = match &self.pixels {
+            Pixels::U8(v) => v.iter().map(|&p| f32::from(p) * scale).collect(),
+            Pixels::U16(v) => v.iter().map(|&p| f32::from(p) * scale).collect(),
+        };
+        // The protocol decoder checked that the payload holds width × height samples.
+        Image::from_vec(self.width, self.height, data)
+            .unwrap_or_else(|_| Image::zeros(self.width, self.height))
+    }
+
+    #[must_use]
+    pub fn role(&self) -> Role {
+        self.meta.role
+    }
+
+    /// Stage tilt at the start of the scan, degrees.
+    #[must_use]
+    pub fn tilt_deg(&self) -> f64 {
+        self.meta.tilt_deg
+    }
+
+    /// Pixel size, µm.
+    #[must_use]
+    pub fn pixel_size_um(&self) -> f64 {
+        self.meta.pixel_size_um
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn meta() -> FrameMeta {
+        FrameMeta {
+            frame: 1,
+            role: Role::Tracking,
+            pixel_size_um: 0.4,
+            dwell_us: 1.0,
+            stage_x_um: 0.0,
+            stage_y_um: 0.0,
+            tilt_deg: 2.0,
+            tilt_axis_deg: 0.0,
+            scan_rotation_deg: 0.0,
+            scan_start_unix_ns: 0,
+            scan_end_unix_ns: 0,
+        }
+    }
+
+    #[test]
+    fn sixteen_bit_frame_becomes_a_unit_range_image() {
+        let f = Frame::from_reply(FrameReply::from_u16(2, 1, meta(), &[0, 65535]), 5);
+        assert_eq!(f.pixels, Pixels::U16(vec![0, 65535]));
+        let img = f.to_image();
+        assert_eq!(img.dimensions(), (2, 1));
+        assert_eq!(img.data(), &[0.0, 1.0]);
+        assert_eq!(f.tilt_deg(), 2.0);
+    }
+
+    #[test]
+    fn eight_bit_frame_becomes_a_unit_range_image() {
+        let f = Frame::from_reply(FrameReply::from_u8(1, 2, meta(), vec![255, 0]), 5);
+        assert_eq!(f.pixels.bits(), 8);
+        assert_eq!(f.to_image().data(), &[1.0, 0.0]);
+    }
+}
