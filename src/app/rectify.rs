@@ -19,8 +19,12 @@ pub fn load_gray(path: &Path) -> anyhow::Result<Image> {
     if bytes.starts_with(b"II*\0") || bytes.starts_with(b"MM\0*") {
         return load_tiff(&bytes).with_context(|| format!("cannot decode TIFF {}", path.display()));
     }
-    let img = image::load_from_memory(&bytes)
-        .with_context(|| format!("{} is not an image this program reads (PNG or TIFF)", path.display()))?;
+    let img = image::load_from_memory(&bytes).with_context(|| {
+        format!(
+            "{} is not an image this program reads (PNG or TIFF)",
+            path.display()
+        )
+    })?;
     let luma = img.to_luma16();
     let (w, h) = luma.dimensions();
     Ok(Image::from_u16(w as usize, h as usize, luma.as_raw())?)
@@ -39,7 +43,10 @@ fn load_tiff(bytes: &[u8]) -> anyhow::Result<Image> {
     let (w, h) = (w as usize, h as usize);
     let color = dec.colortype()?;
     let (color, palette) = match color {
-        ColorType::Gray(8) if palette_file => (ColorType::Palette(8), Some(dec.get_tag_u16_vec(Tag::ColorMap)?)),
+        ColorType::Gray(8) if palette_file => (
+            ColorType::Palette(8),
+            Some(dec.get_tag_u16_vec(Tag::ColorMap)?),
+        ),
         c => (c, None),
     };
     let data = dec.read_image()?;
@@ -55,21 +62,33 @@ fn load_tiff(bytes: &[u8]) -> anyhow::Result<Image> {
             // Luminance of each palette entry (Rec. 601), in [0, 1].
             let lum: Vec<f32> = (0..n)
                 .map(|i| {
-                    let (r, g, b) = (f32::from(map[i]), f32::from(map[n + i]), f32::from(map[2 * n + i]));
+                    let (r, g, b) = (
+                        f32::from(map[i]),
+                        f32::from(map[n + i]),
+                        f32::from(map[2 * n + i]),
+                    );
                     (0.299 * r + 0.587 * g + 0.114 * b) / 65535.0
                 })
                 .collect();
-            let samples = v.iter().map(|&i| lum.get(usize::from(i)).copied().unwrap_or(0.0)).collect();
+            let samples = v
+                .iter()
+                .map(|&i| lum.get(usize::from(i)).copied().unwrap_or(0.0))
+                .collect();
             Ok(Image::from_vec(w, h, samples)?)
         }
         (ColorType::RGB(8), DecodingResult::U8(v)) => {
             let samples = v
                 .chunks_exact(3)
-                .map(|p| (0.299 * f32::from(p[0]) + 0.587 * f32::from(p[1]) + 0.114 * f32::from(p[2])) / 255.0)
+                .map(|p| {
+                    (0.299 * f32::from(p[0]) + 0.587 * f32::from(p[1]) + 0.114 * f32::from(p[2]))
+                        / 255.0
+                })
                 .collect();
             Ok(Image::from_vec(w, h, samples)?)
         }
-        (c, _) => bail!("unsupported TIFF colour type {c:?}: expected 8/16-bit grey, 8-bit palette or 8-bit RGB"),
+        (c, _) => bail!(
+            "unsupported TIFF colour type {c:?}: expected 8/16-bit grey, 8-bit palette or 8-bit RGB"
+        ),
     }
 }
 
@@ -79,20 +98,39 @@ fn relabel_palette_as_grey(bytes: &mut [u8]) -> bool {
     let le = bytes.starts_with(b"II");
     let u16_at = |b: &[u8], i: usize| -> Option<u16> {
         let a: [u8; 2] = b.get(i..i + 2)?.try_into().ok()?;
-        Some(if le { u16::from_le_bytes(a) } else { u16::from_be_bytes(a) })
+        Some(if le {
+            u16::from_le_bytes(a)
+        } else {
+            u16::from_be_bytes(a)
+        })
     };
     let u32_at = |b: &[u8], i: usize| -> Option<u32> {
         let a: [u8; 4] = b.get(i..i + 4)?.try_into().ok()?;
-        Some(if le { u32::from_le_bytes(a) } else { u32::from_be_bytes(a) })
+        Some(if le {
+            u32::from_le_bytes(a)
+        } else {
+            u32::from_be_bytes(a)
+        })
     };
-    let Some(ifd) = u32_at(bytes, 4) else { return false };
+    let Some(ifd) = u32_at(bytes, 4) else {
+        return false;
+    };
     let ifd = ifd as usize;
-    let Some(n) = u16_at(bytes, ifd) else { return false };
+    let Some(n) = u16_at(bytes, ifd) else {
+        return false;
+    };
     for k in 0..usize::from(n) {
         let e = ifd + 2 + 12 * k;
         // Tag 262, type SHORT, count 1, value 3 stored in the first two value bytes.
-        if u16_at(bytes, e) == Some(262) && u16_at(bytes, e + 2) == Some(3) && u16_at(bytes, e + 8) == Some(3) {
-            let one = if le { 1u16.to_le_bytes() } else { 1u16.to_be_bytes() };
+        if u16_at(bytes, e) == Some(262)
+            && u16_at(bytes, e + 2) == Some(3)
+            && u16_at(bytes, e + 8) == Some(3)
+        {
+            let one = if le {
+                1u16.to_le_bytes()
+            } else {
+                1u16.to_be_bytes()
+            };
             bytes[e + 8..e + 10].copy_from_slice(&one);
             return true;
         }
@@ -141,7 +179,11 @@ fn matrix_rows(m: &nalgebra::Matrix3<f64>) -> [[f64; 3]; 3] {
 /// homographies as row-major nested arrays (original pixel → rectified canvas), canvas, the
 /// orientation rule and per-step timings.
 #[must_use]
-pub fn rectification_json(r: &SparseResult, tilt_axis_deg: Option<f64>, params: &SparseParams) -> serde_json::Value {
+pub fn rectification_json(
+    r: &SparseResult,
+    tilt_axis_deg: Option<f64>,
+    params: &SparseParams,
+) -> serde_json::Value {
     let rec = &r.rectification;
     serde_json::json!({
         "image_size": [r.image_size.0, r.image_size.1],
@@ -188,13 +230,10 @@ pub fn rectification_json(r: &SparseResult, tilt_axis_deg: Option<f64>, params: 
 
 fn save_png(img: &Image, path: &Path) -> anyhow::Result<()> {
     let (w, h) = img.dimensions();
-    let buf = image::GrayImage::from_raw(
-        u32::try_from(w)?,
-        u32::try_from(h)?,
-        img.to_u8(),
-    )
-    .context("image buffer size")?;
-    buf.save(path).with_context(|| format!("cannot write {}", path.display()))
+    let buf = image::GrayImage::from_raw(u32::try_from(w)?, u32::try_from(h)?, img.to_u8())
+        .context("image buffer size")?;
+    buf.save(path)
+        .with_context(|| format!("cannot write {}", path.display()))
 }
 
 /// Both originals side by side (left | right) with each inlier match drawn as a line.
@@ -218,7 +257,12 @@ pub fn draw_matches(left: &Image, right: &Image, inliers: &[Correspondence]) -> 
     for (i, c) in inliers.iter().enumerate() {
         // A few distinct hues so neighbouring lines can be told apart.
         let colour = [[40, 220, 40], [240, 200, 0], [0, 200, 255], [255, 80, 200]][i % 4];
-        draw_line(&mut canvas, c.left, [c.right[0] + wl as f64, c.right[1]], image::Rgb(colour));
+        draw_line(
+            &mut canvas,
+            c.left,
+            [c.right[0] + wl as f64, c.right[1]],
+            image::Rgb(colour),
+        );
     }
     canvas
 }
@@ -254,7 +298,10 @@ mod tests {
     fn reads_png_and_palette_relabelling_is_local() {
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("a.png");
-        image::GrayImage::from_raw(3, 2, vec![0, 51, 102, 153, 204, 255]).unwrap().save(&p).unwrap();
+        image::GrayImage::from_raw(3, 2, vec![0, 51, 102, 153, 204, 255])
+            .unwrap()
+            .save(&p)
+            .unwrap();
         let img = load_gray(&p).unwrap();
         assert_eq!(img.dimensions(), (3, 2));
         assert!((img.get(1, 0) - 0.2).abs() < 1e-3);

@@ -121,7 +121,14 @@ pub fn potamogeton(
     for (name, l, r) in POTAMOGETON_PAIRS {
         let left = crate::app::rectify::load_gray(&dir.join(l))?;
         let right = crate::app::rectify::load_gray(&dir.join(r))?;
-        let fig = evaluate_pair(name, &left, &right, Some(POTAMOGETON_TILT_AXIS_DEG), params, None);
+        let fig = evaluate_pair(
+            name,
+            &left,
+            &right,
+            Some(POTAMOGETON_TILT_AXIS_DEG),
+            params,
+            None,
+        );
         rows.push((name.to_owned(), fig));
     }
     Ok(rows)
@@ -130,7 +137,10 @@ pub fn potamogeton(
 /// The centre `w × h` of an image.
 #[must_use]
 pub fn crop_centre(img: &Image, w: usize, h: usize) -> Image {
-    let (x0, y0) = (img.width().saturating_sub(w) / 2, img.height().saturating_sub(h) / 2);
+    let (x0, y0) = (
+        img.width().saturating_sub(w) / 2,
+        img.height().saturating_sub(h) / 2,
+    );
     let (w, h) = (w.min(img.width()), h.min(img.height()));
     Image::from_fn(w, h, |x, y| img.get(x0 + x, y0 + y))
 }
@@ -140,10 +150,22 @@ pub fn crop_centre(img: &Image, w: usize, h: usize) -> Image {
 ///
 /// # Errors
 /// When the files cannot be read or the stage fails.
-pub fn timing_1280x960(data_dir: &Path, params: &SparseParams, runs: usize) -> anyhow::Result<PairFigures> {
+pub fn timing_1280x960(
+    data_dir: &Path,
+    params: &SparseParams,
+    runs: usize,
+) -> anyhow::Result<PairFigures> {
     let dir = data_dir.join("potamogeton");
-    let left = crop_centre(&crate::app::rectify::load_gray(&dir.join("pot_02.tif"))?, 1280, 960);
-    let right = crop_centre(&crate::app::rectify::load_gray(&dir.join("pot_04.tif"))?, 1280, 960);
+    let left = crop_centre(
+        &crate::app::rectify::load_gray(&dir.join("pot_02.tif"))?,
+        1280,
+        960,
+    );
+    let right = crop_centre(
+        &crate::app::rectify::load_gray(&dir.join("pot_04.tif"))?,
+        1280,
+        960,
+    );
     let mut best: Option<PairFigures> = None;
     for _ in 0..runs.max(1) {
         let f = evaluate_pair(
@@ -154,7 +176,10 @@ pub fn timing_1280x960(data_dir: &Path, params: &SparseParams, runs: usize) -> a
             params,
             None,
         )?;
-        if best.as_ref().is_none_or(|b| f.timings.total_ms < b.timings.total_ms) {
+        if best
+            .as_ref()
+            .is_none_or(|b| f.timings.total_ms < b.timings.total_ms)
+        {
             best = Some(f);
         }
     }
@@ -169,8 +194,24 @@ pub fn format_table(rows: &[(String, Result<PairFigures, SparseError>)]) -> Stri
     let _ = writeln!(
         s,
         "{:<22} {:>6} {:>6} {:>6} {:>6} {:>8} {:>7} {:>8} {:>7} {:>7} {:>7} {:>5} | {:>6} {:>6} {:>6} {:>6} {:>6} {:>6}",
-        "pair", "kp L", "kp R", "match", "inl", "log NFA", "thr px", "init px", "fin px", "|dy|50", "|dy|95", "n_x",
-        "sift", "match", "orsa", "rect", "warp", "total"
+        "pair",
+        "kp L",
+        "kp R",
+        "match",
+        "inl",
+        "log NFA",
+        "thr px",
+        "init px",
+        "fin px",
+        "|dy|50",
+        "|dy|95",
+        "n_x",
+        "sift",
+        "match",
+        "orsa",
+        "rect",
+        "warp",
+        "total"
     );
     for (name, r) in rows {
         match r {
@@ -191,7 +232,8 @@ pub fn format_table(rows: &[(String, Result<PairFigures, SparseError>)]) -> Stri
                     f.dy_median_px,
                     if f.dy_from_truth { "*" } else { " " },
                     f.dy_p95_px,
-                    f.n_rectified_x.map_or_else(|| "-".to_owned(), |x| format!("{x:+.2}")),
+                    f.n_rectified_x
+                        .map_or_else(|| "-".to_owned(), |x| format!("{x:+.2}")),
                     t.sift_ms,
                     t.matching_ms,
                     t.orsa_ms,
@@ -222,12 +264,36 @@ mod tests {
     fn potamogeton_table() {
         use crate::vision::sift::SiftParams;
         let presets = [
-            ("ipol+max3000", SiftParams { max_keypoints: 3000, ..SiftParams::default() }),
-            ("d1s1.6", SiftParams { delta_min: 1.0, sigma_min: 1.6, ..SiftParams::default() }),
-            ("d1s1.6+max2000", SiftParams { delta_min: 1.0, sigma_min: 1.6, max_keypoints: 2000, ..SiftParams::default() }),
+            (
+                "ipol+max3000",
+                SiftParams {
+                    max_keypoints: 3000,
+                    ..SiftParams::default()
+                },
+            ),
+            (
+                "d1s1.6",
+                SiftParams {
+                    delta_min: 1.0,
+                    sigma_min: 1.6,
+                    ..SiftParams::default()
+                },
+            ),
+            (
+                "d1s1.6+max2000",
+                SiftParams {
+                    delta_min: 1.0,
+                    sigma_min: 1.6,
+                    max_keypoints: 2000,
+                    ..SiftParams::default()
+                },
+            ),
         ];
         for (name, sift) in presets {
-            let params = SparseParams { sift, ..SparseParams::default() };
+            let params = SparseParams {
+                sift,
+                ..SparseParams::default()
+            };
             let mut rows = potamogeton(&data_dir(), &params).expect("Potamogeton images");
             let t = timing_1280x960(&data_dir(), &params, 2).expect("timing pair");
             rows.push((t.name.clone(), Ok(t)));
@@ -254,7 +320,8 @@ mod bench {
     #[ignore = "reads $SDSEM_DATA; timing"]
     fn sift_phases() {
         let img = crop_centre(
-            &crate::app::rectify::load_gray(&data_dir().join("potamogeton/pot_02.tif")).expect("pot_02"),
+            &crate::app::rectify::load_gray(&data_dir().join("potamogeton/pot_02.tif"))
+                .expect("pot_02"),
             1280,
             960,
         );
@@ -265,13 +332,26 @@ mod bench {
             let t1 = t.elapsed();
             let ex = sift::detector::detect(&ss, &p);
             let t2 = t.elapsed();
-            let g: Vec<_> = ss.octaves.iter().flat_map(|o| o.gauss[1..=p.n_spo].iter().map(sift::orientation::GradField::new)).collect();
+            let g: Vec<_> = ss
+                .octaves
+                .iter()
+                .flat_map(|o| {
+                    o.gauss[1..=p.n_spo]
+                        .iter()
+                        .map(sift::orientation::GradField::new)
+                })
+                .collect();
             let t3 = t.elapsed();
             let kp = sift::sift(&img, &p).expect("sift");
             let t4 = t.elapsed();
             println!(
                 "scale space {t1:?}, detect {:?} ({} extrema), gradients {:?} ({} fields), full sift {:?} ({} keypoints)",
-                t2 - t1, ex.len(), t3 - t2, g.len(), t4 - t3, kp.len()
+                t2 - t1,
+                ex.len(),
+                t3 - t2,
+                g.len(),
+                t4 - t3,
+                kp.len()
             );
         }
         let _ = SiftParams::default();

@@ -70,7 +70,7 @@ pub enum DenseError {
 /// | `levels` | 4 | pyramid levels |
 /// | `top_window` / `window` | 10 / 2 | half search window of the disparity at the top / lower levels |
 /// | `vertical_top_window` / `vertical_window` | 2 / 1 | half search window of the vertical flow (improved mode; the paper searches v as widely as u) |
-/// | `top_iterations` / `iterations` | 60 / 30 | BP iterations |
+/// | `top_iterations` / `iterations` | none | BP iterations at the top / finest level; none = 60 / 30 (paper) or 20 / 8 (improved) |
 /// | `lr_tolerance` | 1.0 | left–right disagreement (pixels) above which a pixel is masked as occluded |
 /// | `bilateral` | σs = σr = 3 | bilateral grid filter of the disparity |
 /// | `max_strips` | 4 | parallel row strips of the BP sweeps (1 = sequential BP-S) |
@@ -88,8 +88,8 @@ pub struct DenseParams {
     pub window: usize,
     pub vertical_top_window: usize,
     pub vertical_window: usize,
-    pub top_iterations: usize,
-    pub iterations: usize,
+    pub top_iterations: Option<usize>,
+    pub iterations: Option<usize>,
     pub lr_tolerance: f32,
     pub bilateral: BilateralParams,
     pub max_strips: usize,

@@ -41,7 +41,12 @@ impl FundamentalModel {
 
     /// Minimal solver on the points `idx` of `left`/`right`.
     #[must_use]
-    pub fn fit_minimal(self, left: &[Vector2<f64>], right: &[Vector2<f64>], idx: &[usize]) -> Vec<Matrix3<f64>> {
+    pub fn fit_minimal(
+        self,
+        left: &[Vector2<f64>],
+        right: &[Vector2<f64>],
+        idx: &[usize],
+    ) -> Vec<Matrix3<f64>> {
         match self {
             Self::Projective => seven_point(left, right, idx),
             Self::Affine => affine_fit(left, right, idx).into_iter().collect(),
@@ -51,7 +56,12 @@ impl FundamentalModel {
     /// Least-squares fit on many points (normalised 8-point with rank 2 enforced, or the
     /// affine Gold Standard), `None` when the points do not determine a model.
     #[must_use]
-    pub fn fit_least_squares(self, left: &[Vector2<f64>], right: &[Vector2<f64>], idx: &[usize]) -> Option<Matrix3<f64>> {
+    pub fn fit_least_squares(
+        self,
+        left: &[Vector2<f64>],
+        right: &[Vector2<f64>],
+        idx: &[usize],
+    ) -> Option<Matrix3<f64>> {
         match self {
             Self::Projective => eight_point(left, right, idx),
             Self::Affine => affine_fit(left, right, idx),
@@ -65,7 +75,11 @@ fn normalisation(points: impl Iterator<Item = Vector2<f64>> + Clone) -> Matrix3<
     let n = points.clone().count().max(1) as f64;
     let c = points.clone().fold(Vector2::zeros(), |a, p| a + p) / n;
     let mean_dist = points.map(|p| (p - c).norm()).sum::<f64>() / n;
-    let s = if mean_dist > 0.0 { std::f64::consts::SQRT_2 / mean_dist } else { 1.0 };
+    let s = if mean_dist > 0.0 {
+        std::f64::consts::SQRT_2 / mean_dist
+    } else {
+        1.0
+    };
     Matrix3::new(s, 0.0, -s * c.x, 0.0, s, -s * c.y, 0.0, 0.0, 1.0)
 }
 
@@ -75,7 +89,17 @@ fn apply(t: &Matrix3<f64>, p: &Vector2<f64>) -> Vector2<f64> {
 
 /// Row of the linear system `x'ᵀ F x = 0` in the entries of F (row-major).
 fn epipolar_row(x: &Vector2<f64>, xp: &Vector2<f64>) -> [f64; 9] {
-    [xp.x * x.x, xp.x * x.y, xp.x, xp.y * x.x, xp.y * x.y, xp.y, x.x, x.y, 1.0]
+    [
+        xp.x * x.x,
+        xp.x * x.y,
+        xp.x,
+        xp.y * x.x,
+        xp.y * x.y,
+        xp.y,
+        x.x,
+        x.y,
+        1.0,
+    ]
 }
 
 /// The eigenvectors of `AᵀA` for its two smallest eigenvalues (the null space of A).
@@ -83,7 +107,10 @@ fn smallest_two(ata: SMatrix<f64, 9, 9>) -> (SMatrix<f64, 9, 1>, SMatrix<f64, 9,
     let eig = SymmetricEigen::new(ata);
     let mut order: Vec<usize> = (0..9).collect();
     order.sort_by(|&a, &b| eig.eigenvalues[a].total_cmp(&eig.eigenvalues[b]));
-    (eig.eigenvectors.column(order[0]).into_owned(), eig.eigenvectors.column(order[1]).into_owned())
+    (
+        eig.eigenvectors.column(order[0]).into_owned(),
+        eig.eigenvectors.column(order[1]).into_owned(),
+    )
 }
 
 fn to_matrix(v: &SMatrix<f64, 9, 1>) -> Matrix3<f64> {
@@ -92,12 +119,19 @@ fn to_matrix(v: &SMatrix<f64, 9, 1>) -> Matrix3<f64> {
 
 /// The 7-point algorithm (H&Z §11.1.2): up to three F of rank 2 through 7 matches.
 #[must_use]
-pub fn seven_point(left: &[Vector2<f64>], right: &[Vector2<f64>], idx: &[usize]) -> Vec<Matrix3<f64>> {
+pub fn seven_point(
+    left: &[Vector2<f64>],
+    right: &[Vector2<f64>],
+    idx: &[usize],
+) -> Vec<Matrix3<f64>> {
     let t1 = normalisation(idx.iter().map(|&i| left[i]));
     let t2 = normalisation(idx.iter().map(|&i| right[i]));
     let mut ata = SMatrix::<f64, 9, 9>::zeros();
     for &i in idx {
-        let r = SMatrix::<f64, 1, 9>::from_row_slice(&epipolar_row(&apply(&t1, &left[i]), &apply(&t2, &right[i])));
+        let r = SMatrix::<f64, 1, 9>::from_row_slice(&epipolar_row(
+            &apply(&t1, &left[i]),
+            &apply(&t2, &right[i]),
+        ));
         ata += r.transpose() * r;
     }
     let (f1, f2) = smallest_two(ata);
@@ -126,7 +160,11 @@ fn solve_cubic(c3: f64, c2: f64, c1: f64, c0: f64) -> Vec<f64> {
     }
     if c3.abs() < 1e-12 * scale {
         if c2.abs() < 1e-12 * scale {
-            return if c1 == 0.0 { Vec::new() } else { vec![-c0 / c1] };
+            return if c1 == 0.0 {
+                Vec::new()
+            } else {
+                vec![-c0 / c1]
+            };
         }
         let disc = c1 * c1 - 4.0 * c2 * c0;
         if disc < 0.0 {
@@ -152,7 +190,9 @@ fn solve_cubic(c3: f64, c2: f64, c1: f64, c0: f64) -> Vec<f64> {
         } else {
             let phi = (3.0 * q / (2.0 * p * r)).clamp(-1.0, 1.0).acos() / 3.0;
             (0..3)
-                .map(|k| 2.0 * r * (phi - 2.0 * std::f64::consts::PI * f64::from(k) / 3.0).cos() + shift)
+                .map(|k| {
+                    2.0 * r * (phi - 2.0 * std::f64::consts::PI * f64::from(k) / 3.0).cos() + shift
+                })
                 .collect()
         }
     };
@@ -169,7 +209,11 @@ fn solve_cubic(c3: f64, c2: f64, c1: f64, c0: f64) -> Vec<f64> {
 
 /// Normalised 8-point least squares with rank 2 enforced (H&Z Algorithm 11.1).
 #[must_use]
-pub fn eight_point(left: &[Vector2<f64>], right: &[Vector2<f64>], idx: &[usize]) -> Option<Matrix3<f64>> {
+pub fn eight_point(
+    left: &[Vector2<f64>],
+    right: &[Vector2<f64>],
+    idx: &[usize],
+) -> Option<Matrix3<f64>> {
     if idx.len() < 8 {
         return None;
     }
@@ -177,7 +221,10 @@ pub fn eight_point(left: &[Vector2<f64>], right: &[Vector2<f64>], idx: &[usize])
     let t2 = normalisation(idx.iter().map(|&i| right[i]));
     let mut ata = SMatrix::<f64, 9, 9>::zeros();
     for &i in idx {
-        let r = SMatrix::<f64, 1, 9>::from_row_slice(&epipolar_row(&apply(&t1, &left[i]), &apply(&t2, &right[i])));
+        let r = SMatrix::<f64, 1, 9>::from_row_slice(&epipolar_row(
+            &apply(&t1, &left[i]),
+            &apply(&t2, &right[i]),
+        ));
         ata += r.transpose() * r;
     }
     let (f, _) = smallest_two(ata);
@@ -193,13 +240,20 @@ pub fn eight_point(left: &[Vector2<f64>], right: &[Vector2<f64>], idx: &[usize])
 /// Affine fundamental matrix by orthogonal regression on `(x', y', x, y)` (H&Z Algorithm
 /// 14.1, the Gold Standard under isotropic noise); exact through 4 points in general position.
 #[must_use]
-pub fn affine_fit(left: &[Vector2<f64>], right: &[Vector2<f64>], idx: &[usize]) -> Option<Matrix3<f64>> {
+pub fn affine_fit(
+    left: &[Vector2<f64>],
+    right: &[Vector2<f64>],
+    idx: &[usize],
+) -> Option<Matrix3<f64>> {
     if idx.len() < 4 {
         return None;
     }
     let n = idx.len() as f64;
     let row = |i: usize| nalgebra::Vector4::new(right[i].x, right[i].y, left[i].x, left[i].y);
-    let mean = idx.iter().fold(nalgebra::Vector4::zeros(), |a, &i| a + row(i)) / n;
+    let mean = idx
+        .iter()
+        .fold(nalgebra::Vector4::zeros(), |a, &i| a + row(i))
+        / n;
     let mut cov = nalgebra::Matrix4::zeros();
     for &i in idx {
         let d = row(i) - mean;
@@ -253,7 +307,11 @@ pub fn sampson_error(f: &Matrix3<f64>, x: &Vector2<f64>, xp: &Vector2<f64>) -> f
     let ftx = f.transpose() * xph;
     let c = xph.dot(&fx);
     let den = fx.x * fx.x + fx.y * fx.y + ftx.x * ftx.x + ftx.y * ftx.y;
-    if den > 0.0 { c.abs() / den.sqrt() } else { f64::INFINITY }
+    if den > 0.0 {
+        c.abs() / den.sqrt()
+    } else {
+        f64::INFINITY
+    }
 }
 
 #[cfg(test)]
@@ -270,7 +328,11 @@ pub(crate) mod tests {
         let mut l = Vec::new();
         let mut rr = Vec::new();
         for _ in 0..n {
-            let p = Vector3::new(rng.random_range(-2.0..2.0), rng.random_range(-1.5..1.5), rng.random_range(6.0..10.0));
+            let p = Vector3::new(
+                rng.random_range(-2.0..2.0),
+                rng.random_range(-1.5..1.5),
+                rng.random_range(6.0..10.0),
+            );
             let a = k * p;
             let b = k * (r * p + t);
             l.push(Vector2::new(a.x / a.z, a.y / a.z));
@@ -286,9 +348,16 @@ pub(crate) mod tests {
         let mut l = Vec::new();
         let mut r = Vec::new();
         for _ in 0..n {
-            let (s, x, z) = (rng.random_range(0.0..480.0), rng.random_range(-300.0..300.0), rng.random_range(-40.0..40.0));
+            let (s, x, z) = (
+                rng.random_range(0.0..480.0),
+                rng.random_range(-300.0..300.0),
+                rng.random_range(-40.0..40.0),
+            );
             l.push(Vector2::new(320.0 + x, s));
-            r.push(Vector2::new(320.0 + x * t.cos() + z * t.sin() + 12.0, s - 5.0 + 0.01 * x));
+            r.push(Vector2::new(
+                320.0 + x * t.cos() + z * t.sin() + 12.0,
+                s - 5.0 + 0.01 * x,
+            ));
         }
         (l, r)
     }
@@ -302,7 +371,11 @@ pub(crate) mod tests {
         // One of the solutions explains all 20 matches.
         let best = fs
             .iter()
-            .map(|f| (0..20).map(|i| symmetric_epipolar_error(f, &l[i], &r[i])).fold(0.0, f64::max))
+            .map(|f| {
+                (0..20)
+                    .map(|i| symmetric_epipolar_error(f, &l[i], &r[i]))
+                    .fold(0.0, f64::max)
+            })
             .fold(f64::INFINITY, f64::min);
         assert!(best < 1e-6, "max residual {best}");
     }
@@ -317,7 +390,10 @@ pub(crate) mod tests {
 
         let (l, r) = affine_pair(30, 3);
         let fa = affine_fit(&l, &r, &[0, 1, 2, 3]).unwrap();
-        assert!(idx.iter().all(|&i| symmetric_epipolar_error(&fa, &l[i], &r[i]) < 1e-6));
+        assert!(
+            idx.iter()
+                .all(|&i| symmetric_epipolar_error(&fa, &l[i], &r[i]) < 1e-6)
+        );
     }
 
     #[test]
@@ -325,7 +401,9 @@ pub(crate) mod tests {
         // (a − 1)(a + 2)(a − 3) = a³ − 2a² − 5a + 6
         let mut r = solve_cubic(1.0, -2.0, -5.0, 6.0);
         r.sort_by(f64::total_cmp);
-        assert!((r[0] + 2.0).abs() < 1e-9 && (r[1] - 1.0).abs() < 1e-9 && (r[2] - 3.0).abs() < 1e-9);
+        assert!(
+            (r[0] + 2.0).abs() < 1e-9 && (r[1] - 1.0).abs() < 1e-9 && (r[2] - 3.0).abs() < 1e-9
+        );
         assert_eq!(solve_cubic(1.0, 0.0, 1.0, 0.0).len(), 1);
     }
 
@@ -335,6 +413,11 @@ pub(crate) mod tests {
         let f = Matrix3::new(0.0, 0.0, 0.0, 0.0, 0.0, -1.0, 0.0, 1.0, 0.0);
         let (dl, dr) = epipolar_distances(&f, &Vector2::new(10.0, 5.0), &Vector2::new(40.0, 8.0));
         assert!((dl - 3.0).abs() < 1e-12 && (dr - 3.0).abs() < 1e-12);
-        assert!((sampson_error(&f, &Vector2::new(10.0, 5.0), &Vector2::new(40.0, 8.0)) - 3.0 / 2f64.sqrt()).abs() < 1e-12);
+        assert!(
+            (sampson_error(&f, &Vector2::new(10.0, 5.0), &Vector2::new(40.0, 8.0))
+                - 3.0 / 2f64.sqrt())
+            .abs()
+                < 1e-12
+        );
     }
 }

@@ -144,7 +144,11 @@ pub fn match_keypoints(left: &[Keypoint], right: &[Keypoint], params: &MatchPara
                 left: i,
                 right: j,
                 distance: d1f.sqrt() as f32,
-                ratio: if d2 == 0 { 1.0 } else { (d1f / d2f).sqrt() as f32 },
+                ratio: if d2 == 0 {
+                    1.0
+                } else {
+                    (d1f / d2f).sqrt() as f32
+                },
             })
         })
         .collect()
@@ -183,7 +187,11 @@ mod tests {
         };
         let mut out = Vec::new();
         for (i, l) in left.iter().enumerate() {
-            let mut ds: Vec<(f64, usize)> = right.iter().enumerate().map(|(j, r)| (d(l, r), j)).collect();
+            let mut ds: Vec<(f64, usize)> = right
+                .iter()
+                .enumerate()
+                .map(|(j, r)| (d(l, r), j))
+                .collect();
             ds.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
             if ds[0].0 >= p.ratio * ds[1].0 {
                 continue;
@@ -219,12 +227,25 @@ mod tests {
             })
             .collect();
         right.extend((1000..1080).map(|s| kp(desc(s))));
-        for p in [MatchParams::default(), MatchParams { ratio: 0.95, symmetric: false }] {
-            let fast: Vec<_> = match_keypoints(&left, &right, &p).iter().map(|m| (m.left, m.right)).collect();
+        for p in [
+            MatchParams::default(),
+            MatchParams {
+                ratio: 0.95,
+                symmetric: false,
+            },
+        ] {
+            let fast: Vec<_> = match_keypoints(&left, &right, &p)
+                .iter()
+                .map(|m| (m.left, m.right))
+                .collect();
             assert_eq!(fast, naive(&left, &right, &p));
         }
         let m = match_keypoints(&left, &right, &MatchParams::default());
-        assert!(m.len() >= 95 && m.iter().all(|m| m.left == m.right), "{}", m.len());
+        assert!(
+            m.len() >= 95 && m.iter().all(|m| m.left == m.right),
+            "{}",
+            m.len()
+        );
     }
 
     #[test]
@@ -244,7 +265,14 @@ mod bench {
     fn time_2000() {
         use rand::{Rng, SeedableRng};
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
-        let mk = |rng: &mut rand_chacha::ChaCha8Rng| Keypoint { x: 0.0, y: 0.0, sigma: 1.0, theta: 0.0, response: 0.0, descriptor: std::array::from_fn(|_| rng.random_range(0..=255u8)) };
+        let mk = |rng: &mut rand_chacha::ChaCha8Rng| Keypoint {
+            x: 0.0,
+            y: 0.0,
+            sigma: 1.0,
+            theta: 0.0,
+            response: 0.0,
+            descriptor: std::array::from_fn(|_| rng.random_range(0..=255u8)),
+        };
         let l: Vec<_> = (0..2000).map(|_| mk(&mut rng)).collect();
         let r: Vec<_> = (0..2000).map(|_| mk(&mut rng)).collect();
         for _ in 0..3 {

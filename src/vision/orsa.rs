@@ -110,7 +110,15 @@ impl NfaTable {
     fn new(n: usize, m: usize, n_s: usize, log_alpha0: f64) -> Self {
         let lf = log10_factorials(n);
         let log_c_n = (0..=n).map(|k| lf[n] - lf[k] - lf[n - k]).collect();
-        let log_c_k = (0..=n).map(|k| if k < m { 0.0 } else { lf[k] - lf[m] - lf[k - m] }).collect();
+        let log_c_k = (0..=n)
+            .map(|k| {
+                if k < m {
+                    0.0
+                } else {
+                    lf[k] - lf[m] - lf[k - m]
+                }
+            })
+            .collect();
         Self {
             m,
             log_e0: ((n_s * (n - m)) as f64).log10(),
@@ -127,7 +135,8 @@ impl NfaTable {
         for k in self.m + 1..=sorted.len() {
             // Floor ε so exact data stays finite; α is a probability, at most 1.
             let log_alpha = (self.log_alpha0 + sorted[k - 1].max(1e-9).log10()).min(0.0);
-            let nfa = self.log_e0 + log_alpha * (k - self.m) as f64 + self.log_c_n[k] + self.log_c_k[k];
+            let nfa =
+                self.log_e0 + log_alpha * (k - self.m) as f64 + self.log_c_n[k] + self.log_c_k[k];
             if best.is_none_or(|(b, _)| nfa < b) {
                 best = Some((nfa, k));
             }
@@ -176,7 +185,9 @@ impl Problem<'_> {
 
     fn inliers(&self, c: &Candidate) -> Vec<usize> {
         (0..self.left.len())
-            .filter(|&i| symmetric_epipolar_error(&c.f, &self.left[i], &self.right[i]) <= c.threshold)
+            .filter(|&i| {
+                symmetric_epipolar_error(&c.f, &self.left[i], &self.right[i]) <= c.threshold
+            })
             .collect()
     }
 }
@@ -286,17 +297,26 @@ pub fn orsa(
         max_threshold: params.max_threshold_px.unwrap_or(f64::INFINITY),
     };
     #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
-    let reserve = ((params.max_iterations as f64 * params.reserve_fraction.clamp(0.0, 1.0)).round() as usize)
+    let reserve = ((params.max_iterations as f64 * params.reserve_fraction.clamp(0.0, 1.0)).round()
+        as usize)
         .min(params.max_iterations);
     let all: Vec<usize> = (0..n).collect();
     let mut best = None;
-    let mut iterations = sample_phase(&p, params, &all, 0, params.max_iterations - reserve, &mut best);
+    let mut iterations = sample_phase(
+        &p,
+        params,
+        &all,
+        0,
+        params.max_iterations - reserve,
+        &mut best,
+    );
 
     // Resample from the best inlier set (IPOL's refinement reserve).
     if let Some(b) = best.as_ref().filter(|b| b.log10_nfa < 0.0 && b.k > m) {
         let pool = p.inliers(b);
         if pool.len() > m {
-            iterations += sample_phase(&p, params, &pool, params.max_iterations, reserve, &mut best);
+            iterations +=
+                sample_phase(&p, params, &pool, params.max_iterations, reserve, &mut best);
         }
     }
 
@@ -351,8 +371,14 @@ mod tests {
         let mut l: Vec<_> = l.into_iter().map(|p| p + noise()).collect();
         let mut r: Vec<_> = r.into_iter().map(|p| p + noise()).collect();
         for _ in 0..n_out {
-            l.push(Vector2::new(rng.random_range(0.0..640.0), rng.random_range(0.0..480.0)));
-            r.push(Vector2::new(rng.random_range(0.0..640.0), rng.random_range(0.0..480.0)));
+            l.push(Vector2::new(
+                rng.random_range(0.0..640.0),
+                rng.random_range(0.0..480.0),
+            ));
+            r.push(Vector2::new(
+                rng.random_range(0.0..640.0),
+                rng.random_range(0.0..480.0),
+            ));
         }
         (l, r)
     }
@@ -360,9 +386,16 @@ mod tests {
     #[test]
     fn finds_inliers_among_half_outliers() {
         for model in [FundamentalModel::Projective, FundamentalModel::Affine] {
-            let data = if model == FundamentalModel::Projective { projective_pair(100, 4) } else { affine_pair(100, 4) };
+            let data = if model == FundamentalModel::Projective {
+                projective_pair(100, 4)
+            } else {
+                affine_pair(100, 4)
+            };
             let (l, r) = contaminate(data, 100, 5);
-            let params = OrsaParams { model, ..OrsaParams::default() };
+            let params = OrsaParams {
+                model,
+                ..OrsaParams::default()
+            };
             let res = orsa(&l, &r, [(640, 480); 2], &params).unwrap();
             let true_in = res.inliers.iter().filter(|&&i| i < 100).count();
             let false_in = res.inliers.len() - true_in;
@@ -370,7 +403,11 @@ mod tests {
             // A random pair lies within ~1 px of an epipolar line by chance only rarely.
             assert!(false_in <= 4, "{model:?}: {false_in} outliers accepted");
             assert!(res.log10_nfa < -20.0, "{}", res.log10_nfa);
-            assert!(res.threshold_px > 0.2 && res.threshold_px < 3.0, "{}", res.threshold_px);
+            assert!(
+                res.threshold_px > 0.2 && res.threshold_px < 3.0,
+                "{}",
+                res.threshold_px
+            );
         }
     }
 
@@ -389,7 +426,10 @@ mod tests {
     fn pure_noise_is_not_meaningful() {
         let (l, r) = contaminate((Vec::new(), Vec::new()), 80, 11);
         let err = orsa(&l, &r, [(640, 480); 2], &OrsaParams::default()).unwrap_err();
-        assert!(matches!(err, OrsaError::NotMeaningful { best_log10_nfa, .. } if best_log10_nfa >= 0.0), "{err}");
+        assert!(
+            matches!(err, OrsaError::NotMeaningful { best_log10_nfa, .. } if best_log10_nfa >= 0.0),
+            "{err}"
+        );
         let err = orsa(&l[..5], &r[..5], [(640, 480); 2], &OrsaParams::default()).unwrap_err();
         assert_eq!(err, OrsaError::TooFewMatches { found: 5, need: 7 });
     }

@@ -77,7 +77,14 @@ pub struct QuasiEuclidean {
 
 impl QuasiEuclidean {
     fn to_vec(self) -> [f64; 6] {
-        [self.left_y, self.left_z, self.right_x, self.right_y, self.right_z, self.g]
+        [
+            self.left_y,
+            self.left_z,
+            self.right_x,
+            self.right_y,
+            self.right_z,
+            self.g,
+        ]
     }
     fn from_vec(v: &[f64; 6]) -> Self {
         Self {
@@ -128,7 +135,9 @@ pub struct Rectification {
 pub enum RectifyError {
     #[error("not enough inlier matches to rectify: found {found}, need {need}")]
     TooFewMatches { found: usize, need: usize },
-    #[error("the epipolar geometry is degenerate (no epipole found): the matches do not determine a rectification")]
+    #[error(
+        "the epipolar geometry is degenerate (no epipole found): the matches do not determine a rectification"
+    )]
     Degenerate,
     #[error(
         "the tilt-axis normal (φ = {tilt_axis_deg:.1}°) is {mismatch_deg:.1}° away from the epipolar direction the matches give (limit {limit_deg}°): check --tilt-axis"
@@ -172,7 +181,17 @@ impl Frame {
     }
     fn k_inv(&self, g: f64) -> Matrix3<f64> {
         let f = 3f64.powf(g) * (self.w + self.h);
-        Matrix3::new(1.0 / f, 0.0, -self.w / (2.0 * f), 0.0, 1.0 / f, -self.h / (2.0 * f), 0.0, 0.0, 1.0)
+        Matrix3::new(
+            1.0 / f,
+            0.0,
+            -self.w / (2.0 * f),
+            0.0,
+            1.0 / f,
+            -self.h / (2.0 * f),
+            0.0,
+            0.0,
+            1.0,
+        )
     }
     fn rotations(q: &QuasiEuclidean) -> (Matrix3<f64>, Matrix3<f64>) {
         (
@@ -214,7 +233,13 @@ fn residuals_with_prior(
 }
 
 /// Signed Sampson residuals of all matches for `q`.
-fn residuals(frame: &Frame, q: &QuasiEuclidean, left: &[Vector2<f64>], right: &[Vector2<f64>], out: &mut Vec<f64>) {
+fn residuals(
+    frame: &Frame,
+    q: &QuasiEuclidean,
+    left: &[Vector2<f64>],
+    right: &[Vector2<f64>],
+    out: &mut Vec<f64>,
+) {
     let f = frame.fundamental(q);
     out.clear();
     out.extend(left.iter().zip(right).map(|(x, xp)| {
@@ -277,7 +302,10 @@ pub fn rectify(
     const NEED: usize = 6;
     let n = left.len().min(right.len());
     if n < NEED {
-        return Err(RectifyError::TooFewMatches { found: n, need: NEED });
+        return Err(RectifyError::TooFewMatches {
+            found: n,
+            need: NEED,
+        });
     }
     let (left, right) = (&left[..n], &right[..n]);
     let frame = Frame {
@@ -327,8 +355,13 @@ pub fn rectify(
     let iterations = it1 + it2;
 
     // Plausibility of the optimum.
-    let rel = (q.right_z - q.left_z + std::f64::consts::PI).rem_euclid(std::f64::consts::TAU) - std::f64::consts::PI;
-    check("relative in-plane rotation (°)", rel.to_degrees().abs(), params.max_relative_rotation_deg)?;
+    let rel = (q.right_z - q.left_z + std::f64::consts::PI).rem_euclid(std::f64::consts::TAU)
+        - std::f64::consts::PI;
+    check(
+        "relative in-plane rotation (°)",
+        rel.to_degrees().abs(),
+        params.max_relative_rotation_deg,
+    )?;
     for (what, a) in [
         ("left out-of-plane rotation about y (°)", q.left_y),
         ("right out-of-plane rotation about x (°)", q.right_x),
@@ -357,11 +390,18 @@ pub fn rectify(
         Vector2::new(0.0, frame.h - 1.0),
         Vector2::new(frame.w - 1.0, frame.h - 1.0),
     ];
-    let (mut lo, mut hi) = (Vector2::repeat(f64::INFINITY), Vector2::repeat(f64::NEG_INFINITY));
+    let (mut lo, mut hi) = (
+        Vector2::repeat(f64::INFINITY),
+        Vector2::repeat(f64::NEG_INFINITY),
+    );
     for h in [&hl0, &hr0] {
         for c in &corners {
             let v = h * Vector3::new(c.x, c.y, 1.0);
-            check("corner sent behind the camera (1/w)", if v.z > 0.0 { 0.0 } else { f64::INFINITY }, 0.0)?;
+            check(
+                "corner sent behind the camera (1/w)",
+                if v.z > 0.0 { 0.0 } else { f64::INFINITY },
+                0.0,
+            )?;
             let p = Vector2::new(v.x / v.z, v.y / v.z);
             lo = lo.inf(&p);
             hi = hi.sup(&p);
@@ -381,15 +421,18 @@ pub fn rectify(
     );
 
     let initial_error_px = rms(left.iter().zip(right).map(|(a, b)| a.y - b.y));
-    let final_error_px = rms(
-        left.iter()
-            .zip(right)
-            .map(|(a, b)| transform(&h_left, a).y - transform(&h_right, b).y),
-    );
+    let final_error_px = rms(left
+        .iter()
+        .zip(right)
+        .map(|(a, b)| transform(&h_left, a).y - transform(&h_right, b).y));
     let mut buf = Vec::new();
     residuals(&frame, &q, left, right, &mut buf);
     let final_sampson_px = rms(buf.iter().copied());
-    check("final rectification error (px RMS)", final_error_px, params.max_final_error_px)?;
+    check(
+        "final rectification error (px RMS)",
+        final_error_px,
+        params.max_final_error_px,
+    )?;
 
     let n_rectified = normal.map(|nv| {
         // Image of a short step along n from the left centre.
@@ -445,7 +488,14 @@ fn levenberg_marquardt(
     let mut r_plus = Vec::new();
     let mut r_minus = Vec::new();
     let cost = |v: &[f64; 6], buf: &mut Vec<f64>| {
-        residuals_with_prior(frame, &QuasiEuclidean::from_vec(v), left, right, params.rotation_prior, buf);
+        residuals_with_prior(
+            frame,
+            &QuasiEuclidean::from_vec(v),
+            left,
+            right,
+            params.rotation_prior,
+            buf,
+        );
         buf.iter().map(|x| x * x).sum::<f64>()
     };
     let mut c = cost(&p, &mut r);
@@ -466,9 +516,29 @@ fn levenberg_marquardt(
             let (mut a, mut b) = (p, p);
             a[k] += step;
             b[k] -= step;
-            residuals_with_prior(frame, &QuasiEuclidean::from_vec(&a), left, right, params.rotation_prior, &mut r_plus);
-            residuals_with_prior(frame, &QuasiEuclidean::from_vec(&b), left, right, params.rotation_prior, &mut r_minus);
-            cols.push(r_plus.iter().zip(&r_minus).map(|(u, v)| (u - v) / (2.0 * step)).collect());
+            residuals_with_prior(
+                frame,
+                &QuasiEuclidean::from_vec(&a),
+                left,
+                right,
+                params.rotation_prior,
+                &mut r_plus,
+            );
+            residuals_with_prior(
+                frame,
+                &QuasiEuclidean::from_vec(&b),
+                left,
+                right,
+                params.rotation_prior,
+                &mut r_minus,
+            );
+            cols.push(
+                r_plus
+                    .iter()
+                    .zip(&r_minus)
+                    .map(|(u, v)| (u - v) / (2.0 * step))
+                    .collect(),
+            );
         }
         for a in 0..6 {
             jtr[a] = cols[a].iter().zip(&r).map(|(j, e)| j * e).sum();
@@ -529,13 +599,20 @@ mod tests {
     fn sem_pair(phi_deg: f64, rot_deg: f64, n: usize) -> (Vec<Vector2<f64>>, Vec<Vector2<f64>>) {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
         let phi = phi_deg.to_radians();
-        let (a, nv) = (Vector2::new(phi.cos(), phi.sin()), Vector2::new(-phi.sin(), phi.cos()));
+        let (a, nv) = (
+            Vector2::new(phi.cos(), phi.sin()),
+            Vector2::new(-phi.sin(), phi.cos()),
+        );
         let (t1, t2) = ((-3f64).to_radians(), 3f64.to_radians());
         let c = Vector2::new(320.0, 240.0);
         let rot = nalgebra::Rotation2::new(rot_deg.to_radians());
         let (mut l, mut r) = (Vec::new(), Vec::new());
         for _ in 0..n {
-            let (s, rr, z) = (rng.random_range(-200.0..200.0), rng.random_range(-200.0..200.0), rng.random_range(-30.0..30.0));
+            let (s, rr, z) = (
+                rng.random_range(-200.0..200.0),
+                rng.random_range(-200.0..200.0),
+                rng.random_range(-30.0..30.0),
+            );
             l.push(c + a * s + nv * (rr * t1.cos() + z * t1.sin()));
             let p = a * s + nv * (rr * t2.cos() + z * t2.sin());
             r.push(c + rot * p + Vector2::new(7.0, -4.0));
@@ -547,7 +624,12 @@ mod tests {
         for (a, b) in l.iter().zip(r) {
             let (pa, pb) = (transform(&rec.h_left, a), transform(&rec.h_right, b));
             assert!((pa.y - pb.y).abs() < 0.05, "Δy = {}", pa.y - pb.y);
-            assert!(pa.x >= 0.0 && pa.y >= 0.0 && pa.x < rec.canvas.0 as f64 && pa.y < rec.canvas.1 as f64);
+            assert!(
+                pa.x >= 0.0
+                    && pa.y >= 0.0
+                    && pa.x < rec.canvas.0 as f64
+                    && pa.y < rec.canvas.1 as f64
+            );
         }
     }
 
@@ -557,7 +639,8 @@ mod tests {
             let (l, r) = sem_pair(phi, 0.8, 60);
             let idx: Vec<usize> = (0..60).collect();
             let f = eight_point(&l, &r, &idx).unwrap();
-            let rec = rectify(&l, &r, &f, (640, 480), Some(phi), &RectifyParams::default()).unwrap();
+            let rec =
+                rectify(&l, &r, &f, (640, 480), Some(phi), &RectifyParams::default()).unwrap();
             check_rectified(&rec, &l, &r);
             assert!(rec.final_error_px < 0.05, "φ {phi}: {}", rec.final_error_px);
             let n = rec.n_rectified.unwrap();
@@ -595,14 +678,21 @@ mod tests {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
         let (mut l, mut r) = (Vec::new(), Vec::new());
         for _ in 0..80 {
-            let (x, y, d) = (rng.random_range(40.0..600.0), rng.random_range(40.0..440.0), rng.random_range(-30.0..30.0));
+            let (x, y, d) = (
+                rng.random_range(40.0..600.0),
+                rng.random_range(40.0..440.0),
+                rng.random_range(-30.0..30.0),
+            );
             l.push(transform(&hli, &Vector2::new(x, y)));
             r.push(transform(&hri, &Vector2::new(x + d, y)));
         }
         let idx: Vec<usize> = (0..80).collect();
         let f = eight_point(&l, &r, &idx).unwrap();
         let rec = rectify(&l, &r, &f, (640, 480), None, &RectifyParams::default()).unwrap();
-        eprintln!("{:?} {} after {} iterations", rec.params, rec.final_error_px, rec.iterations);
+        eprintln!(
+            "{:?} {} after {} iterations",
+            rec.params, rec.final_error_px, rec.iterations
+        );
         check_rectified(&rec, &l, &r);
         assert!(rec.initial_error_px > 3.0, "{}", rec.initial_error_px);
         assert!(rec.final_error_px < 0.01, "{}", rec.final_error_px);
@@ -613,8 +703,12 @@ mod tests {
         let (l, r) = sem_pair(-90.0, 0.0, 40);
         let idx: Vec<usize> = (0..40).collect();
         let f = eight_point(&l, &r, &idx).unwrap();
-        let err = rectify(&l, &r, &f, (640, 480), Some(0.0), &RectifyParams::default()).unwrap_err();
-        assert!(matches!(err, RectifyError::TiltAxisMismatch { .. }), "{err}");
+        let err =
+            rectify(&l, &r, &f, (640, 480), Some(0.0), &RectifyParams::default()).unwrap_err();
+        assert!(
+            matches!(err, RectifyError::TiltAxisMismatch { .. }),
+            "{err}"
+        );
         assert!(err.to_string().contains("--tilt-axis"));
     }
 }

@@ -26,7 +26,7 @@ use crate::vision::Image;
 use crate::vision::fundamental::FundamentalModel;
 use crate::vision::matching::{MatchParams, match_keypoints};
 use crate::vision::orsa::{OrsaError, OrsaParams, orsa};
-use crate::vision::rectify::{RectifyError, RectifyParams, Rectification, rectify};
+use crate::vision::rectify::{Rectification, RectifyError, RectifyParams, rectify};
 use crate::vision::sift::{SiftParams, SiftParamsError, sift};
 use crate::vision::warp::{Warped, warp};
 
@@ -88,17 +88,38 @@ impl std::fmt::Display for Side {
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum SparseError {
     #[error("images differ in size: {}×{} vs {}×{}: left and right must come from the same scan", left.0, left.1, right.0, right.1)]
-    SizeMismatch { left: (usize, usize), right: (usize, usize) },
+    SizeMismatch {
+        left: (usize, usize),
+        right: (usize, usize),
+    },
     #[error("{side} image is too small: {}×{}, need at least {min}×{min} pixels", size.0, size.1)]
-    ImageTooSmall { side: Side, size: (usize, usize), min: usize },
-    #[error("{side} image has no texture: {keypoints} keypoints (need {need}); is it blank or out of focus?")]
-    NoTexture { side: Side, keypoints: usize, need: usize },
+    ImageTooSmall {
+        side: Side,
+        size: (usize, usize),
+        min: usize,
+    },
+    #[error(
+        "{side} image has no texture: {keypoints} keypoints (need {need}); is it blank or out of focus?"
+    )]
+    NoTexture {
+        side: Side,
+        keypoints: usize,
+        need: usize,
+    },
     #[error("not enough reliable matches: found {found}, need {need} ({stage})")]
-    TooFewMatches { found: usize, need: usize, stage: &'static str },
+    TooFewMatches {
+        found: usize,
+        need: usize,
+        stage: &'static str,
+    },
     #[error(
         "no meaningful epipolar geometry: best log10 NFA = {log10_nfa:.1} (must be < 0) with {inliers} of {matches} matches; the images may not show the same area"
     )]
-    NotMeaningful { log10_nfa: f64, inliers: usize, matches: usize },
+    NotMeaningful {
+        log10_nfa: f64,
+        inliers: usize,
+        matches: usize,
+    },
     #[error(transparent)]
     Rectify(#[from] RectifyError),
     #[error(transparent)]
@@ -233,8 +254,14 @@ pub fn sparse_stage(
             stage: "descriptor matching",
         });
     }
-    let pl: Vec<Vector2<f64>> = matches.iter().map(|m| Vector2::new(kl[m.left].x, kl[m.left].y)).collect();
-    let pr: Vec<Vector2<f64>> = matches.iter().map(|m| Vector2::new(kr[m.right].x, kr[m.right].y)).collect();
+    let pl: Vec<Vector2<f64>> = matches
+        .iter()
+        .map(|m| Vector2::new(kl[m.left].x, kl[m.left].y))
+        .collect();
+    let pr: Vec<Vector2<f64>> = matches
+        .iter()
+        .map(|m| Vector2::new(kr[m.right].x, kr[m.right].y))
+        .collect();
 
     let t = Instant::now();
     let size = left.dimensions();
@@ -249,7 +276,10 @@ pub fn sparse_stage(
                 stage: "ORSA",
             });
         }
-        Err(OrsaError::NotMeaningful { best_log10_nfa, inliers }) => {
+        Err(OrsaError::NotMeaningful {
+            best_log10_nfa,
+            inliers,
+        }) => {
             return Err(SparseError::NotMeaningful {
                 log10_nfa: best_log10_nfa,
                 inliers,
@@ -307,7 +337,10 @@ pub fn rectify_pair(
     let t = Instant::now();
     let r = &sparse.rectification;
     let (w, h) = r.canvas;
-    let (wl, wr) = rayon::join(|| warp(left, &r.h_left, w, h), || warp(right, &r.h_right, w, h));
+    let (wl, wr) = rayon::join(
+        || warp(left, &r.h_left, w, h),
+        || warp(right, &r.h_right, w, h),
+    );
     // The checks in `rectify` keep every corner in front of the camera: H is invertible.
     let (Some(wl), Some(wr)) = (wl, wr) else {
         return Err(SparseError::Rectify(RectifyError::Degenerate));
@@ -341,7 +374,14 @@ pub(crate) mod tests {
         pub flat: [f64; 2],
     }
 
-    pub(crate) fn sem_pair(w: usize, h: usize, phi_deg: f64, tilt_deg: (f64, f64), rot_deg: f64, periodic: bool) -> SemPair {
+    pub(crate) fn sem_pair(
+        w: usize,
+        h: usize,
+        phi_deg: f64,
+        tilt_deg: (f64, f64),
+        rot_deg: f64,
+        periodic: bool,
+    ) -> SemPair {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(17);
         let tex_n = 2 * w.max(h);
         let noise = Image::from_fn(tex_n, tex_n, |_, _| rng.random_range(0.0..1.0));
@@ -352,12 +392,15 @@ pub(crate) mod tests {
         let (a, n) = ([phi.cos(), phi.sin()], [-phi.sin(), phi.cos()]);
         let (cx, cy) = ((w as f64 - 1.0) / 2.0, (h as f64 - 1.0) / 2.0);
         let bump_r = 0.2 * w.min(h) as f64;
-        let z = |s: f64, r: f64| 0.15 * w.min(h) as f64 * (-(s * s + r * r) / (2.0 * bump_r * bump_r)).exp();
+        let z = |s: f64, r: f64| {
+            0.15 * w.min(h) as f64 * (-(s * s + r * r) / (2.0 * bump_r * bump_r)).exp()
+        };
         let albedo = |s: f64, r: f64| -> f32 {
             if periodic {
                 (0.5 + 0.25 * ((s * 0.5).sin() + (r * 0.5).sin())) as f32
             } else {
-                tex.sample_bilinear(s + tex_n as f64 / 2.0, r + tex_n as f64 / 2.0).unwrap_or(0.5)
+                tex.sample_bilinear(s + tex_n as f64 / 2.0, r + tex_n as f64 / 2.0)
+                    .unwrap_or(0.5)
             }
         };
         // Image offset (relative to the centre) of specimen point (s, r) at tilt t.
@@ -399,7 +442,10 @@ pub(crate) mod tests {
         let corr = |x: f64, y: f64| {
             let (s, r) = unproject(x - cx, y - cy, t1);
             let (rx, ry) = to_right(project(s, r, t2));
-            Correspondence { left: [x, y], right: [rx, ry] }
+            Correspondence {
+                left: [x, y],
+                right: [rx, ry],
+            }
         };
         let mut truth = Vec::new();
         for y in (20..h - 20).step_by(10) {
@@ -434,16 +480,30 @@ pub(crate) mod tests {
 
     #[test]
     fn rectifies_a_simulated_sem_pair_with_the_right_height_sign() {
-        for (phi, model) in [(-90.0, FundamentalModel::Projective), (20.0, FundamentalModel::Affine)] {
+        for (phi, model) in [
+            (-90.0, FundamentalModel::Projective),
+            (20.0, FundamentalModel::Affine),
+        ] {
             let pair = sem_pair(320, 256, phi, (-4.0, 4.0), 0.7, false);
             let mut params = SparseParams::default();
             params.orsa.model = model;
             let r = sparse_stage(&pair.left, &pair.right, Some(phi), &params).unwrap();
-            assert!(r.inliers.len() >= 16, "φ {phi}: {} inliers", r.inliers.len());
+            assert!(
+                r.inliers.len() >= 16,
+                "φ {phi}: {} inliers",
+                r.inliers.len()
+            );
             assert!(r.log10_nfa < 0.0);
-            assert!(r.rectification.final_error_px < 0.3, "φ {phi}: final {}", r.rectification.final_error_px);
+            assert!(
+                r.rectification.final_error_px < 0.3,
+                "φ {phi}: final {}",
+                r.rectification.final_error_px
+            );
             let (med, p95) = dy_stats(&r, &pair.truth);
-            assert!(med < 0.3 && p95 < 1.0, "φ {phi}: true |Δy| median {med}, p95 {p95}");
+            assert!(
+                med < 0.3 && p95 < 1.0,
+                "φ {phi}: true |Δy| median {med}, p95 {p95}"
+            );
             assert!(r.n_rectified.unwrap()[0] > 0.95);
             // The bump top is higher: larger x_right − x_left on the canvas than a flat point.
             let rec = &r.rectification;
@@ -478,18 +538,37 @@ pub(crate) mod tests {
         let small = Image::from_fn(180, 160, |x, y| pair.right.get(x, y));
         let p = SparseParams::default();
         let e = sparse_stage(&pair.left, &small, None, &p).unwrap_err();
-        assert_eq!(e.to_string(), "images differ in size: 200×160 vs 180×160: left and right must come from the same scan");
+        assert_eq!(
+            e.to_string(),
+            "images differ in size: 200×160 vs 180×160: left and right must come from the same scan"
+        );
         let blank = Image::filled(200, 160, 0.4);
         let e = sparse_stage(&pair.left, &blank, None, &p).unwrap_err();
-        assert!(e.to_string().starts_with("right image has no texture: 0 keypoints"), "{e}");
+        assert!(
+            e.to_string()
+                .starts_with("right image has no texture: 0 keypoints"),
+            "{e}"
+        );
         let tiny = Image::filled(20, 20, 0.4);
         let e = sparse_stage(&tiny, &tiny, None, &p).unwrap_err();
-        assert!(matches!(e, SparseError::ImageTooSmall { side: Side::Left, .. }), "{e}");
+        assert!(
+            matches!(
+                e,
+                SparseError::ImageTooSmall {
+                    side: Side::Left,
+                    ..
+                }
+            ),
+            "{e}"
+        );
         // Unrelated images: no meaningful model or too few matches, never a warp.
         let other = sem_pair(200, 160, 0.0, (-3.0, 3.0), 0.0, true);
         let e = sparse_stage(&pair.left, &other.left, None, &p).unwrap_err();
         assert!(
-            matches!(e, SparseError::TooFewMatches { .. } | SparseError::NotMeaningful { .. }),
+            matches!(
+                e,
+                SparseError::TooFewMatches { .. } | SparseError::NotMeaningful { .. }
+            ),
             "{e}"
         );
     }
@@ -497,14 +576,27 @@ pub(crate) mod tests {
     #[test]
     fn periodic_texture_gives_a_right_warp_or_a_clear_refusal() {
         let pair = sem_pair(256, 200, -90.0, (-4.0, 4.0), 0.5, true);
-        match sparse_stage(&pair.left, &pair.right, Some(-90.0), &SparseParams::default()) {
+        match sparse_stage(
+            &pair.left,
+            &pair.right,
+            Some(-90.0),
+            &SparseParams::default(),
+        ) {
             Ok(r) => {
                 let (med, _) = dy_stats(&r, &pair.truth);
-                assert!(med < 0.5, "a wrong warp was accepted: true |Δy| median {med}");
+                assert!(
+                    med < 0.5,
+                    "a wrong warp was accepted: true |Δy| median {med}"
+                );
             }
             Err(e) => {
                 let msg = e.to_string();
-                assert!(msg.contains("matches") || msg.contains("meaningful") || msg.contains("implausible"), "{msg}");
+                assert!(
+                    msg.contains("matches")
+                        || msg.contains("meaningful")
+                        || msg.contains("implausible"),
+                    "{msg}"
+                );
             }
         }
     }

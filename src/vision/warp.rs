@@ -75,7 +75,8 @@ mod tests {
             // Same 1e-6 px tolerance at the border as the warp.
             let inside = sx > -1e-6 && sy > -1e-6 && sx < mx + 1e-6 && sy < my + 1e-6;
             if inside {
-                src.sample_bilinear(sx.clamp(0.0, mx), sy.clamp(0.0, my)).unwrap()
+                src.sample_bilinear(sx.clamp(0.0, mx), sy.clamp(0.0, my))
+                    .unwrap()
             } else {
                 f32::NAN
             }
@@ -101,7 +102,10 @@ mod tests {
         let fast = warp(&src, &h, 25, 20).unwrap();
         let slow = naive(&src, &h, 25, 20);
         for (a, b) in fast.image.data().iter().zip(slow.data()) {
-            assert!((a.is_nan() && b.is_nan()) || (a - b).abs() < 1e-5, "{a} {b}");
+            assert!(
+                (a.is_nan() && b.is_nan()) || (a - b).abs() < 1e-5,
+                "{a} {b}"
+            );
         }
         assert!(warp(&src, &Matrix3::zeros(), 5, 5).is_none());
     }

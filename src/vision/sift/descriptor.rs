@@ -19,7 +19,12 @@ pub const DESCRIPTOR_LEN: usize = 128;
 /// standard deviation `λ_descr` (in units of σ), to the spatial and angular bins around it with
 /// trilinear weights (IPOL eq. 31–33). Bins are laid out `[x bin][y bin][orientation]`.
 #[must_use]
-pub fn describe(grad: &GradField, e: &Extremum, theta: f64, params: &SiftParams) -> Option<[u8; DESCRIPTOR_LEN]> {
+pub fn describe(
+    grad: &GradField,
+    e: &Extremum,
+    theta: f64,
+    params: &SiftParams,
+) -> Option<[u8; DESCRIPTOR_LEN]> {
     let n_hist = params.n_hist;
     let n_ori = params.n_ori;
     debug_assert_eq!(n_hist * n_hist * n_ori, DESCRIPTOR_LEN);
@@ -50,7 +55,12 @@ pub fn describe(grad: &GradField, e: &Extremum, theta: f64, params: &SiftParams)
     let tau = std::f32::consts::TAU;
     let nh = n_hist as isize;
     #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
-    let (x0, x1, y0, y1) = (x_min as usize, x_max as usize, y_min as usize, y_max as usize);
+    let (x0, x1, y0, y1) = (
+        x_min as usize,
+        x_max as usize,
+        y_min as usize,
+        y_max as usize,
+    );
     // The Gaussian weight is rotation invariant and separable: tabulate it per column and row.
     #[allow(clippy::cast_possible_truncation)]
     let gauss = |d: f64| (-(d * d) / (sigma * sigma) * inv_2l2).exp() as f32;
@@ -169,19 +179,46 @@ mod tests {
         let p = SiftParams::default();
         let e = extremum(c, c, 2.0);
         let a = describe(&GradField::new(&img), &e, 0.3, &p).unwrap();
-        let b = describe(&GradField::new(&rot), &e, 0.3 + std::f64::consts::FRAC_PI_2, &p).unwrap();
-        let dist: f64 = a.iter().zip(&b).map(|(u, v)| (f64::from(*u) - f64::from(*v)).powi(2)).sum();
+        let b = describe(
+            &GradField::new(&rot),
+            &e,
+            0.3 + std::f64::consts::FRAC_PI_2,
+            &p,
+        )
+        .unwrap();
+        let dist: f64 = a
+            .iter()
+            .zip(&b)
+            .map(|(u, v)| (f64::from(*u) - f64::from(*v)).powi(2))
+            .sum();
         let norm: f64 = a.iter().map(|u| f64::from(*u).powi(2)).sum();
-        assert!(dist.sqrt() < 0.05 * norm.sqrt(), "dist {} norm {}", dist.sqrt(), norm.sqrt());
+        assert!(
+            dist.sqrt() < 0.05 * norm.sqrt(),
+            "dist {} norm {}",
+            dist.sqrt(),
+            norm.sqrt()
+        );
         // And a different orientation gives a clearly different descriptor.
         let c2 = describe(&GradField::new(&img), &e, 1.5, &p).unwrap();
-        let d2: f64 = a.iter().zip(&c2).map(|(u, v)| (f64::from(*u) - f64::from(*v)).powi(2)).sum();
+        let d2: f64 = a
+            .iter()
+            .zip(&c2)
+            .map(|(u, v)| (f64::from(*u) - f64::from(*v)).powi(2))
+            .sum();
         assert!(d2.sqrt() > 0.3 * norm.sqrt());
     }
 
     #[test]
     fn patch_leaving_the_image_gives_none() {
         let img = Image::filled(30, 30, 0.5);
-        assert!(describe(&GradField::new(&img), &extremum(5.0, 15.0, 2.0), 0.0, &SiftParams::default()).is_none());
+        assert!(
+            describe(
+                &GradField::new(&img),
+                &extremum(5.0, 15.0, 2.0),
+                0.0,
+                &SiftParams::default()
+            )
+            .is_none()
+        );
     }
 }

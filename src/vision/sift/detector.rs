@@ -147,8 +147,8 @@ fn refine(
                 return None;
             }
             let delta = oct.delta;
-            let sigma_oct =
-                params.sigma_min / params.delta_min * ((s as f64 + alpha[0]) / params.n_spo as f64).exp2();
+            let sigma_oct = params.sigma_min / params.delta_min
+                * ((s as f64 + alpha[0]) / params.n_spo as f64).exp2();
             let x_oct = x as f64 + alpha[1];
             let y_oct = y as f64 + alpha[2];
             return Some(Extremum {
@@ -172,7 +172,13 @@ fn refine(
         let ns = s as isize + step(alpha[0]);
         let nx = x as isize + step(alpha[1]);
         let ny = y as isize + step(alpha[2]);
-        if ns < 1 || ns > params.n_spo as isize || nx < 1 || ny < 1 || nx >= w as isize - 1 || ny >= h as isize - 1 {
+        if ns < 1
+            || ns > params.n_spo as isize
+            || nx < 1
+            || ny < 1
+            || nx >= w as isize - 1
+            || ny >= h as isize - 1
+        {
             return None;
         }
         #[allow(clippy::cast_sign_loss)]

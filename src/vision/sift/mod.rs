@@ -95,7 +95,9 @@ pub struct Keypoint {
 /// Why SIFT cannot run with these parameters.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum SiftParamsError {
-    #[error("SIFT descriptor layout {n_hist}×{n_hist}×{n_ori} is not supported: only 4×4×8 (128 values)")]
+    #[error(
+        "SIFT descriptor layout {n_hist}×{n_hist}×{n_ori} is not supported: only 4×4×8 (128 values)"
+    )]
     Layout { n_hist: usize, n_ori: usize },
     #[error("SIFT parameter {name} = {value} is out of range: {expected}")]
     OutOfRange {
@@ -119,16 +121,35 @@ impl SiftParams {
         }
         let checks: [(&'static str, f64, bool, &'static str); 7] = [
             ("n_spo", self.n_spo as f64, self.n_spo >= 1, "at least 1"),
-            ("delta_min", self.delta_min, self.delta_min > 0.0 && self.delta_min <= 2.0, "in (0, 2]"),
-            ("sigma_min", self.sigma_min, self.sigma_min > self.sigma_in, "greater than sigma_in"),
+            (
+                "delta_min",
+                self.delta_min,
+                self.delta_min > 0.0 && self.delta_min <= 2.0,
+                "in (0, 2]",
+            ),
+            (
+                "sigma_min",
+                self.sigma_min,
+                self.sigma_min > self.sigma_in,
+                "greater than sigma_in",
+            ),
             ("c_dog", self.c_dog, self.c_dog >= 0.0, "non-negative"),
             ("c_edge", self.c_edge, self.c_edge > 0.0, "positive"),
             ("n_bins", self.n_bins as f64, self.n_bins >= 3, "at least 3"),
-            ("lambda_ori", self.lambda_ori, self.lambda_ori > 0.0, "positive"),
+            (
+                "lambda_ori",
+                self.lambda_ori,
+                self.lambda_ori > 0.0,
+                "positive",
+            ),
         ];
         for (name, value, ok, expected) in checks {
             if !ok || !value.is_finite() {
-                return Err(SiftParamsError::OutOfRange { name, value, expected });
+                return Err(SiftParamsError::OutOfRange {
+                    name,
+                    value,
+                    expected,
+                });
             }
         }
         if !(self.lambda_descr > 0.0) {
@@ -225,7 +246,8 @@ mod tests {
             for y in (cy as isize - r).max(0)..(cy as isize + r + 1).min(h as isize) {
                 for x in (cx as isize - r).max(0)..(cx as isize + r + 1).min(w as isize) {
                     let d2 = (x as f64 - cx).powi(2) + (y as f64 - cy).powi(2);
-                    let v = img.get(x as usize, y as usize) + (0.4 * a * (-d2 / (2.0 * s * s)).exp()) as f32;
+                    let v = img.get(x as usize, y as usize)
+                        + (0.4 * a * (-d2 / (2.0 * s * s)).exp()) as f32;
                     img.set(x as usize, y as usize, v);
                 }
             }
@@ -252,7 +274,10 @@ mod tests {
             .iter()
             .max_by(|a, b| a.response.abs().total_cmp(&b.response.abs()))
             .expect("a keypoint");
-        assert!((best.x - 47.3).abs() < 0.3 && (best.y - 50.6).abs() < 0.3, "{best:?}");
+        assert!(
+            (best.x - 47.3).abs() < 0.3 && (best.y - 50.6).abs() < 0.3,
+            "{best:?}"
+        );
         assert!(best.sigma > 3.5 && best.sigma < 7.0, "σ = {}", best.sigma);
     }
 
@@ -260,12 +285,17 @@ mod tests {
     fn keypoints_follow_a_shift() {
         let img = blobs(160, 120, 3);
         // Shift by (7, −4) whole pixels: the same keypoints, moved.
-        let shifted = Image::from_fn(160, 120, |x, y| img.get_clamped(x as isize - 7, y as isize + 4));
+        let shifted = Image::from_fn(160, 120, |x, y| {
+            img.get_clamped(x as isize - 7, y as isize + 4)
+        });
         let p = SiftParams::default();
         let a = sift(&img, &p).unwrap();
         let b = sift(&shifted, &p).unwrap();
         assert!(a.len() > 20, "{} keypoints", a.len());
-        let inside: Vec<_> = a.iter().filter(|k| k.x > 30.0 && k.x < 130.0 && k.y > 30.0 && k.y < 90.0).collect();
+        let inside: Vec<_> = a
+            .iter()
+            .filter(|k| k.x > 30.0 && k.x < 130.0 && k.y > 30.0 && k.y < 90.0)
+            .collect();
         let found = inside
             .iter()
             .filter(|k| {
@@ -276,7 +306,11 @@ mod tests {
                 })
             })
             .count();
-        assert!(found * 10 >= inside.len() * 9, "{found} of {}", inside.len());
+        assert!(
+            found * 10 >= inside.len() * 9,
+            "{found} of {}",
+            inside.len()
+        );
     }
 
     #[test]

@@ -101,10 +101,17 @@ pub fn orientations(grad: &GradField, e: &Extremum, params: &SiftParams) -> Vec<
     let mut hist = vec![0.0f64; n_bins];
     let inv_2s2 = 1.0 / (2.0 * sig_w * sig_w);
     #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
-    let (x0, x1, y0, y1) = (x_min as usize, x_max as usize, y_min as usize, y_max as usize);
+    let (x0, x1, y0, y1) = (
+        x_min as usize,
+        x_max as usize,
+        y_min as usize,
+        y_max as usize,
+    );
     let bins_per_rad = n_bins as f64 / TAU;
     // Separable Gaussian window, tabulated per column.
-    let wcol: Vec<f64> = (x0..=x1).map(|x| (-(x as f64 - e.x_oct).powi(2) * inv_2s2).exp()).collect();
+    let wcol: Vec<f64> = (x0..=x1)
+        .map(|x| (-(x as f64 - e.x_oct).powi(2) * inv_2s2).exp())
+        .collect();
     for y in y0..=y1 {
         let dy = y as f64 - e.y_oct;
         let wrow = (-dy * dy * inv_2s2).exp();
@@ -129,7 +136,11 @@ pub fn orientations(grad: &GradField, e: &Extremum, params: &SiftParams) -> Vec<
     }
     let mut out = Vec::new();
     for k in 0..n_bins {
-        let (hm, h0, hp) = (hist[(k + n_bins - 1) % n_bins], hist[k], hist[(k + 1) % n_bins]);
+        let (hm, h0, hp) = (
+            hist[(k + n_bins - 1) % n_bins],
+            hist[k],
+            hist[(k + 1) % n_bins],
+        );
         if h0 > hm && h0 > hp && h0 >= params.t_ori * max {
             let offset = (hm - hp) / (2.0 * (hm - 2.0 * h0 + hp));
             out.push(((k as f64 + offset) / bins_per_rad).rem_euclid(TAU));

@@ -52,8 +52,10 @@ impl ScaleSpace {
         } else {
             resample_bilinear(image, params.delta_min)
         };
-        let seed_blur =
-            (params.sigma_min.powi(2) - params.sigma_in.powi(2)).max(0.0).sqrt() / params.delta_min;
+        let seed_blur = (params.sigma_min.powi(2) - params.sigma_in.powi(2))
+            .max(0.0)
+            .sqrt()
+            / params.delta_min;
         let mut first = gaussian_blur(&seed, seed_blur);
 
         let mut octaves = Vec::with_capacity(n_oct);
@@ -165,24 +167,21 @@ pub fn gaussian_blur(image: &Image, sigma: f64) -> Image {
 
     // Horizontal pass: pad each row by mirroring, then a straight dot product.
     let mut tmp = Image::zeros(w, h);
-    tmp.data_mut()
-        .par_chunks_mut(w)
-        .enumerate()
-        .for_each_init(
-            || vec![0.0f32; w + 2 * r],
-            |padded, (y, out)| {
-                let row = image.row(y);
-                for (i, p) in padded.iter_mut().enumerate() {
-                    *p = row[mirror(i as isize - r as isize, w)];
+    tmp.data_mut().par_chunks_mut(w).enumerate().for_each_init(
+        || vec![0.0f32; w + 2 * r],
+        |padded, (y, out)| {
+            let row = image.row(y);
+            for (i, p) in padded.iter_mut().enumerate() {
+                *p = row[mirror(i as isize - r as isize, w)];
+            }
+            // Tap by tap over the whole row: the inner loop vectorises.
+            for (k, &g) in kernel.iter().enumerate() {
+                for (o, &v) in out.iter_mut().zip(&padded[k..k + w]) {
+                    *o += g * v;
                 }
-                // Tap by tap over the whole row: the inner loop vectorises.
-                for (k, &g) in kernel.iter().enumerate() {
-                    for (o, &v) in out.iter_mut().zip(&padded[k..k + w]) {
-                        *o += g * v;
-                    }
-                }
-            },
-        );
+            }
+        },
+    );
 
     // Vertical pass: accumulate whole rows so the inner loop runs along x (vectorises).
     let mut out = Image::zeros(w, h);
