@@ -262,15 +262,7 @@ pub fn dense_disparity(
     // Matching: both directions at once in the improved mode (two cores, two
     // sequential sweeps: the backward field is almost free in wall time).
     let tm = Instant::now();
-    let (fwd, bwd) = if improved {
-        let (f, b) = rayon::join(
-            || engine.run(&a, &b, Some(&va), Some(&vb)),
-            || engine.run(&b, &a, Some(&vb), Some(&va)),
-        );
-        (f, Some(b))
-    } else {
-        (engine.run(&a, &b, Some(&va), Some(&vb)), None)
-    };
+    let (fwd, bwd) = engine.run(&a, &b, Some(&va), Some(&vb), improved);
     let matching_ms = ms(tm);
 
     let u = Image::from_vec(w, h, fwd.u).expect("flow has the canvas size");

@@ -444,6 +444,47 @@ impl<'a> DualLayerBp<'a> {
         self.labels = self.all_labels();
     }
 
+    /// Starts both layers' inter-layer messages from the data term (the
+    /// message each node would send with only its range term): without it the
+    /// first sweep sees no data and spreads the small-displacement prior over
+    /// the whole grid, which the strong smoothness then keeps.
+    pub fn init_dual_from_data(&mut self) {
+        let sp = self.space;
+        let (nu, nv) = (sp.states(0), sp.states(1));
+        let gamma = self.weights.gamma;
+        let scale = self.data.scale;
+        let data = self.data;
+        for k in 0..2 {
+            let (n, no) = (sp.states(k), sp.states(1 - k));
+            let (target, _) = if k == 0 {
+                let [a, b] = &mut self.msgs;
+                (b, a)
+            } else {
+                let [a, b] = &mut self.msgs;
+                (a, b)
+            };
+            target.par_chunks_mut(SLOTS * no).enumerate().for_each_init(
+                || vec![0f32; n],
+                |h, (p, node)| {
+                    let base = sp.offset[k][p] - sp.window[k] as i32;
+                    for (l, v) in h.iter_mut().enumerate() {
+                        *v = gamma * (base + l as i32).unsigned_abs() as f32;
+                    }
+                    let cost = &data.cost[p * nu * nv..(p + 1) * nu * nv];
+                    dual_message(
+                        k,
+                        h,
+                        cost,
+                        scale,
+                        nu,
+                        &mut node[FROM_DUAL * no..(FROM_DUAL + 1) * no],
+                    );
+                },
+            );
+        }
+        self.labels = self.all_labels();
+    }
+
     /// One iteration `count` of the BP-S schedule.
     fn iterate(&mut self, count: usize) {
         let k = count % 2;

@@ -166,6 +166,14 @@ pub(crate) struct LevelPlan {
     pub hierarchy: usize,
 }
 
+/// Multigrid grids below the top level in the improved mode (the upsampled
+/// flow already starts BP near the solution there).
+const IMPROVED_LOWER_HIERARCHY: usize = 3;
+
+/// BP iterations on each coarser grid of the multigrid initialisation in the
+/// improved mode (half the reference's: RubberWhale's EPE does not change).
+const IMPROVED_HIERARCHY_ITERATIONS: usize = 10;
+
 /// BP iterations on each coarser grid of the multigrid initialisation (reference code).
 const HIERARCHY_ITERATIONS: usize = 20;
 
@@ -274,7 +282,13 @@ impl FlowParams {
                     window: [wu, wv],
                     iterations: self.iterations_at(l),
                     // The reference code: 2 grids at the top, levels − 1 − l below.
-                    hierarchy: if top { 2 } else { self.levels - 1 - l },
+                    hierarchy: if top {
+                        2
+                    } else if self.mode == Mode::Paper {
+                        self.levels - 1 - l
+                    } else {
+                        IMPROVED_LOWER_HIERARCHY
+                    },
                 }
             })
             .collect();
@@ -309,146 +323,260 @@ pub(crate) fn check_size(w: usize, h: usize, levels: usize) -> Result<(), DenseE
     Ok(())
 }
 
-/// The descriptor images of both inputs at every level, computed as the mode says.
-enum Descriptors {
-    /// Full-resolution descriptors and their blurred, subsampled pyramid
-    /// (the reference code), finest first.
-    Downsampled(Vec<DescriptorImage>, Vec<DescriptorImage>),
-    /// Image pyramids; descriptors are computed per level when needed.
-    PerLevel(Vec<Image>, Vec<Image>),
+/// One direction's state between levels: the flow of the level just solved.
+struct Direction {
+    flow: [Vec<f32>; 2],
+    margin: Vec<f32>,
+    reports: Vec<LevelReport>,
+}
+
+/// Sizes of both images at every level, finest first: `(w_a, h_a, w_b, h_b)`.
+fn level_sizes(a: &Image, b: &Image, levels: usize) -> Vec<(usize, usize, usize, usize)> {
+    let mut sizes = vec![(a.width(), a.height(), b.width(), b.height())];
+    for l in 1..levels {
+        let (wa, ha, wb, hb) = sizes[l - 1];
+        sizes.push((
+            pyramid::half_size(wa),
+            pyramid::half_size(ha),
+            pyramid::half_size(wb),
+            pyramid::half_size(hb),
+        ));
+    }
+    sizes
+}
+
+/// Masks of every level, finest first.
+fn mask_pyramid(
+    mask: Option<&[bool]>,
+    w: usize,
+    h: usize,
+    levels: usize,
+) -> Vec<Option<Vec<bool>>> {
+    let mut out = vec![mask.map(<[bool]>::to_vec)];
+    let (mut w, mut h) = (w, h);
+    for _ in 1..levels {
+        let next = out
+            .last()
+            .and_then(|m| m.as_ref().map(|m| pyramid::halve_mask(m, w, h)));
+        out.push(next);
+        (w, h) = (pyramid::half_size(w), pyramid::half_size(h));
+    }
+    out
 }
 
 impl Engine {
-    /// Runs coarse to fine from `a` to `b`. `valid_a`/`valid_b` mark usable
-    /// pixels (row-major); an invalid pixel of `a` has no data term (its flow
-    /// comes from its neighbours), one of `b` cannot be matched.
+    /// Runs coarse to fine from `a` to `b` and, when `both` is set, from `b`
+    /// to `a` as well (for the left–right check). `valid_a`/`valid_b` mark
+    /// usable pixels (row-major); an invalid pixel of the source image has no
+    /// data term (its flow comes from its neighbours), one of the target cannot
+    /// be matched.
+    ///
+    /// Level by level, the descriptors of both images are computed once and
+    /// serve both directions, which then run at the same time (two sequential
+    /// BP sweeps for two cores); only one level's descriptors are alive at once.
     pub(crate) fn run(
         &self,
         a: &Image,
         b: &Image,
         valid_a: Option<&[bool]>,
         valid_b: Option<&[bool]>,
-    ) -> EngineRun {
+        both: bool,
+    ) -> (EngineRun, Option<EngineRun>) {
         let levels = self.plan.len();
         let sift = DenseSiftParams {
             cell_size: self.cell_size,
         };
+        let sizes = level_sizes(a, b, levels);
+        let masks_a = mask_pyramid(valid_a, a.width(), a.height(), levels);
+        let masks_b = mask_pyramid(valid_b, b.width(), b.height(), levels);
+
+        // Paper: descriptors at full resolution, their images blurred and
+        // subsampled (reference code). Improved: an image pyramid, descriptors
+        // computed per level.
         let t0 = Instant::now();
-        let desc = match self.mode {
+        let mut desc_pyramid: Vec<(DescriptorImage, DescriptorImage)> = Vec::new();
+        let mut img_pyramid: Vec<(Image, Image)> = Vec::new();
+        match self.mode {
             Mode::Paper => {
-                let (mut da, mut db) =
-                    rayon::join(|| vec![dense_sift(a, &sift)], || vec![dense_sift(b, &sift)]);
+                desc_pyramid.push(rayon::join(
+                    || dense_sift(a, &sift),
+                    || dense_sift(b, &sift),
+                ));
                 for l in 1..levels {
-                    let (x, y) = rayon::join(
-                        || pyramid::halve_descriptors(&da[l - 1]),
-                        || pyramid::halve_descriptors(&db[l - 1]),
+                    let (da, db) = &desc_pyramid[l - 1];
+                    let next = rayon::join(
+                        || pyramid::halve_descriptors(da),
+                        || pyramid::halve_descriptors(db),
                     );
-                    da.push(x);
-                    db.push(y);
+                    desc_pyramid.push(next);
                 }
-                Descriptors::Downsampled(da, db)
             }
             Mode::Improved => {
-                let (mut ia, mut ib) = (vec![a.clone()], vec![b.clone()]);
+                img_pyramid.push((a.clone(), b.clone()));
                 for l in 1..levels {
-                    let x = pyramid::halve_image(&ia[l - 1]);
-                    let y = pyramid::halve_image(&ib[l - 1]);
-                    ia.push(x);
-                    ib.push(y);
+                    let (ia, ib) = &img_pyramid[l - 1];
+                    let next = (pyramid::halve_image(ia), pyramid::halve_image(ib));
+                    img_pyramid.push(next);
                 }
-                Descriptors::PerLevel(ia, ib)
             }
-        };
-        let pyramid_ms = ms(t0);
-        let mut masks_a = vec![valid_a.map(<[bool]>::to_vec)];
-        let mut masks_b = vec![valid_b.map(<[bool]>::to_vec)];
-        let (mut wa, mut ha, mut wb, mut hb) = (a.width(), a.height(), b.width(), b.height());
-        let mut sizes = vec![(wa, ha, wb, hb)];
-        for _ in 1..levels {
-            let ma = masks_a
-                .last()
-                .and_then(|m| m.as_ref().map(|m| pyramid::halve_mask(m, wa, ha)));
-            let mb = masks_b
-                .last()
-                .and_then(|m| m.as_ref().map(|m| pyramid::halve_mask(m, wb, hb)));
-            masks_a.push(ma);
-            masks_b.push(mb);
-            (wa, ha, wb, hb) = (
-                pyramid::half_size(wa),
-                pyramid::half_size(ha),
-                pyramid::half_size(wb),
-                pyramid::half_size(hb),
-            );
-            sizes.push((wa, ha, wb, hb));
         }
+        let pyramid_ms = ms(t0);
 
-        let mut reports = Vec::with_capacity(levels);
-        let mut flow: [Vec<f32>; 2] = [Vec::new(), Vec::new()];
-        let mut margin = Vec::new();
+        let mut fwd: Option<Direction> = None;
+        let mut bwd: Option<Direction> = None;
         for l in (0..levels).rev() {
-            let (w, h, w2, h2) = sizes[l];
-            let plan = self.plan[l];
-            let offset = if l + 1 == levels {
-                // Top: proportional correspondence when the sizes differ.
-                let ou = (0..w * h).map(|p| proportional(p % w, w, w2)).collect();
-                let ov = (0..w * h).map(|p| proportional(p / w, h, h2)).collect();
-                [ou, ov]
-            } else {
-                let (wc, hc, _, _) = sizes[l + 1];
-                [
-                    pyramid::upsample_offsets(&flow[0], wc, hc, w, h),
-                    pyramid::upsample_offsets(&flow[1], wc, hc, w, h),
-                ]
-            };
-            let space = LabelSpace {
-                width: w,
-                height: h,
-                window: plan.window,
-                offset,
-            };
             let td = Instant::now();
             let computed;
-            let (da, db) = match &desc {
-                Descriptors::Downsampled(da, db) => (&da[l], &db[l]),
-                Descriptors::PerLevel(ia, ib) => {
-                    computed =
-                        rayon::join(|| dense_sift(&ia[l], &sift), || dense_sift(&ib[l], &sift));
-                    (&computed.0, &computed.1)
-                }
+            let (da, db) = if self.mode == Mode::Paper {
+                let (da, db) = &desc_pyramid[l];
+                (da, db)
+            } else {
+                let (ia, ib) = &img_pyramid[l];
+                computed = rayon::join(|| dense_sift(ia, &sift), || dense_sift(ib, &sift));
+                (&computed.0, &computed.1)
             };
             let descriptor_ms = ms(td) + if l + 1 == levels { pyramid_ms } else { 0.0 };
-            let tdata = Instant::now();
-            let mut data = DataTerm::compute(da, db, &space, masks_b[l].as_deref(), self.t);
-            if let Some(ma) = &masks_a[l] {
-                let per = space.states(0) * space.states(1);
-                for (p, _) in ma.iter().enumerate().filter(|(_, v)| !**v) {
-                    data.cost[p * per..(p + 1) * per].fill(0);
-                }
+            let (wa, ha, wb, hb) = sizes[l];
+            fn coarse(
+                d: &Option<Direction>,
+                wc_hc: (usize, usize),
+            ) -> Option<(&[Vec<f32>; 2], (usize, usize))> {
+                d.as_ref().map(|d| (&d.flow, wc_hc))
             }
-            let data_term_ms = ms(tdata);
-            let weights = EnergyWeights {
-                alpha: self.alpha,
-                d: self.d,
-                gamma: self.gamma * (1u32 << l.min(31)) as f32,
-            };
-            let tbp = Instant::now();
-            let mut bp = DualLayerBp::new(&space, &data, weights, MIN_STRIP_ROWS, self.max_strips);
-            bp.warm_start(plan.hierarchy, HIERARCHY_ITERATIONS);
-            let outcome = bp.run(plan.iterations);
-            let bp_ms = ms(tbp);
-            flow = if l == 0 && self.mode == Mode::Improved {
-                super::subpixel::refine(&data, &space, &outcome.labels)
+            let up_a = if l + 1 < levels {
+                Some((sizes[l + 1].0, sizes[l + 1].1))
             } else {
-                [0, 1].map(|k| {
-                    (0..w * h)
-                        .map(|p| space.flow(k, p, usize::from(outcome.labels[k][p])) as f32)
-                        .collect()
-                })
+                None
             };
-            if l == 0 {
-                margin = bp.margins(0);
+            let up_b = if l + 1 < levels {
+                Some((sizes[l + 1].2, sizes[l + 1].3))
+            } else {
+                None
+            };
+            let forward = || {
+                self.level(
+                    l,
+                    da,
+                    db,
+                    (wa, ha, wb, hb),
+                    masks_a[l].as_deref(),
+                    masks_b[l].as_deref(),
+                    up_a.and_then(|s| coarse(&fwd, s)),
+                    descriptor_ms,
+                )
+            };
+            let backward = || {
+                self.level(
+                    l,
+                    db,
+                    da,
+                    (wb, hb, wa, ha),
+                    masks_b[l].as_deref(),
+                    masks_a[l].as_deref(),
+                    up_b.and_then(|s| coarse(&bwd, s)),
+                    descriptor_ms,
+                )
+            };
+            let (f, b) = if both {
+                let (f, b) = rayon::join(forward, backward);
+                (f, Some(b))
+            } else {
+                (forward(), None)
+            };
+            fwd = Some(merge(fwd, f));
+            bwd = match (bwd, b) {
+                (prev, Some(b)) => Some(merge(prev, b)),
+                (prev, None) => prev,
+            };
+        }
+        let finish = |d: Direction| {
+            let [u, v] = d.flow;
+            let mut reports = d.reports;
+            reports.reverse();
+            EngineRun {
+                u,
+                v,
+                margin: d.margin,
+                levels: reports,
             }
-            reports.push(LevelReport {
+        };
+        let fwd = fwd.expect("at least one level ran");
+        (finish(fwd), bwd.map(finish))
+    }
+
+    /// Solves one level in one direction, from the flow of the coarser level
+    /// (`None` at the top).
+    #[allow(clippy::too_many_arguments)]
+    fn level(
+        &self,
+        l: usize,
+        da: &DescriptorImage,
+        db: &DescriptorImage,
+        (w, h, w2, h2): (usize, usize, usize, usize),
+        mask_a: Option<&[bool]>,
+        mask_b: Option<&[bool]>,
+        coarser: Option<(&[Vec<f32>; 2], (usize, usize))>,
+        descriptor_ms: f64,
+    ) -> Direction {
+        let plan = self.plan[l];
+        let offset = match coarser {
+            // Top: proportional correspondence when the sizes differ.
+            None => [
+                (0..w * h).map(|p| proportional(p % w, w, w2)).collect(),
+                (0..w * h).map(|p| proportional(p / w, h, h2)).collect(),
+            ],
+            Some((flow, (wc, hc))) => [
+                pyramid::upsample_offsets(&flow[0], wc, hc, w, h),
+                pyramid::upsample_offsets(&flow[1], wc, hc, w, h),
+            ],
+        };
+        let space = LabelSpace {
+            width: w,
+            height: h,
+            window: plan.window,
+            offset,
+        };
+        let tdata = Instant::now();
+        let mut data = DataTerm::compute(da, db, &space, mask_b, self.t);
+        if let Some(ma) = mask_a {
+            let per = space.states(0) * space.states(1);
+            for (p, _) in ma.iter().enumerate().filter(|(_, v)| !**v) {
+                data.cost[p * per..(p + 1) * per].fill(0);
+            }
+        }
+        let data_term_ms = ms(tdata);
+        let weights = EnergyWeights {
+            alpha: self.alpha,
+            d: self.d,
+            gamma: self.gamma * (1u32 << l.min(31)) as f32,
+        };
+        let tbp = Instant::now();
+        let mut bp = DualLayerBp::new(&space, &data, weights, MIN_STRIP_ROWS, self.max_strips);
+        if self.mode == Mode::Improved {
+            bp.init_dual_from_data();
+        }
+        let warm_iterations = match self.mode {
+            Mode::Paper => HIERARCHY_ITERATIONS,
+            Mode::Improved => IMPROVED_HIERARCHY_ITERATIONS,
+        };
+        bp.warm_start(plan.hierarchy, warm_iterations);
+        let outcome = bp.run(plan.iterations);
+        let bp_ms = ms(tbp);
+        let flow = if l == 0 && self.mode == Mode::Improved {
+            super::subpixel::refine(&data, &space, &outcome.labels)
+        } else {
+            [0, 1].map(|k| {
+                (0..w * h)
+                    .map(|p| space.flow(k, p, usize::from(outcome.labels[k][p])) as f32)
+                    .collect()
+            })
+        };
+        let margin = if l == 0 { bp.margins(0) } else { Vec::new() };
+        let _ = h2;
+        Direction {
+            flow,
+            margin,
+            reports: vec![LevelReport {
                 level: l,
                 width: w,
                 height: h,
@@ -459,17 +587,19 @@ impl Engine {
                 descriptor_ms,
                 data_term_ms,
                 bp_ms,
-            });
-        }
-        reports.reverse();
-        let [u, v] = flow;
-        EngineRun {
-            u,
-            v,
-            margin,
-            levels: reports,
+            }],
         }
     }
+}
+
+/// The newer level's direction state, keeping the reports of the older ones.
+fn merge(prev: Option<Direction>, mut next: Direction) -> Direction {
+    if let Some(p) = prev {
+        let mut reports = p.reports;
+        reports.append(&mut next.reports);
+        next.reports = reports;
+    }
+    next
 }
 
 /// Offset that maps coordinate `i` of a side of `n` to the same relative
@@ -494,7 +624,7 @@ pub fn sift_flow(a: &Image, b: &Image, params: &FlowParams) -> Result<Flow, Dens
     let t0 = Instant::now();
     let a = fill_non_finite(a);
     let b = fill_non_finite(b);
-    let run = params.engine(None).run(&a, &b, None, None);
+    let (run, _) = params.engine(None).run(&a, &b, None, None, false);
     let (w, h) = a.dimensions();
     Ok(Flow {
         u: Image::from_vec(w, h, run.u).expect("flow has the size of image A"),
