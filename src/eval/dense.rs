@@ -6,8 +6,8 @@
 //! Figures per case (the targets in brackets), over the pixels the
 //! renderer says are visible in both micrographs:
 //! coverage of visible pixels [≥ 95 %]; RMSE after removing the best-fit plane
-//! of the error, relative to the true height range [≤ 5 %]; median and
-//! > 1 px fraction of that residual in disparity pixels [≤ 0.2 px, ≤ 3 %];
+//! of the error, relative to the true height range [≤ 5 %]; median of that
+//! residual and its fraction above 1 px, in disparity pixels [≤ 0.2 px, ≤ 3 %];
 //! the height scale, the slope of estimated against true height [1 ± 3 %].
 
 use std::time::Instant;

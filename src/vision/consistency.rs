@@ -49,7 +49,11 @@ pub fn left_right_check(
                 }
             }
         });
-    let rejected = residual.data().iter().map(|&r| !(r <= tolerance)).collect();
+    let rejected = residual
+        .data()
+        .iter()
+        .map(|&r| r.is_nan() || r > tolerance)
+        .collect();
     Consistency { residual, rejected }
 }
 
@@ -65,8 +69,8 @@ mod tests {
         // The right pixels that left x = 3 reaches claim a different match.
         ur.set(5, 1, 1.0);
         let c = left_right_check(&u, &v, &ur, &Image::zeros(10, 4), 1.0);
-        assert!(!c.rejected[1 * 10 + 2]);
-        assert!(c.rejected[1 * 10 + 3]);
+        assert!(!c.rejected[10 + 2]);
+        assert!(c.rejected[10 + 3]);
         // Matches leaving the right image are rejected.
         assert!(c.rejected[9]);
         assert!(c.residual.get(9, 0).is_nan());

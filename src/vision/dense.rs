@@ -189,14 +189,14 @@ fn ms(t: Instant) -> f64 {
 
 /// Combined validity: the mask (if any) and a finite sample.
 fn validity(img: &Image, mask: Option<&[bool]>) -> Result<Vec<bool>, DenseError> {
-    if let Some(m) = mask {
-        if m.len() != img.len() {
-            return Err(DenseError::MaskSize {
-                width: img.width(),
-                height: img.height(),
-                len: m.len(),
-            });
-        }
+    if let Some(m) = mask
+        && m.len() != img.len()
+    {
+        return Err(DenseError::MaskSize {
+            width: img.width(),
+            height: img.height(),
+            len: m.len(),
+        });
     }
     Ok(img
         .data()
@@ -240,7 +240,7 @@ pub fn dense_disparity(
             reason: "half windows are limited to 63 labels".to_owned(),
         });
     }
-    if !(params.lr_tolerance >= 0.0) {
+    if params.lr_tolerance.is_nan() || params.lr_tolerance < 0.0 {
         return Err(DenseError::InvalidParameter {
             name: "lr_tolerance",
             reason: "must be non-negative".to_owned(),

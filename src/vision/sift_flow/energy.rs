@@ -160,16 +160,15 @@ impl DataTerm {
                 .map(move |(x, y)| y * w + x)
         };
         let mut offset = [vec![0i32; cw * ch], vec![0i32; cw * ch]];
-        for k in 0..2 {
+        for (coarse, fine) in offset.iter_mut().zip(&space.offset) {
             for cy in 0..ch {
                 for cx in 0..cw {
-                    let (sum, n) = children(cx, cy).fold((0i64, 0i64), |(s, n), p| {
-                        (s + i64::from(space.offset[k][p]), n + 1)
-                    });
+                    let (sum, n) = children(cx, cy)
+                        .fold((0i64, 0i64), |(s, n), p| (s + i64::from(fine[p]), n + 1));
                     // A mean of i32 offsets.
                     #[allow(clippy::cast_possible_truncation)]
                     let mean = (sum as f64 / n as f64).round() as i32;
-                    offset[k][cy * cw + cx] = mean;
+                    coarse[cy * cw + cx] = mean;
                 }
             }
         }
@@ -380,14 +379,14 @@ mod tests {
                 let p = y * w + x;
                 let (lu, lv) = (usize::from(labels[0][p]), usize::from(labels[1][p]));
                 want += 2.0 * f64::from(data.cost[p * 9 + lv * 3 + lu]);
-                for k in 0..2 {
-                    let f = space.flow(k, p, usize::from(labels[k][p]));
+                for (k, lab) in labels.iter().enumerate() {
+                    let f = space.flow(k, p, usize::from(lab[p]));
                     want += 0.5 * f64::from(f.abs());
                     for q in [(x + 1 < w).then(|| p + 1), (y + 1 < h).then(|| p + w)]
                         .into_iter()
                         .flatten()
                     {
-                        let g = space.flow(k, q, usize::from(labels[k][q]));
+                        let g = space.flow(k, q, usize::from(lab[q]));
                         want += (3.0 * f64::from((f - g).abs())).min(5.0);
                     }
                 }

@@ -251,10 +251,11 @@ impl FlowParams {
         if self.window > max_w || self.top_window > max_w {
             return bad("window", "half windows are limited to 63 labels");
         }
-        if !(self.alpha >= 0.0 && self.d >= 0.0 && self.gamma >= 0.0) {
+        let usable = |v: f32| v.is_finite() && v >= 0.0;
+        if !(usable(self.alpha) && usable(self.d) && usable(self.gamma)) {
             return bad("alpha/d/gamma", "must be finite and non-negative");
         }
-        if self.t.is_some_and(|t| !(t >= 0.0)) {
+        if self.t.is_some_and(|t| t.is_nan() || t < 0.0) {
             return bad("t", "must be non-negative");
         }
         if self.max_strips == 0 {
@@ -322,6 +323,9 @@ pub(crate) fn check_size(w: usize, h: usize, levels: usize) -> Result<(), DenseE
     }
     Ok(())
 }
+
+/// The flow of the coarser level and its size.
+type Coarser<'f> = (&'f [Vec<f32>; 2], (usize, usize));
 
 /// One direction's state between levels: the flow of the level just solved.
 struct Direction {
@@ -437,10 +441,7 @@ impl Engine {
             };
             let descriptor_ms = ms(td) + if l + 1 == levels { pyramid_ms } else { 0.0 };
             let (wa, ha, wb, hb) = sizes[l];
-            fn coarse(
-                d: &Option<Direction>,
-                wc_hc: (usize, usize),
-            ) -> Option<(&[Vec<f32>; 2], (usize, usize))> {
+            fn coarse(d: &Option<Direction>, wc_hc: (usize, usize)) -> Option<Coarser<'_>> {
                 d.as_ref().map(|d| (&d.flow, wc_hc))
             }
             let up_a = if l + 1 < levels {
@@ -515,7 +516,7 @@ impl Engine {
         (w, h, w2, h2): (usize, usize, usize, usize),
         mask_a: Option<&[bool]>,
         mask_b: Option<&[bool]>,
-        coarser: Option<(&[Vec<f32>; 2], (usize, usize))>,
+        coarser: Option<Coarser<'_>>,
         descriptor_ms: f64,
     ) -> Direction {
         let plan = self.plan[l];

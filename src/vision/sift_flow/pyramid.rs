@@ -188,8 +188,8 @@ mod tests {
         let (wc, hc) = (5, 3);
         let coarse: Vec<f32> = (0..wc * hc).map(|p| 1.0 + 0.5 * (p % wc) as f32).collect();
         let fine = upsample_offsets(&coarse, wc, hc, 9, 5);
-        for x in 0..9 {
-            assert_eq!(fine[x], (2.0 + x as f32 / 2.0).round() as i32);
+        for (x, &f) in fine.iter().take(9).enumerate() {
+            assert_eq!(f, (2.0 + x as f32 / 2.0).round() as i32);
         }
     }
 }
