@@ -62,7 +62,7 @@ pub enum DenseError {
 /// | parameter | default | effect |
 /// | --- | --- | --- |
 /// | `mode` | `improved` | `paper`: integer disparity, no occlusion handling, descriptor pyramid as the reference code, plain bilateral filter; `improved`: sub-pixel, left–right check, confidence-weighted filter |
-/// | `cell_size` | 3 | dense SIFT cell, pixels |
+/// | `cell_size` | none | dense SIFT cell, pixels; none = 3 (paper) or 2 (improved: on simulated SEM pairs RMSE 10.5 → 9.0 % and 7.0 → 5.5 % of the relief, height scale 0.71 → 0.79 and 0.80 → 0.87, for 0.3–0.7 % less coverage) |
 /// | `alpha` | 2·255 | α, truncated-L1 smoothness slope |
 /// | `d` | 40·255 | smoothness truncation |
 /// | `gamma` | 0.005·255 | η, small-displacement weight |
@@ -78,7 +78,7 @@ pub enum DenseError {
 #[serde(default, deny_unknown_fields)]
 pub struct DenseParams {
     pub mode: Mode,
-    pub cell_size: usize,
+    pub cell_size: Option<usize>,
     pub alpha: f32,
     pub d: f32,
     pub gamma: f32,
@@ -100,7 +100,7 @@ impl Default for DenseParams {
         let f = FlowParams::default();
         Self {
             mode: Mode::default(),
-            cell_size: f.cell_size,
+            cell_size: None,
             alpha: f.alpha,
             d: f.d,
             gamma: f.gamma,
@@ -125,7 +125,10 @@ impl DenseParams {
     pub fn flow_params(&self) -> FlowParams {
         FlowParams {
             mode: self.mode,
-            cell_size: self.cell_size,
+            cell_size: self.cell_size.unwrap_or(match self.mode {
+                Mode::Paper => 3,
+                Mode::Improved => 2,
+            }),
             alpha: self.alpha,
             d: self.d,
             gamma: self.gamma,
