@@ -71,7 +71,7 @@ pub enum DenseError {
 /// | `top_window` / `window` | 10 / 2 | half search window of the disparity at the top / lower levels |
 /// | `vertical_top_window` / `vertical_window` | 2 / 1 | half search window of the vertical flow (improved mode; the paper searches v as widely as u) |
 /// | `top_iterations` / `iterations` | none | BP iterations at the top / finest level; none = 60 / 30 (paper) or 20 / 8 (improved) |
-/// | `lr_tolerance` | 1.0 | left–right disagreement (pixels) above which a pixel is masked as occluded |
+/// | `lr_tolerance` | 2.0 | left–right disagreement (pixels) above which a pixel is masked as occluded (1.0 rejected 6–13 % of the visible pixels of simulated scenes at 1024×768, θ = 11°; 2.0 keeps coverage ≥ 98 % there with the same RMSE on the dome) |
 /// | `bilateral` | σs = σr = 3 | bilateral grid filter of the disparity |
 /// | `max_strips` | 4 | parallel row strips of the BP sweeps (1 = sequential BP-S) |
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -112,7 +112,7 @@ impl Default for DenseParams {
             vertical_window: 1,
             top_iterations: f.top_iterations,
             iterations: f.iterations,
-            lr_tolerance: 1.0,
+            lr_tolerance: 2.0,
             bilateral: BilateralParams::default(),
             max_strips: f.max_strips,
         }
