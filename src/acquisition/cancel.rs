@@ -73,14 +73,27 @@ impl Cancel {
 mod tests {
     use super::*;
 
-    #[tokio::test]
-    async fn first_reason_wins_and_is_seen_late() {
-        let (handle, cancel) = cancel_pair();
-        assert!(cancel.reason().is_none());
-        handle.cancel("SIGTERM");
-        handle.cancel("SIGINT");
-        assert_eq!(cancel.cancelled().await, "SIGTERM");
-        assert_eq!(cancel.reason().as_deref(), Some("SIGTERM"));
+    #[tokio::test(start_paused = true)]
+    async fn cancellation_reaches_every_clone_and_keeps_the_first_reason() {
+        let (trigger, signal) = cancel_pair();
+        let clone = signal.clone();
+        assert!(signal.reason().is_none());
+        let waiter = tokio::spawn(async move { clone.cancelled().await });
+        trigger.cancel("SIGTERM");
+        trigger.cancel("later");
+        assert_eq!(waiter.await.unwrap(), "SIGTERM");
+        assert!(trigger.is_cancelled());
+        assert_eq!(signal.reason().as_deref(), Some("SIGTERM"));
+        assert_eq!(signal.cancelled().await, "SIGTERM");
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn a_dropped_trigger_never_cancels() {
+        let (trigger, signal) = cancel_pair();
+        drop(trigger);
+        let waited =
+            tokio::time::timeout(std::time::Duration::from_secs(3600), signal.cancelled()).await;
+        assert!(waited.is_err());
     }
 
     #[tokio::test(start_paused = true)]

@@ -1,3 +1,4 @@
 //! Commands of the `sdsem` binary as library functions (anyhow at this edge only).
 
+pub mod flow;
 pub mod rectify;

@@ -90,31 +90,3 @@ pub fn progress_channel() -> (Progress, watch::Receiver<String>) {
     let (tx, rx) = watch::channel(String::from("starting"));
     (Progress { tx }, rx)
 }
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[tokio::test(start_paused = true)]
-    async fn cancellation_reaches_every_clone_and_keeps_the_first_reason() {
-        let (trigger, signal) = cancel_pair();
-        let clone = signal.clone();
-        assert!(!signal.is_cancelled());
-        let waiter = tokio::spawn(async move { clone.cancelled().await });
-        trigger.cancel("SIGTERM");
-        trigger.cancel("later");
-        assert_eq!(waiter.await.unwrap(), "SIGTERM");
-        assert!(signal.is_cancelled());
-        assert_eq!(signal.reason().as_deref(), Some("SIGTERM"));
-        assert_eq!(signal.cancelled().await, "SIGTERM");
-    }
-
-    #[tokio::test(start_paused = true)]
-    async fn a_dropped_trigger_never_cancels() {
-        let (trigger, signal) = cancel_pair();
-        drop(trigger);
-        let waited =
-            tokio::time::timeout(std::time::Duration::from_secs(3600), signal.cancelled()).await;
-        assert!(waited.is_err());
-    }
-}

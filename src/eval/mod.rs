@@ -1,3 +1,20 @@
-//! Evaluation functions that print figures on real and simulated data (not run by `cargo test`).
+//! Evaluations against ground truth: figures the reports quote, printed by
+//! ignored tests and evaluation functions (not run by `cargo test`); they read
+//! `$SDSEM_DATA`, see [`data_dir`].
 
+pub mod dense;
+pub mod flow;
 pub mod sparse;
+pub mod synthetic;
+
+use std::path::PathBuf;
+
+/// Where the shared evaluation data lives: `$SDSEM_DATA`, else
+/// `<repository root>/../shared/data`.
+#[must_use]
+pub fn data_dir() -> PathBuf {
+    std::env::var_os("SDSEM_DATA").map_or_else(
+        || PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data"),
+        PathBuf::from,
+    )
+}

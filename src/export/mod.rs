@@ -10,6 +10,7 @@
 
 pub mod atomic;
 mod error;
+pub mod flo;
 pub mod gsf;
 pub mod height_tiff;
 pub mod ply;

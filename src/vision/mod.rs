@@ -13,3 +13,10 @@ pub mod sparse;
 pub mod warp;
 
 pub use image::Image;
+pub mod bilateral_grid;
+pub mod consistency;
+pub mod dense;
+pub mod dense_sift;
+pub mod depth;
+pub mod sift_flow;
+pub mod subpixel;

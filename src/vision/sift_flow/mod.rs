@@ -1,0 +1,753 @@
+//! SIFT flow (Liu, Yuen, Torralba, PAMI 2011): dense correspondence by
+//! matching dense SIFT descriptors under the energy of eq. (10), minimised by
+//! dual-layer belief propagation (BP-S), coarse to fine.
+//!
+//! [`sift_flow`] matches two arbitrary images (`sdsem flow`); the rectified
+//! stereo stage ([`crate::vision::dense`]) drives the same engine with a
+//! small vertical window.
+
+pub mod bp;
+pub mod energy;
+pub mod pyramid;
+
+use std::time::Instant;
+
+use serde::{Deserialize, Serialize};
+
+use self::bp::{DualLayerBp, MAX_STATES};
+use self::energy::{DataTerm, EnergyWeights, LabelSpace};
+use super::Image;
+use super::dense::DenseError;
+use super::dense_sift::{DenseSiftParams, DescriptorImage, dense_sift};
+
+/// Which pipeline to run.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Mode {
+    /// The SD-SEM paper's pipeline as published (Liu et al.'s public code):
+    /// descriptors computed once at full resolution and their images blurred
+    /// and subsampled for the pyramid, integer flow, no occlusion handling.
+    Paper,
+    /// This implementation's improvements: descriptors recomputed on each
+    /// level of an image pyramid, sub-pixel flow, and for stereo a left–right
+    /// consistency check, confidence-weighted filtering.
+    #[default]
+    Improved,
+}
+
+/// Parameters of SIFT flow, names as in eq. (10) and the reference code.
+///
+/// | parameter | default | effect |
+/// | --- | --- | --- |
+/// | `mode` | `improved` | `paper` reproduces the published pipeline (see [`Mode`]) |
+/// | `cell_size` | 3 | dense SIFT cell, pixels (descriptor spans 4 cells) |
+/// | `alpha` | 2·255 | α, slope of the truncated L1 smoothness: larger is smoother |
+/// | `d` | 40·255 | truncation of the smoothness: lower keeps flow discontinuities sharper |
+/// | `gamma` | 0.005·255 | η, weight of the small-displacement term \|u\| + \|v\| (doubled per coarser level) |
+/// | `t` | none | truncation of the data term; none = plain L1 as the reference code |
+/// | `levels` | 4 | pyramid levels (the top is 1/2^(levels−1) of the image) |
+/// | `top_window` | 10 | half search window at the top level, top-level pixels |
+/// | `window` | 2 | half search window around the upsampled flow at lower levels |
+/// | `top_iterations` | none | BP iterations at the top level; none = 60 (paper) or 20 (improved) |
+/// | `iterations` | none | BP iterations at the finest level (falling to 60 % at the coarsest but one); none = 30 (paper) or 8 (improved) |
+/// | `max_strips` | 4 | parallel row strips of the BP sweeps; 1 = strictly sequential BP-S |
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct FlowParams {
+    pub mode: Mode,
+    pub cell_size: usize,
+    pub alpha: f32,
+    pub d: f32,
+    pub gamma: f32,
+    pub t: Option<f32>,
+    pub levels: usize,
+    pub top_window: usize,
+    pub window: usize,
+    pub top_iterations: Option<usize>,
+    pub iterations: Option<usize>,
+    pub max_strips: usize,
+}
+
+impl Default for FlowParams {
+    fn default() -> Self {
+        Self {
+            mode: Mode::default(),
+            cell_size: 3,
+            alpha: 2.0 * 255.0,
+            d: 40.0 * 255.0,
+            gamma: 0.005 * 255.0,
+            t: None,
+            levels: 4,
+            top_window: 10,
+            window: 2,
+            top_iterations: None,
+            iterations: None,
+            max_strips: 4,
+        }
+    }
+}
+
+/// What one pyramid level did (goes into report.json).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct LevelReport {
+    /// 0 = full resolution.
+    pub level: usize,
+    pub width: usize,
+    pub height: usize,
+    /// Half windows of the u and v layers.
+    pub window_u: usize,
+    pub window_v: usize,
+    pub iterations: usize,
+    /// Energy (10) after every BP iteration (the paper's Fig. 8).
+    pub energy: Vec<f64>,
+    pub descriptor_ms: f64,
+    pub data_term_ms: f64,
+    pub bp_ms: f64,
+}
+
+/// A dense correspondence from image A to image B: pixel `(x, y)` of A
+/// matches `(x + u, y + v)` of B.
+#[derive(Debug, Clone)]
+pub struct Flow {
+    pub u: Image,
+    pub v: Image,
+    /// Finest level first.
+    pub levels: Vec<LevelReport>,
+    pub total_ms: f64,
+}
+
+impl Flow {
+    /// Figures of the flow for report.json (Table 4's v²/u² ratio).
+    #[must_use]
+    pub fn stats(&self) -> FlowStats {
+        FlowStats::of(&self.u, &self.v)
+    }
+}
+
+/// Summary of a flow field: how vertical it is (paper Table 4 reports the
+/// ratio Σv²/Σu² before and after rectification).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct FlowStats {
+    /// Σv² / Σu² over the finite pixels.
+    pub v2_over_u2: f64,
+    /// √(mean v²), pixels.
+    pub rms_v: f64,
+    /// √(mean u²), pixels.
+    pub rms_u: f64,
+}
+
+impl FlowStats {
+    /// Over the pixels where both components are finite.
+    #[must_use]
+    pub fn of(u: &Image, v: &Image) -> Self {
+        let (mut su, mut sv, mut n) = (0f64, 0f64, 0usize);
+        for (&a, &b) in u.data().iter().zip(v.data()) {
+            if a.is_finite() && b.is_finite() {
+                su += f64::from(a).powi(2);
+                sv += f64::from(b).powi(2);
+                n += 1;
+            }
+        }
+        let n = n.max(1) as f64;
+        Self {
+            v2_over_u2: if su > 0.0 { sv / su } else { f64::NAN },
+            rms_v: (sv / n).sqrt(),
+            rms_u: (su / n).sqrt(),
+        }
+    }
+}
+
+/// Per-level plan of the coarse-to-fine engine.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct LevelPlan {
+    pub window: [usize; 2],
+    pub iterations: usize,
+    /// Coarser grids of the multigrid BP initialisation.
+    pub hierarchy: usize,
+}
+
+/// Multigrid grids below the top level in the improved mode (the upsampled
+/// flow already starts BP near the solution there).
+const IMPROVED_LOWER_HIERARCHY: usize = 3;
+
+/// BP iterations on each coarser grid of the multigrid initialisation in the
+/// improved mode (half the reference's: RubberWhale's EPE does not change).
+const IMPROVED_HIERARCHY_ITERATIONS: usize = 10;
+
+/// BP iterations on each coarser grid of the multigrid initialisation (reference code).
+const HIERARCHY_ITERATIONS: usize = 20;
+
+/// Everything the engine needs besides the images.
+#[derive(Debug, Clone)]
+pub(crate) struct Engine {
+    pub mode: Mode,
+    pub cell_size: usize,
+    pub alpha: f32,
+    pub d: f32,
+    pub gamma: f32,
+    pub t: Option<f32>,
+    /// Finest first.
+    pub plan: Vec<LevelPlan>,
+    pub max_strips: usize,
+}
+
+/// The finest level's result of the engine.
+pub(crate) struct EngineRun {
+    pub u: Vec<f32>,
+    pub v: Vec<f32>,
+    /// Per pixel, how much worse the second-best distinct u label is than the
+    /// best (belief units); large = unambiguous.
+    pub margin: Vec<f32>,
+    pub levels: Vec<LevelReport>,
+}
+
+/// Rows per BP strip at least (strips below this height would lose more to
+/// late boundary messages than they gain).
+const MIN_STRIP_ROWS: usize = 48;
+/// Smallest side of the top level.
+const MIN_TOP_SIDE: usize = 8;
+
+fn ms(t: Instant) -> f64 {
+    t.elapsed().as_secs_f64() * 1e3
+}
+
+impl FlowParams {
+    /// Iterations of level `l` (0 = finest) as the reference code spreads
+    /// them: the top gets `top_iterations`, the others fall linearly from
+    /// `iterations` at the finest to 60 % of it at the coarsest.
+    fn iterations_at(&self, l: usize) -> usize {
+        // With the multigrid warm start the energy barely moves after a few
+        // sweeps (RubberWhale: EPE 0.289 px with 30/60 iterations, 0.288 with 3/10).
+        let (fine, top) = match self.mode {
+            Mode::Paper => (30, 60),
+            Mode::Improved => (8, 20),
+        };
+        if l + 1 == self.levels {
+            return self.top_iterations.unwrap_or(top);
+        }
+        let n = self.iterations.unwrap_or(fine) as f64;
+        let frac = if self.levels > 1 {
+            l as f64 / (self.levels - 1) as f64
+        } else {
+            0.0
+        };
+        (n - 0.4 * n * frac).round() as usize
+    }
+
+    pub(crate) fn validate(&self) -> Result<(), DenseError> {
+        let bad = |name: &'static str, reason: &str| {
+            Err(DenseError::InvalidParameter {
+                name,
+                reason: reason.to_owned(),
+            })
+        };
+        let max_w = (MAX_STATES - 1) / 2;
+        if self.levels == 0 {
+            return bad("levels", "needs at least 1 pyramid level");
+        }
+        if self.cell_size == 0 {
+            return bad("cell_size", "must be at least 1 pixel");
+        }
+        if self.window > max_w || self.top_window > max_w {
+            return bad("window", "half windows are limited to 63 labels");
+        }
+        let usable = |v: f32| v.is_finite() && v >= 0.0;
+        if !(usable(self.alpha) && usable(self.d) && usable(self.gamma)) {
+            return bad("alpha/d/gamma", "must be finite and non-negative");
+        }
+        if self.t.is_some_and(|t| t.is_nan() || t < 0.0) {
+            return bad("t", "must be non-negative");
+        }
+        if self.max_strips == 0 {
+            return bad("max_strips", "must be at least 1");
+        }
+        Ok(())
+    }
+
+    pub(crate) fn engine(&self, vertical: Option<(usize, usize)>) -> Engine {
+        let plan = (0..self.levels)
+            .map(|l| {
+                let top = l + 1 == self.levels;
+                let wu = if top { self.top_window } else { self.window };
+                let wv = match vertical {
+                    Some((w_low, w_top)) => {
+                        if top {
+                            w_top
+                        } else {
+                            w_low
+                        }
+                    }
+                    None => wu,
+                };
+                LevelPlan {
+                    window: [wu, wv],
+                    iterations: self.iterations_at(l),
+                    // The reference code: 2 grids at the top, levels − 1 − l below.
+                    hierarchy: if top {
+                        2
+                    } else if self.mode == Mode::Paper {
+                        self.levels - 1 - l
+                    } else {
+                        IMPROVED_LOWER_HIERARCHY
+                    },
+                }
+            })
+            .collect();
+        Engine {
+            mode: self.mode,
+            cell_size: self.cell_size,
+            alpha: self.alpha,
+            d: self.d,
+            gamma: self.gamma,
+            t: self.t,
+            plan,
+            max_strips: self.max_strips,
+        }
+    }
+}
+
+/// Checks that the top level of `levels` still has a usable size.
+pub(crate) fn check_size(w: usize, h: usize, levels: usize) -> Result<(), DenseError> {
+    let (mut tw, mut th) = (w, h);
+    for _ in 1..levels {
+        tw = pyramid::half_size(tw);
+        th = pyramid::half_size(th);
+    }
+    if tw < MIN_TOP_SIDE || th < MIN_TOP_SIDE {
+        return Err(DenseError::TooSmall {
+            width: w,
+            height: h,
+            levels,
+            min_top: MIN_TOP_SIDE,
+        });
+    }
+    Ok(())
+}
+
+/// The flow of the coarser level and its size.
+type Coarser<'f> = (&'f [Vec<f32>; 2], (usize, usize));
+
+/// One direction's state between levels: the flow of the level just solved.
+struct Direction {
+    flow: [Vec<f32>; 2],
+    margin: Vec<f32>,
+    reports: Vec<LevelReport>,
+}
+
+/// Sizes of both images at every level, finest first: `(w_a, h_a, w_b, h_b)`.
+fn level_sizes(a: &Image, b: &Image, levels: usize) -> Vec<(usize, usize, usize, usize)> {
+    let mut sizes = vec![(a.width(), a.height(), b.width(), b.height())];
+    for l in 1..levels {
+        let (wa, ha, wb, hb) = sizes[l - 1];
+        sizes.push((
+            pyramid::half_size(wa),
+            pyramid::half_size(ha),
+            pyramid::half_size(wb),
+            pyramid::half_size(hb),
+        ));
+    }
+    sizes
+}
+
+/// Masks of every level, finest first.
+fn mask_pyramid(
+    mask: Option<&[bool]>,
+    w: usize,
+    h: usize,
+    levels: usize,
+) -> Vec<Option<Vec<bool>>> {
+    let mut out = vec![mask.map(<[bool]>::to_vec)];
+    let (mut w, mut h) = (w, h);
+    for _ in 1..levels {
+        let next = out
+            .last()
+            .and_then(|m| m.as_ref().map(|m| pyramid::halve_mask(m, w, h)));
+        out.push(next);
+        (w, h) = (pyramid::half_size(w), pyramid::half_size(h));
+    }
+    out
+}
+
+impl Engine {
+    /// Runs coarse to fine from `a` to `b` and, when `both` is set, from `b`
+    /// to `a` as well (for the left–right check). `valid_a`/`valid_b` mark
+    /// usable pixels (row-major); an invalid pixel of the source image has no
+    /// data term (its flow comes from its neighbours), one of the target cannot
+    /// be matched.
+    ///
+    /// Level by level, the descriptors of both images are computed once and
+    /// serve both directions, which then run at the same time (two sequential
+    /// BP sweeps for two cores); only one level's descriptors are alive at once.
+    pub(crate) fn run(
+        &self,
+        a: &Image,
+        b: &Image,
+        valid_a: Option<&[bool]>,
+        valid_b: Option<&[bool]>,
+        both: bool,
+    ) -> (EngineRun, Option<EngineRun>) {
+        let levels = self.plan.len();
+        let sift = DenseSiftParams {
+            cell_size: self.cell_size,
+        };
+        let sizes = level_sizes(a, b, levels);
+        let masks_a = mask_pyramid(valid_a, a.width(), a.height(), levels);
+        let masks_b = mask_pyramid(valid_b, b.width(), b.height(), levels);
+
+        // Paper: descriptors at full resolution, their images blurred and
+        // subsampled (reference code). Improved: an image pyramid, descriptors
+        // computed per level.
+        let t0 = Instant::now();
+        let mut desc_pyramid: Vec<(DescriptorImage, DescriptorImage)> = Vec::new();
+        let mut img_pyramid: Vec<(Image, Image)> = Vec::new();
+        match self.mode {
+            Mode::Paper => {
+                desc_pyramid.push(rayon::join(
+                    || dense_sift(a, &sift),
+                    || dense_sift(b, &sift),
+                ));
+                for l in 1..levels {
+                    let (da, db) = &desc_pyramid[l - 1];
+                    let next = rayon::join(
+                        || pyramid::halve_descriptors(da),
+                        || pyramid::halve_descriptors(db),
+                    );
+                    desc_pyramid.push(next);
+                }
+            }
+            Mode::Improved => {
+                img_pyramid.push((a.clone(), b.clone()));
+                for l in 1..levels {
+                    let (ia, ib) = &img_pyramid[l - 1];
+                    let next = (pyramid::halve_image(ia), pyramid::halve_image(ib));
+                    img_pyramid.push(next);
+                }
+            }
+        }
+        let pyramid_ms = ms(t0);
+
+        let mut fwd: Option<Direction> = None;
+        let mut bwd: Option<Direction> = None;
+        for l in (0..levels).rev() {
+            let td = Instant::now();
+            let computed;
+            let (da, db) = if self.mode == Mode::Paper {
+                let (da, db) = &desc_pyramid[l];
+                (da, db)
+            } else {
+                let (ia, ib) = &img_pyramid[l];
+                computed = rayon::join(|| dense_sift(ia, &sift), || dense_sift(ib, &sift));
+                (&computed.0, &computed.1)
+            };
+            let descriptor_ms = ms(td) + if l + 1 == levels { pyramid_ms } else { 0.0 };
+            let (wa, ha, wb, hb) = sizes[l];
+            fn coarse(d: &Option<Direction>, wc_hc: (usize, usize)) -> Option<Coarser<'_>> {
+                d.as_ref().map(|d| (&d.flow, wc_hc))
+            }
+            let up_a = if l + 1 < levels {
+                Some((sizes[l + 1].0, sizes[l + 1].1))
+            } else {
+                None
+            };
+            let up_b = if l + 1 < levels {
+                Some((sizes[l + 1].2, sizes[l + 1].3))
+            } else {
+                None
+            };
+            let forward = || {
+                self.level(
+                    l,
+                    da,
+                    db,
+                    (wa, ha, wb, hb),
+                    masks_a[l].as_deref(),
+                    masks_b[l].as_deref(),
+                    up_a.and_then(|s| coarse(&fwd, s)),
+                    descriptor_ms,
+                )
+            };
+            let backward = || {
+                self.level(
+                    l,
+                    db,
+                    da,
+                    (wb, hb, wa, ha),
+                    masks_b[l].as_deref(),
+                    masks_a[l].as_deref(),
+                    up_b.and_then(|s| coarse(&bwd, s)),
+                    descriptor_ms,
+                )
+            };
+            let (f, b) = if both {
+                let (f, b) = rayon::join(forward, backward);
+                (f, Some(b))
+            } else {
+                (forward(), None)
+            };
+            fwd = Some(merge(fwd, f));
+            bwd = match (bwd, b) {
+                (prev, Some(b)) => Some(merge(prev, b)),
+                (prev, None) => prev,
+            };
+        }
+        let finish = |d: Direction| {
+            let [u, v] = d.flow;
+            let mut reports = d.reports;
+            reports.reverse();
+            EngineRun {
+                u,
+                v,
+                margin: d.margin,
+                levels: reports,
+            }
+        };
+        let fwd = fwd.expect("at least one level ran");
+        (finish(fwd), bwd.map(finish))
+    }
+
+    /// Solves one level in one direction, from the flow of the coarser level
+    /// (`None` at the top).
+    #[allow(clippy::too_many_arguments)]
+    fn level(
+        &self,
+        l: usize,
+        da: &DescriptorImage,
+        db: &DescriptorImage,
+        (w, h, w2, h2): (usize, usize, usize, usize),
+        mask_a: Option<&[bool]>,
+        mask_b: Option<&[bool]>,
+        coarser: Option<Coarser<'_>>,
+        descriptor_ms: f64,
+    ) -> Direction {
+        let plan = self.plan[l];
+        let offset = match coarser {
+            // Top: proportional correspondence when the sizes differ.
+            None => [
+                (0..w * h).map(|p| proportional(p % w, w, w2)).collect(),
+                (0..w * h).map(|p| proportional(p / w, h, h2)).collect(),
+            ],
+            Some((flow, (wc, hc))) => [
+                pyramid::upsample_offsets(&flow[0], wc, hc, w, h),
+                pyramid::upsample_offsets(&flow[1], wc, hc, w, h),
+            ],
+        };
+        let space = LabelSpace {
+            width: w,
+            height: h,
+            window: plan.window,
+            offset,
+        };
+        let tdata = Instant::now();
+        let mut data = DataTerm::compute(da, db, &space, mask_b, self.t);
+        if let Some(ma) = mask_a {
+            let per = space.states(0) * space.states(1);
+            for (p, _) in ma.iter().enumerate().filter(|(_, v)| !**v) {
+                data.cost[p * per..(p + 1) * per].fill(0);
+            }
+        }
+        let data_term_ms = ms(tdata);
+        let weights = EnergyWeights {
+            alpha: self.alpha,
+            d: self.d,
+            gamma: self.gamma * (1u32 << l.min(31)) as f32,
+        };
+        let tbp = Instant::now();
+        let mut bp = DualLayerBp::new(&space, &data, weights, MIN_STRIP_ROWS, self.max_strips);
+        if self.mode == Mode::Improved {
+            bp.init_dual_from_data();
+        }
+        let warm_iterations = match self.mode {
+            Mode::Paper => HIERARCHY_ITERATIONS,
+            Mode::Improved => IMPROVED_HIERARCHY_ITERATIONS,
+        };
+        bp.warm_start(plan.hierarchy, warm_iterations);
+        let outcome = bp.run(plan.iterations);
+        let bp_ms = ms(tbp);
+        let flow = if l == 0 && self.mode == Mode::Improved {
+            super::subpixel::refine(&data, &space, &outcome.labels)
+        } else {
+            [0, 1].map(|k| {
+                (0..w * h)
+                    .map(|p| space.flow(k, p, usize::from(outcome.labels[k][p])) as f32)
+                    .collect()
+            })
+        };
+        let margin = if l == 0 { bp.margins(0) } else { Vec::new() };
+        let _ = h2;
+        Direction {
+            flow,
+            margin,
+            reports: vec![LevelReport {
+                level: l,
+                width: w,
+                height: h,
+                window_u: plan.window[0],
+                window_v: plan.window[1],
+                iterations: plan.iterations,
+                energy: outcome.energy,
+                descriptor_ms,
+                data_term_ms,
+                bp_ms,
+            }],
+        }
+    }
+}
+
+/// The newer level's direction state, keeping the reports of the older ones.
+fn merge(prev: Option<Direction>, mut next: Direction) -> Direction {
+    if let Some(p) = prev {
+        let mut reports = p.reports;
+        reports.append(&mut next.reports);
+        next.reports = reports;
+    }
+    next
+}
+
+/// Offset that maps coordinate `i` of a side of `n` to the same relative
+/// position of a side of `n2` (0 when the sizes agree).
+fn proportional(i: usize, n: usize, n2: usize) -> i32 {
+    if n == n2 || n < 2 {
+        return 0;
+    }
+    let target = i as f64 * (n2 - 1) as f64 / (n - 1) as f64;
+    (target - i as f64).round() as i32
+}
+
+/// Dense SIFT flow from `a` to `b` (two arbitrary images, no rectification).
+///
+/// # Errors
+/// [`DenseError::InvalidParameter`] for unusable parameters,
+/// [`DenseError::TooSmall`] when an image is too small for the pyramid.
+pub fn sift_flow(a: &Image, b: &Image, params: &FlowParams) -> Result<Flow, DenseError> {
+    params.validate()?;
+    check_size(a.width(), a.height(), params.levels)?;
+    check_size(b.width(), b.height(), params.levels)?;
+    let t0 = Instant::now();
+    let a = fill_non_finite(a);
+    let b = fill_non_finite(b);
+    let (run, _) = params.engine(None).run(&a, &b, None, None, false);
+    let (w, h) = a.dimensions();
+    Ok(Flow {
+        u: Image::from_vec(w, h, run.u).expect("flow has the size of image A"),
+        v: Image::from_vec(w, h, run.v).expect("flow has the size of image A"),
+        levels: run.levels,
+        total_ms: ms(t0),
+    })
+}
+
+/// Replaces non-finite samples by the nearest finite one on the same row (or
+/// the image mean when a row has none), so that no false edge enters a descriptor.
+pub(crate) fn fill_non_finite(img: &Image) -> Image {
+    if img.data().iter().all(|v| v.is_finite()) {
+        return img.clone();
+    }
+    let (sum, n) = img
+        .data()
+        .iter()
+        .filter(|v| v.is_finite())
+        .fold((0f64, 0usize), |(s, n), &v| (s + f64::from(v), n + 1));
+    let mean = if n == 0 { 0.0 } else { (sum / n as f64) as f32 };
+    let mut out = img.clone();
+    let w = img.width();
+    let mut left = vec![None; w];
+    for y in 0..img.height() {
+        let src = img.row(y);
+        let mut last = None;
+        for x in 0..w {
+            if src[x].is_finite() {
+                last = Some(x);
+            }
+            left[x] = last;
+        }
+        let row = out.row_mut(y);
+        let mut next = None;
+        for x in (0..w).rev() {
+            if src[x].is_finite() {
+                next = Some(x);
+                continue;
+            }
+            row[x] = match (left[x], next) {
+                (Some(l), Some(r)) => src[if x - l <= r - x { l } else { r }],
+                (Some(l), None) => src[l],
+                (None, Some(r)) => src[r],
+                (None, None) => mean,
+            };
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Smooth random texture (sum of a few hundred random blobs).
+    pub(crate) fn texture(w: usize, h: usize, seed: u64) -> Image {
+        let mut s = seed.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1);
+        let mut rnd = move || {
+            s = s
+                .wrapping_mul(6_364_136_223_846_793_005)
+                .wrapping_add(1_442_695_040_888_963_407);
+            (s >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let blobs: Vec<(f64, f64, f64, f64)> = (0..(w * h / 40).max(20))
+            .map(|_| {
+                (
+                    rnd() * w as f64,
+                    rnd() * h as f64,
+                    1.0 + 3.0 * rnd(),
+                    rnd() - 0.5,
+                )
+            })
+            .collect();
+        let mut img = Image::zeros(w, h);
+        for &(cx, cy, r, a) in &blobs {
+            let (x0, x1) = (
+                (cx - 3.0 * r).max(0.0) as usize,
+                ((cx + 3.0 * r) as usize).min(w - 1),
+            );
+            let (y0, y1) = (
+                (cy - 3.0 * r).max(0.0) as usize,
+                ((cy + 3.0 * r) as usize).min(h - 1),
+            );
+            for y in y0..=y1 {
+                for x in x0..=x1 {
+                    let d2 = ((x as f64 - cx).powi(2) + (y as f64 - cy).powi(2)) / (r * r);
+                    let v = img.get(x, y) + (a * (-d2 / 2.0).exp()) as f32;
+                    img.set(x, y, v);
+                }
+            }
+        }
+        img.map(|v| 0.5 + 0.5 * v)
+    }
+
+    #[test]
+    fn recovers_a_global_shift() {
+        let (w, h) = (96, 80);
+        let big = texture(w + 20, h + 20, 5);
+        let a = Image::from_fn(w, h, |x, y| big.get(x + 10, y + 10));
+        // b(x + 3, y − 2) = a(x, y): the flow is (3, −2).
+        let b = Image::from_fn(w, h, |x, y| big.get(x + 7, y + 12));
+        for mode in [Mode::Paper, Mode::Improved] {
+            let params = FlowParams {
+                mode,
+                levels: 3,
+                ..FlowParams::default()
+            };
+            let f = sift_flow(&a, &b, &params).unwrap();
+            let good = (10..h - 10)
+                .flat_map(|y| (10..w - 10).map(move |x| (x, y)))
+                .filter(|&(x, y)| {
+                    (f.u.get(x, y) - 3.0).abs() < 0.25 && (f.v.get(x, y) + 2.0).abs() < 0.25
+                })
+                .count();
+            let total = (w - 20) * (h - 20);
+            assert!(
+                good * 100 >= 98 * total,
+                "{mode:?}: {good} of {total} correct; u(40,40) = {}, v = {}",
+                f.u.get(40, 40),
+                f.v.get(40, 40)
+            );
+        }
+    }
+}
