@@ -6,6 +6,7 @@ pub mod fundamental;
 pub mod image;
 pub mod matching;
 pub mod orsa;
+pub mod pipeline;
 pub mod rectify;
 pub mod registration;
 pub mod sift;

@@ -1,0 +1,342 @@
+//! The SD-SEM reconstruction of a stereo pair, start to finish (Baghaie et al.,
+//! Micron 97, 2017):
+//!
+//! ```text
+//! left, right ─▶ sparse SIFT ─▶ matching ─▶ ORSA ─▶ quasi-Euclidean rectification
+//!             ─▶ dense SIFT ─▶ SIFT flow (dual-layer BP, coarse to fine)
+//!             ─▶ [sub-pixel, left–right check] ─▶ bilateral grid
+//!             ─▶ depth h = d·p / (2 sin(θ/2)) on the left micrograph's grid
+//! ```
+//!
+//! Pure: images and numbers in, images and a serialisable report out.
+
+use std::time::Instant;
+
+use nalgebra::{Matrix3, Vector3};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use super::Image;
+use super::dense::{DenseError, DenseParams, DenseStats, dense_disparity};
+use super::depth::{StereoGeometry, height_on_left_grid};
+use super::sift_flow::Mode;
+use super::sparse::{SparseError, SparseParams, rectify_pair};
+
+/// Parameters of the whole reconstruction (`[reconstruction]` in the configuration).
+///
+/// | parameter | default | effect |
+/// | --- | --- | --- |
+/// | `mode` | `improved` | `paper` reproduces the paper's pipeline; `improved` adds sub-pixel disparity, occlusion masking and confidence |
+/// | `sparse` | see [`SparseParams`] | SIFT, matching, ORSA, rectification |
+/// | `dense` | see [`DenseParams`] | dense SIFT, SIFT flow, bilateral grid (its `mode` follows `mode` above) |
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ReconstructionParams {
+    pub mode: Mode,
+    pub sparse: SparseParams,
+    pub dense: DenseParams,
+}
+
+impl ReconstructionParams {
+    /// The dense parameters with the pipeline's mode.
+    #[must_use]
+    pub fn dense_params(&self) -> DenseParams {
+        DenseParams {
+            mode: self.mode,
+            ..self.dense
+        }
+    }
+}
+
+/// How the pair was taken.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct PairGeometry {
+    /// θ = tilt(right) − tilt(left), degrees, in (0, 60].
+    pub tilt_deg: f64,
+    /// Pixel size of both micrographs, µm.
+    pub pixel_size_um: f64,
+    /// φ: direction of the tilt axis in the image, degrees from +x towards +y.
+    pub tilt_axis_deg: f64,
+}
+
+/// Largest tilt difference accepted: beyond it the pair hardly overlaps and
+/// the small-angle matching of the method breaks down.
+pub const MAX_TILT_DEG: f64 = 60.0;
+
+/// Why a pair cannot be reconstructed.
+#[derive(Debug, thiserror::Error)]
+pub enum ReconstructError {
+    #[error("tilt difference θ = {0}° must be greater than 0° and at most {MAX_TILT_DEG}°")]
+    Tilt(f64),
+    #[error("pixel size {0} µm must be a positive number")]
+    PixelSize(f64),
+    #[error("tilt axis angle {0}° is not a finite number")]
+    TiltAxis(f64),
+    #[error("sparse stage: {0}")]
+    Sparse(#[from] SparseError),
+    #[error("dense stage: {0}")]
+    Dense(#[from] DenseError),
+    #[error(
+        "no height could be computed: the rectified images do not overlap (is it the same specimen area?)"
+    )]
+    NoOverlap,
+}
+
+/// Wall time of each stage, ms.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize)]
+pub struct StageTimings {
+    pub sparse_ms: f64,
+    pub dense_ms: f64,
+    pub depth_ms: f64,
+    pub total_ms: f64,
+}
+
+/// The sparse stage in figures (the paper's Table 2 and the rectification).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct SparseReport {
+    pub keypoints_left: usize,
+    pub keypoints_right: usize,
+    pub matches: usize,
+    pub inliers: usize,
+    pub model: String,
+    pub fallback_reason: Option<String>,
+    pub log10_nfa: f64,
+    pub threshold_px: f64,
+    pub orsa_iterations: usize,
+    pub initial_error_px: f64,
+    pub final_error_px: f64,
+    pub h_left: [[f64; 3]; 3],
+    pub h_right: [[f64; 3]; 3],
+    pub canvas: (usize, usize),
+    pub timings: super::sparse::Timings,
+}
+
+/// The height map in figures.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct DepthReport {
+    /// Pixels of the left micrograph with a height.
+    pub valid_fraction: f64,
+    /// 1st and 99th percentile of the heights, µm.
+    pub height_p01_um: f64,
+    pub height_p99_um: f64,
+    /// µm of height per pixel of disparity: p / (2 sin(θ/2)), eq. (19).
+    pub um_per_disparity_px: f64,
+}
+
+/// Everything a reconstruction reports (report.json, `/recon/report`).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct ReconReport {
+    pub mode: Mode,
+    pub geometry: PairGeometry,
+    pub image_size: (usize, usize),
+    pub sparse: SparseReport,
+    pub dense: DenseStats,
+    pub depth: DepthReport,
+    pub timings: StageTimings,
+}
+
+/// The result on the left micrograph's grid.
+#[derive(Debug, Clone)]
+pub struct Reconstruction {
+    /// Height, µm, positive towards the beam, `NaN` unknown (DESIGN §3).
+    pub height_um: Image,
+    /// Confidence in `[0, 1]` of each height (0 where unknown).
+    pub confidence: Image,
+    pub report: ReconReport,
+}
+
+/// Reconstructs the surface seen in a stereo pair.
+///
+/// # Errors
+/// [`ReconstructError`] for an impossible geometry, a pair the sparse stage
+/// cannot rectify reliably (never a silently wrong warp), a dense failure, or
+/// rectified images that do not overlap.
+pub fn reconstruct(
+    left: &Image,
+    right: &Image,
+    geometry: &PairGeometry,
+    params: &ReconstructionParams,
+) -> Result<Reconstruction, ReconstructError> {
+    validate(geometry)?;
+    let t_total = Instant::now();
+
+    let t = Instant::now();
+    let rect = rectify_pair(left, right, Some(geometry.tilt_axis_deg), &params.sparse)?;
+    let sparse_ms = ms(t);
+
+    let t = Instant::now();
+    let disp = dense_disparity(
+        &rect.left.image,
+        &rect.right.image,
+        Some(&rect.left.valid),
+        Some(&rect.right.valid),
+        &params.dense_params(),
+    )?;
+    let dense_ms = ms(t);
+
+    let t = Instant::now();
+    let r = &rect.sparse.rectification;
+    let stereo = StereoGeometry {
+        tilt_deg: geometry.tilt_deg,
+        pixel_size_um: geometry.pixel_size_um,
+        tilt_axis_deg: geometry.tilt_axis_deg,
+    };
+    let (w, h) = left.dimensions();
+    let height_um = height_on_left_grid(&disp.disparity, &r.h_left, &r.h_right, &stereo, w, h)?;
+    let confidence = resample_to_left_grid(&disp.confidence, &r.h_left, w, h);
+    let depth = depth_report(&height_um, &stereo);
+    if depth.valid_fraction == 0.0 {
+        return Err(ReconstructError::NoOverlap);
+    }
+    let depth_ms = ms(t);
+
+    let s = &rect.sparse;
+    let report = ReconReport {
+        mode: params.mode,
+        geometry: *geometry,
+        image_size: (w, h),
+        sparse: SparseReport {
+            keypoints_left: s.keypoints_left,
+            keypoints_right: s.keypoints_right,
+            matches: s.matches.len(),
+            inliers: s.inliers.len(),
+            model: format!("{:?}", s.model).to_lowercase(),
+            fallback_reason: s.fallback_reason.clone(),
+            log10_nfa: s.log10_nfa,
+            threshold_px: s.threshold_px,
+            orsa_iterations: s.orsa_iterations,
+            initial_error_px: r.initial_error_px,
+            final_error_px: r.final_error_px,
+            h_left: rows(&r.h_left),
+            h_right: rows(&r.h_right),
+            canvas: r.canvas,
+            timings: s.timings,
+        },
+        dense: disp.stats,
+        depth,
+        timings: StageTimings {
+            sparse_ms,
+            dense_ms,
+            depth_ms,
+            total_ms: ms(t_total),
+        },
+    };
+    Ok(Reconstruction {
+        height_um,
+        confidence,
+        report,
+    })
+}
+
+fn validate(g: &PairGeometry) -> Result<(), ReconstructError> {
+    if !(g.tilt_deg > 0.0 && g.tilt_deg <= MAX_TILT_DEG) {
+        return Err(ReconstructError::Tilt(g.tilt_deg));
+    }
+    if !(g.pixel_size_um > 0.0 && g.pixel_size_um.is_finite()) {
+        return Err(ReconstructError::PixelSize(g.pixel_size_um));
+    }
+    if !g.tilt_axis_deg.is_finite() {
+        return Err(ReconstructError::TiltAxis(g.tilt_axis_deg));
+    }
+    Ok(())
+}
+
+fn ms(t: Instant) -> f64 {
+    t.elapsed().as_secs_f64() * 1e3
+}
+
+fn rows(m: &Matrix3<f64>) -> [[f64; 3]; 3] {
+    [
+        [m[(0, 0)], m[(0, 1)], m[(0, 2)]],
+        [m[(1, 0)], m[(1, 1)], m[(1, 2)]],
+        [m[(2, 0)], m[(2, 1)], m[(2, 2)]],
+    ]
+}
+
+/// Samples a rectified-canvas image at `H_left·(x, y)` for every pixel of the
+/// left micrograph (0 outside the canvas).
+fn resample_to_left_grid(rect: &Image, h_left: &Matrix3<f64>, w: usize, h: usize) -> Image {
+    let mut out = Image::zeros(w, h);
+    out.data_mut()
+        .par_chunks_mut(w.max(1))
+        .enumerate()
+        .for_each(|(y, row)| {
+            for (x, v) in row.iter_mut().enumerate() {
+                let p = h_left * Vector3::new(x as f64, y as f64, 1.0);
+                if p.z.abs() > 1e-12 {
+                    *v = rect.sample_bilinear(p.x / p.z, p.y / p.z).unwrap_or(0.0);
+                }
+            }
+        });
+    out
+}
+
+fn depth_report(height: &Image, g: &StereoGeometry) -> DepthReport {
+    let mut finite: Vec<f32> = height
+        .data()
+        .iter()
+        .copied()
+        .filter(|v| v.is_finite())
+        .collect();
+    finite.sort_by(f32::total_cmp);
+    let pick = |q: f64| -> f64 {
+        if finite.is_empty() {
+            f64::NAN
+        } else {
+            #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
+            let i = ((finite.len() - 1) as f64 * q).round() as usize;
+            f64::from(finite[i])
+        }
+    };
+    DepthReport {
+        valid_fraction: finite.len() as f64 / height.len().max(1) as f64,
+        height_p01_um: pick(0.01),
+        height_p99_um: pick(0.99),
+        um_per_disparity_px: g.um_per_px(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn impossible_geometry_is_refused_before_any_work() {
+        let img = Image::zeros(64, 64);
+        let p = ReconstructionParams::default();
+        for (tilt, pixel) in [
+            (0.0, 0.1),
+            (-3.0, 0.1),
+            (61.0, 0.1),
+            (5.0, 0.0),
+            (5.0, f64::NAN),
+        ] {
+            let g = PairGeometry {
+                tilt_deg: tilt,
+                pixel_size_um: pixel,
+                tilt_axis_deg: 0.0,
+            };
+            let err = reconstruct(&img, &img, &g, &p).unwrap_err();
+            assert!(
+                matches!(
+                    err,
+                    ReconstructError::Tilt(_) | ReconstructError::PixelSize(_)
+                ),
+                "{err}"
+            );
+        }
+    }
+
+    #[test]
+    fn textureless_pair_is_a_clear_error() {
+        let img = Image::filled(128, 96, 0.5);
+        let g = PairGeometry {
+            tilt_deg: 5.0,
+            pixel_size_um: 0.1,
+            tilt_axis_deg: 0.0,
+        };
+        let err = reconstruct(&img, &img, &g, &ReconstructionParams::default()).unwrap_err();
+        assert!(matches!(err, ReconstructError::Sparse(_)), "{err}");
+        assert!(err.to_string().contains("texture"), "{err}");
+    }
+}
