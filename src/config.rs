@@ -10,8 +10,13 @@ use serde::{Deserialize, Serialize};
 
 use crate::acquisition::{PlanError, SeriesConfig, SeriesPlan, TrackingConfig};
 use crate::daemon::DaemonConfig;
+use crate::export::MeshParams;
 use crate::imaging::ImagingConfig;
 use crate::stage::StageConfig;
+use crate::vision::dense::DenseParams;
+use crate::vision::pipeline::ReconstructionParams;
+use crate::vision::sift_flow::Mode;
+use crate::vision::sparse::SparseParams;
 
 /// Where runs go and what they are called.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -32,6 +37,35 @@ impl Default for RunConfig {
             output_dir: PathBuf::from("runs"),
             name: "run".into(),
             reconstruct: true,
+        }
+    }
+}
+
+/// The reconstruction of the pair (`sdsem acquire`, `reconstruct`, `replay`).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ReconstructionConfig {
+    /// `improved` (default: sub-pixel disparity, occlusion mask, confidence) or
+    /// `paper` (the SD-SEM pipeline exactly as published).
+    pub mode: Mode,
+    /// φ, the direction of the stage tilt axis in the image (degrees from +x
+    /// towards +y), used when neither the command line nor the micrographs give
+    /// it. It decides the sign of the relief.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tilt_axis_deg: Option<f64>,
+    pub sparse: SparseParams,
+    pub dense: DenseParams,
+    pub mesh: MeshParams,
+}
+
+impl ReconstructionConfig {
+    /// The pipeline's parameters.
+    #[must_use]
+    pub fn params(&self) -> ReconstructionParams {
+        ReconstructionParams {
+            mode: self.mode,
+            sparse: self.sparse.clone(),
+            dense: self.dense,
         }
     }
 }
@@ -78,6 +112,7 @@ pub struct Config {
     /// `stage.endpoint` and `imaging.endpoint`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub simulator: Option<sdsem_sim::SimConfig>,
+    pub reconstruction: ReconstructionConfig,
     pub log: LogConfig,
     pub daemon: DaemonConfig,
 }

@@ -1,4 +1,5 @@
 //! Commands of the `sdsem` binary as library functions (anyhow at this edge only).
 
 pub mod flow;
+pub mod reconstruct;
 pub mod rectify;

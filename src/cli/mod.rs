@@ -16,6 +16,7 @@ mod inspect;
 mod logging;
 mod status;
 mod submit;
+mod vision;
 
 /// Unattended 3D surface reconstruction on a scanning electron microscope.
 #[derive(Debug, Parser)]
@@ -60,6 +61,12 @@ pub enum Command {
         #[command(flatten)]
         config: ConfigArgs,
     },
+    /// Height map, point cloud and mesh from a stereo pair (SD-SEM).
+    Reconstruct(vision::ReconstructArgs),
+    /// The sparse stage alone: matches and the rectified pair.
+    Rectify(vision::RectifyArgs),
+    /// Dense SIFT-flow correspondence of two images, as Middlebury .flo.
+    Flow(vision::FlowArgs),
     /// Summarise a run record: topics, message counts, frames, outcome (works on truncated files).
     Inspect {
         /// The record, e.g. runs/sim-…/run.mcap.
@@ -99,6 +106,9 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
     match cli.command {
         Command::Acquire { config } => acquire::run(&config),
         Command::Inspect { record, json } => inspect::run(&record, json),
+        Command::Reconstruct(args) => vision::run_reconstruct(&args),
+        Command::Rectify(args) => vision::run_rectify(&args),
+        Command::Flow(args) => vision::run_flow(&args),
         Command::CheckConfig {
             file,
             overrides,

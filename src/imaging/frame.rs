@@ -76,17 +76,14 @@ impl Frame {
     /// The frame as the vision core's image, intensities scaled to `[0, 1]`.
     #[must_use]
     pub fn to_image(&self) -> Image {
-        let scale = match &self.pixels {
-            Pixels::U8(_) => 1.0 / 255.0,
-            Pixels::U16(_) => 1.0 / 65535.0,
-        };
-        let data: Vec<f32> = match &self.pixels {
-            Pixels::U8(v) => v.iter().map(|&p| f32::from(p) * scale).collect(),
-            Pixels::U16(v) => v.iter().map(|&p| f32::from(p) * scale).collect(),
+        // The one conversion of the vision core, so a frame read back from the
+        // record gives exactly the same image (replay reproduces bit for bit).
+        let image = match &self.pixels {
+            Pixels::U8(v) => Image::from_u8(self.width, self.height, v),
+            Pixels::U16(v) => Image::from_u16(self.width, self.height, v),
         };
         // The protocol decoder checked that the payload holds width × height samples.
-        Image::from_vec(self.width, self.height, data)
-            .unwrap_or_else(|_| Image::zeros(self.width, self.height))
+        image.unwrap_or_else(|_| Image::zeros(self.width, self.height))
     }
 
     #[must_use]

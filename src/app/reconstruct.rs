@@ -1,0 +1,343 @@
+//! `sdsem reconstruct LEFT RIGHT --out DIR`: a calibrated height map, point
+//! cloud and mesh from a stereo pair of micrographs (DESIGN §4).
+//!
+//! Tilt and pixel size come from the files' SEM metadata unless given; every
+//! output is computed before the first is written, and a failed write removes
+//! what was written, so no partial set of outputs looks valid.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{Context, bail};
+use serde::Serialize;
+
+use crate::export::{self, MeshParams, ply};
+use crate::imaging::file::{Micrograph, load_micrograph};
+use crate::vision::Image;
+use crate::vision::pipeline::{
+    PairGeometry, ReconReport, Reconstruction, ReconstructionParams, reconstruct,
+};
+
+/// Output file names (DESIGN §4).
+pub mod files {
+    pub const HEIGHT_TIFF: &str = "height.tif";
+    pub const HEIGHT_GSF: &str = "height.gsf";
+    pub const POINT_CLOUD: &str = "pointcloud.ply";
+    pub const MESH: &str = "mesh.ply";
+    pub const REPORT: &str = "report.json";
+}
+
+/// What the user gave beside the two files.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct GeometryOverrides {
+    /// θ, degrees.
+    pub tilt_deg: Option<f64>,
+    pub pixel_size_um: Option<f64>,
+    pub tilt_axis_deg: Option<f64>,
+}
+
+/// A pair ready to reconstruct, with where each geometric figure came from.
+#[derive(Debug)]
+pub struct LoadedPair {
+    pub left: Micrograph,
+    pub right: Micrograph,
+    pub geometry: PairGeometry,
+    pub provenance: BTreeMap<String, String>,
+}
+
+/// Loads both micrographs and settles θ, the pixel size and the tilt axis:
+/// flags first, then the files' metadata, then `default_tilt_axis_deg`.
+///
+/// # Errors
+/// A one-line cause naming the file or the missing figure and how to give it.
+pub fn load_pair(
+    left: &Path,
+    right: &Path,
+    given: GeometryOverrides,
+    default_tilt_axis_deg: Option<f64>,
+) -> anyhow::Result<LoadedPair> {
+    let l = load_micrograph(left)?;
+    let r = load_micrograph(right)?;
+    if l.image.dimensions() != r.image.dimensions() {
+        bail!(
+            "the micrographs differ in size: {} is {}×{}, {} is {}×{}",
+            left.display(),
+            l.image.width(),
+            l.image.height(),
+            right.display(),
+            r.image.width(),
+            r.image.height()
+        );
+    }
+    let mut provenance = BTreeMap::new();
+
+    let tilt_deg = match (given.tilt_deg, l.metadata.tilt_deg, r.metadata.tilt_deg) {
+        (Some(t), _, _) => {
+            provenance.insert("tilt".into(), "--tilt".into());
+            t
+        }
+        (None, Some(tl), Some(tr)) => {
+            if tr <= tl {
+                bail!(
+                    "LEFT must be the micrograph at the lower tilt: {} is at {tl}°, {} at {tr}° \
+                     (swap them, or give --tilt)",
+                    left.display(),
+                    right.display()
+                );
+            }
+            provenance.insert(
+                "tilt".into(),
+                format!("metadata: {tl}° (left) → {tr}° (right)"),
+            );
+            tr - tl
+        }
+        _ => bail!(
+            "no tilt difference: the files carry no stage tilt in their metadata; give --tilt DEG"
+        ),
+    };
+
+    let pixel_size_um = match (
+        given.pixel_size_um,
+        l.metadata.pixel_size_um,
+        r.metadata.pixel_size_um,
+    ) {
+        (Some(p), _, _) => {
+            provenance.insert("pixel_size".into(), "--pixel-size".into());
+            p
+        }
+        (None, Some(pl), pr) => {
+            if let Some(pr) = pr
+                && (pr - pl).abs() > 0.01 * pl
+            {
+                bail!(
+                    "the micrographs have different pixel sizes ({pl} µm in {}, {pr} µm in {}): \
+                     they must be taken at the same magnification",
+                    left.display(),
+                    right.display()
+                );
+            }
+            provenance.insert(
+                "pixel_size".into(),
+                format!("metadata of {}", left.display()),
+            );
+            pl
+        }
+        (None, None, Some(pr)) => {
+            provenance.insert(
+                "pixel_size".into(),
+                format!("metadata of {}", right.display()),
+            );
+            pr
+        }
+        (None, None, None) => {
+            bail!("no pixel size: the files carry no SEM metadata with one; give --pixel-size UM")
+        }
+    };
+
+    let metadata_axis = l
+        .metadata
+        .raw
+        .get("tilt_axis_deg")
+        .and_then(|v| v.parse::<f64>().ok());
+    let tilt_axis_deg = if let Some(a) = given.tilt_axis_deg {
+        provenance.insert("tilt_axis".into(), "--tilt-axis".into());
+        a
+    } else if let Some(a) = metadata_axis {
+        provenance.insert(
+            "tilt_axis".into(),
+            format!("metadata of {}", left.display()),
+        );
+        a
+    } else if let Some(a) = default_tilt_axis_deg {
+        provenance.insert("tilt_axis".into(), "reconstruction.tilt_axis_deg".into());
+        a
+    } else {
+        bail!(
+            "no tilt axis: give --tilt-axis DEG (the direction of the stage tilt axis in the image, \
+             from +x towards +y; it decides the sign of the relief)"
+        )
+    };
+
+    Ok(LoadedPair {
+        left: l,
+        right: r,
+        geometry: PairGeometry {
+            tilt_deg,
+            pixel_size_um,
+            tilt_axis_deg,
+        },
+        provenance,
+    })
+}
+
+/// The contents of `report.json`.
+#[derive(Debug, Clone, Serialize)]
+pub struct ReportFile {
+    pub sdsem_version: &'static str,
+    pub left: PathBuf,
+    pub right: PathBuf,
+    /// Where θ, the pixel size and the tilt axis came from.
+    pub provenance: BTreeMap<String, String>,
+    pub reconstruction: ReconReport,
+    pub outputs: Vec<String>,
+    /// Triangles and points written.
+    pub point_count: usize,
+    pub triangle_count: usize,
+    pub triangles_cut_at_discontinuities: usize,
+    /// Wall time of the whole command (loading and writing included), s.
+    pub wall_s: f64,
+    /// Peak resident memory of the process, MiB (Linux VmHWM).
+    pub peak_rss_mib: Option<f64>,
+}
+
+/// Reconstructs `left`/`right` into `out` (created if needed).
+///
+/// # Errors
+/// A one-line cause; nothing is left in `out` that looks like a result.
+pub fn run(
+    left: &Path,
+    right: &Path,
+    out: &Path,
+    given: GeometryOverrides,
+    default_tilt_axis_deg: Option<f64>,
+    params: &ReconstructionParams,
+    mesh: &MeshParams,
+) -> anyhow::Result<ReportFile> {
+    let t0 = Instant::now();
+    let pair = load_pair(left, right, given, default_tilt_axis_deg)?;
+    let recon = reconstruct(&pair.left.image, &pair.right.image, &pair.geometry, params)?;
+    let mut report = ReportFile {
+        sdsem_version: env!("CARGO_PKG_VERSION"),
+        left: left.to_owned(),
+        right: right.to_owned(),
+        provenance: pair.provenance,
+        reconstruction: recon.report.clone(),
+        outputs: Vec::new(),
+        point_count: 0,
+        triangle_count: 0,
+        triangles_cut_at_discontinuities: 0,
+        wall_s: 0.0,
+        peak_rss_mib: None,
+    };
+    write_outputs(out, &recon, &pair.left.image, mesh, &mut report, t0)?;
+    Ok(report)
+}
+
+/// Reconstructs an acquired pair into `out` and, when recording, publishes the
+/// results: `/recon/height`, `/recon/pointcloud`, `/recon/report` and the
+/// `height.gsf` and `mesh.ply` attachments (DESIGN §5). Used by `acquire`
+/// and `replay`, so both run the very same code.
+///
+/// # Errors
+/// The reconstruction's or the writing's one-line cause.
+pub fn reconstruct_recorded_pair(
+    left: &Image,
+    right: &Image,
+    geometry: &PairGeometry,
+    config: &crate::config::ReconstructionConfig,
+    out: &Path,
+    rec: Option<&crate::record::RecorderHandle>,
+    sources: (&Path, &Path),
+) -> anyhow::Result<(ReportFile, Reconstruction)> {
+    let t0 = Instant::now();
+    let recon = reconstruct(left, right, geometry, &config.params())?;
+    let mut report = ReportFile {
+        sdsem_version: env!("CARGO_PKG_VERSION"),
+        left: sources.0.to_owned(),
+        right: sources.1.to_owned(),
+        provenance: BTreeMap::from([(
+            "geometry".to_owned(),
+            "the SEM's frame metadata and the stage's verified tilts".to_owned(),
+        )]),
+        reconstruction: recon.report.clone(),
+        outputs: Vec::new(),
+        point_count: 0,
+        triangle_count: 0,
+        triangles_cut_at_discontinuities: 0,
+        wall_s: 0.0,
+        peak_rss_mib: None,
+    };
+    write_outputs(out, &recon, left, &config.mesh, &mut report, t0)?;
+    if let Some(rec) = rec {
+        let t = crate::stage::observer::wall_ns();
+        rec.height(t, &recon.height_um)?;
+        let cloud = ply::cloud_from_height(&recon.height_um, geometry.pixel_size_um, Some(left));
+        rec.point_cloud(crate::record::topics::RECON_POINTCLOUD, t, "left", &cloud)?;
+        rec.report(t, &report)?;
+        for (name, media_type) in [
+            (files::HEIGHT_GSF, "application/x-gwyddion-gsf"),
+            (files::MESH, "application/x-ply"),
+        ] {
+            let path = out.join(name);
+            let bytes = std::fs::read(&path)
+                .with_context(|| format!("cannot read back {}", path.display()))?;
+            rec.attachment(t, name, media_type, bytes)?;
+        }
+    }
+    Ok((report, recon))
+}
+
+/// Writes every output of a reconstruction into `out`; on failure removes
+/// whatever it wrote.
+///
+/// # Errors
+/// The file that could not be written and why.
+pub fn write_outputs(
+    out: &Path,
+    recon: &Reconstruction,
+    intensity: &Image,
+    mesh_params: &MeshParams,
+    report: &mut ReportFile,
+    started: Instant,
+) -> anyhow::Result<()> {
+    std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
+    let p = recon.report.geometry.pixel_size_um;
+    let cloud = ply::cloud_from_height(&recon.height_um, p, Some(intensity));
+    let mesh = ply::build_mesh(&recon.height_um, p, Some(intensity), mesh_params);
+    report.point_count = cloud.len();
+    report.triangle_count = mesh.triangles.len();
+    report.triangles_cut_at_discontinuities = mesh.cut_triangles;
+
+    let mut written: Vec<PathBuf> = Vec::new();
+    let result = (|| -> anyhow::Result<()> {
+        let path = out.join(files::HEIGHT_TIFF);
+        export::height_tiff::write_height_tiff(&path, &recon.height_um, Some(p))?;
+        written.push(path);
+        let path = out.join(files::HEIGHT_GSF);
+        export::gsf::write_gsf(&path, &recon.height_um, p, "sdsem height map")?;
+        written.push(path);
+        let path = out.join(files::POINT_CLOUD);
+        ply::write_point_cloud_ply(&path, &cloud)?;
+        written.push(path);
+        let path = out.join(files::MESH);
+        ply::write_mesh_ply(&path, &mesh, true)?;
+        written.push(path);
+        report.outputs = written
+            .iter()
+            .filter_map(|p| p.file_name().map(|n| n.to_string_lossy().into_owned()))
+            .chain(std::iter::once(files::REPORT.to_owned()))
+            .collect();
+        report.wall_s = started.elapsed().as_secs_f64();
+        report.peak_rss_mib = peak_rss_mib();
+        // The report goes last: its presence says the set is complete.
+        let path = out.join(files::REPORT);
+        export::report::write_json_atomic(&path, report)?;
+        Ok(())
+    })();
+    if result.is_err() {
+        for path in &written {
+            let _ = std::fs::remove_file(path);
+        }
+    }
+    result
+}
+
+/// Peak resident set size of this process, MiB, from `/proc/self/status`.
+#[must_use]
+pub fn peak_rss_mib() -> Option<f64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kib: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kib / 1024.0)
+}

@@ -1,0 +1,135 @@
+//! The offline commands on micrographs: `reconstruct`, `rectify`, `flow`.
+
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+
+use clap::Args;
+
+use super::ConfigArgs;
+use crate::app::reconstruct::{self, GeometryOverrides};
+
+#[derive(Debug, Args)]
+pub struct ReconstructArgs {
+    /// Micrograph at the lower stage tilt (TIFF or PNG).
+    pub left: PathBuf,
+    /// Micrograph at the higher stage tilt.
+    pub right: PathBuf,
+    /// Output directory: height.tif, height.gsf, pointcloud.ply, mesh.ply, report.json.
+    #[arg(long, short)]
+    pub out: PathBuf,
+    /// Tilt difference θ between the micrographs, degrees (default: from their metadata).
+    #[arg(long, value_name = "DEG")]
+    pub tilt: Option<f64>,
+    /// Pixel size, µm (default: from the metadata).
+    #[arg(long, value_name = "UM")]
+    pub pixel_size: Option<f64>,
+    /// Direction of the tilt axis in the image, degrees from +x towards +y
+    /// (default: metadata, then reconstruction.tilt_axis_deg).
+    #[arg(long, value_name = "DEG", allow_hyphen_values = true)]
+    pub tilt_axis: Option<f64>,
+    #[command(flatten)]
+    pub config: ConfigArgs,
+}
+
+#[derive(Debug, Args)]
+pub struct RectifyArgs {
+    /// Micrograph at the lower stage tilt.
+    pub left: PathBuf,
+    /// Micrograph at the higher stage tilt.
+    pub right: PathBuf,
+    /// Output directory: rectified_left.png, rectified_right.png, matches.png, rectification.json.
+    #[arg(long, short)]
+    pub out: PathBuf,
+    /// Direction of the tilt axis in the image, degrees (orients the rectified pair).
+    #[arg(long, value_name = "DEG", allow_hyphen_values = true)]
+    pub tilt_axis: Option<f64>,
+    #[command(flatten)]
+    pub config: ConfigArgs,
+}
+
+#[derive(Debug, Args)]
+pub struct FlowArgs {
+    /// First image.
+    pub a: PathBuf,
+    /// Second image.
+    pub b: PathBuf,
+    /// The flow from A to B as Middlebury .flo.
+    #[arg(long, short)]
+    pub out: PathBuf,
+    #[command(flatten)]
+    pub config: ConfigArgs,
+}
+
+pub fn run_reconstruct(args: &ReconstructArgs) -> anyhow::Result<ExitCode> {
+    let config = args.config.load()?;
+    let given = GeometryOverrides {
+        tilt_deg: args.tilt,
+        pixel_size_um: args.pixel_size,
+        tilt_axis_deg: args.tilt_axis,
+    };
+    let report = reconstruct::run(
+        &args.left,
+        &args.right,
+        &args.out,
+        given,
+        config.reconstruction.tilt_axis_deg,
+        &config.reconstruction.params(),
+        &config.reconstruction.mesh,
+    )?;
+    summarise(&report, &args.out);
+    Ok(ExitCode::SUCCESS)
+}
+
+fn summarise(report: &reconstruct::ReportFile, out: &Path) {
+    let r = &report.reconstruction;
+    let t = &r.timings;
+    eprintln!(
+        "θ = {:.3}°, pixel {:.4} µm, tilt axis {:.1}°: {} inliers, rectification error {:.2} px → {:.2} px",
+        r.geometry.tilt_deg,
+        r.geometry.pixel_size_um,
+        r.geometry.tilt_axis_deg,
+        r.sparse.inliers,
+        r.sparse.initial_error_px,
+        r.sparse.final_error_px
+    );
+    eprintln!(
+        "heights on {:.1} % of the pixels, {:.2} … {:.2} µm (1st–99th percentile)",
+        100.0 * r.depth.valid_fraction,
+        r.depth.height_p01_um,
+        r.depth.height_p99_um
+    );
+    eprintln!(
+        "time: sparse {:.2} s, dense {:.2} s, depth {:.2} s, total {:.2} s (with I/O {:.2} s); peak memory {}",
+        t.sparse_ms / 1e3,
+        t.dense_ms / 1e3,
+        t.depth_ms / 1e3,
+        t.total_ms / 1e3,
+        report.wall_s,
+        report
+            .peak_rss_mib
+            .map_or_else(|| "unknown".to_owned(), |m| format!("{m:.0} MiB"))
+    );
+    println!("{}", out.display());
+}
+
+pub fn run_rectify(args: &RectifyArgs) -> anyhow::Result<ExitCode> {
+    let config = args.config.load()?;
+    let tilt_axis = args.tilt_axis.or(config.reconstruction.tilt_axis_deg);
+    crate::app::rectify::run_rectify(
+        &args.left,
+        &args.right,
+        &args.out,
+        tilt_axis,
+        &config.reconstruction.sparse,
+    )?;
+    println!("{}", args.out.display());
+    Ok(ExitCode::SUCCESS)
+}
+
+pub fn run_flow(args: &FlowArgs) -> anyhow::Result<ExitCode> {
+    let config = args.config.load()?;
+    let params = config.reconstruction.params().dense_params().flow_params();
+    crate::app::flow::run(&args.a, &args.b, &args.out, &params)?;
+    println!("{}", args.out.display());
+    Ok(ExitCode::SUCCESS)
+}
