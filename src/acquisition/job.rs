@@ -22,6 +22,7 @@ use crate::record::{
     RunStatus, topics,
 };
 use crate::stage::observer::wall_ns;
+use crate::vision::pipeline::PairGeometry;
 use crate::vision::registration::PhaseCorrelationParams;
 
 /// File names inside a run directory (DESIGN §4).
@@ -231,7 +232,84 @@ async fn acquire(
     {
         outcome = failed(format!("cannot write the micrographs: {e}"));
     }
+    if outcome.is_completed() && config.run.reconstruct {
+        if let Some(reason) = cancel.reason() {
+            outcome = Outcome::Interrupted { reason };
+        } else {
+            progress("reconstructing the pair");
+            if let Err(e) = reconstruct_series(config, &record, run_dir, rec).await {
+                outcome = failed(format!("reconstruction failed: {e:#}"));
+            }
+        }
+    }
     (outcome, Some(record))
+}
+
+/// Reconstructs the end micrographs into the run directory and the record.
+/// CPU-bound: runs on the blocking pool so the async side stays responsive.
+async fn reconstruct_series(
+    config: &Config,
+    record: &SeriesRecord,
+    run_dir: &Path,
+    rec: &RecorderHandle,
+) -> anyhow::Result<()> {
+    let (Some(left), Some(right)) = (&record.left, &record.right) else {
+        anyhow::bail!("the pair is incomplete");
+    };
+    let geometry = pair_geometry(config, left, right)?;
+    let (l, r) = (left.image.clone(), right.image.clone());
+    let recon_config = config.reconstruction.clone();
+    let (out, rec) = (run_dir.to_owned(), rec.clone());
+    let report = tokio::task::spawn_blocking(move || {
+        crate::app::reconstruct::reconstruct_recorded_pair(
+            &l,
+            &r,
+            &geometry,
+            &recon_config,
+            &out,
+            Some(&rec),
+            (Path::new(files::LEFT), Path::new(files::RIGHT)),
+        )
+        .map(|(report, _)| report)
+    })
+    .await??;
+    let t = &report.reconstruction.timings;
+    info!(
+        total_s = t.total_ms / 1e3,
+        inliers = report.reconstruction.sparse.inliers,
+        "reconstruction done in {:.1} s: heights on {:.1} % of the left micrograph",
+        t.total_ms / 1e3,
+        100.0 * report.reconstruction.depth.valid_fraction
+    );
+    Ok(())
+}
+
+/// θ from the verified tilts, pixel size and tilt axis from the SEM (the
+/// configured `reconstruction.tilt_axis_deg` wins when set).
+///
+/// # Errors
+/// When the micrographs disagree on the pixel size or θ is not positive.
+pub fn pair_geometry(
+    config: &Config,
+    left: &Captured,
+    right: &Captured,
+) -> anyhow::Result<PairGeometry> {
+    let (ml, mr) = (&left.frame.meta, &right.frame.meta);
+    if (ml.pixel_size_um - mr.pixel_size_um).abs() > 1e-9 * ml.pixel_size_um.abs() {
+        anyhow::bail!(
+            "the micrographs have different pixel sizes ({} µm and {} µm)",
+            ml.pixel_size_um,
+            mr.pixel_size_um
+        );
+    }
+    Ok(PairGeometry {
+        tilt_deg: right.stage.tilt_deg - left.stage.tilt_deg,
+        pixel_size_um: ml.pixel_size_um,
+        tilt_axis_deg: config
+            .reconstruction
+            .tilt_axis_deg
+            .unwrap_or(ml.tilt_axis_deg),
+    })
 }
 
 fn failed(reason: String) -> Outcome {
@@ -245,19 +323,24 @@ fn write_micrographs(record: &SeriesRecord, run_dir: &Path) -> Result<(), String
         (FrameRole::Left, &record.left, files::LEFT),
         (FrameRole::Right, &record.right, files::RIGHT),
     ] {
-        let Some(Captured { frame, image }) = captured else {
+        let Some(Captured {
+            frame,
+            image,
+            stage,
+        }) = captured
+        else {
             return Err(format!("the {role} micrograph was not captured"));
         };
         let mut extra = serde_json::Map::new();
         extra.insert("role".into(), role.as_str().into());
-        extra.insert("stage_x_um".into(), frame.meta.stage_x_um.into());
-        extra.insert("stage_y_um".into(), frame.meta.stage_y_um.into());
+        extra.insert("stage_x_um".into(), stage.x_um.into());
+        extra.insert("stage_y_um".into(), stage.y_um.into());
         extra.insert("tilt_axis_deg".into(), frame.meta.tilt_axis_deg.into());
         extra.insert("dwell_us".into(), frame.meta.dwell_us.into());
         extra.insert("frame".into(), frame.meta.frame.into());
         let tags = MicrographTags {
             pixel_size_um: Some(frame.meta.pixel_size_um),
-            tilt_deg: Some(frame.meta.tilt_deg),
+            tilt_deg: Some(stage.tilt_deg),
             extra,
         };
         let depth = if frame.pixels.bits() == 8 {

@@ -22,6 +22,8 @@ use crate::vision::registration::{PhaseCorrelationParams, phase_correlation};
 pub struct Captured {
     pub frame: Frame,
     pub image: Image,
+    /// The stage position verified before the frame was grabbed.
+    pub stage: StagePosition,
 }
 
 /// What one tracking frame measured and what was done about it.
@@ -301,11 +303,19 @@ impl RunState {
         match role {
             FrameRole::Left => {
                 info!(tilt_deg, "left micrograph captured at {tilt_deg}°");
-                self.record.left = Some(Captured { frame, image });
+                self.record.left = Some(Captured {
+                    frame,
+                    image,
+                    stage: self.position.unwrap_or_default(),
+                });
             }
             FrameRole::Right => {
                 info!(tilt_deg, "right micrograph captured at {tilt_deg}°");
-                self.record.right = Some(Captured { frame, image });
+                self.record.right = Some(Captured {
+                    frame,
+                    image,
+                    stage: self.position.unwrap_or_default(),
+                });
             }
             FrameRole::Tracking => {}
         }
@@ -417,6 +427,7 @@ impl RunState {
             dwell_us: frame.meta.dwell_us,
             width: w,
             height: h,
+            tilt_axis_deg: Some(frame.meta.tilt_axis_deg),
             drift_px: self.pending_drift.take(),
         };
         let image = Entry::image(

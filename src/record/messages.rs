@@ -33,6 +33,9 @@ pub struct FrameInfo {
     pub width: u32,
     /// Frame height, pixels.
     pub height: u32,
+    /// Direction of the stage tilt axis in the image, degrees (φ), as the SEM reports it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tilt_axis_deg: Option<f64>,
     /// Specimen drift measured on this frame (x, y), pixels; absent when not measured.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub drift_px: Option<[f64; 2]>,
@@ -125,6 +128,7 @@ pub const FRAME_INFO_SCHEMA: JsonSchema = JsonSchema {
     "dwell_us": {"type": "number", "description": "pixel dwell time, microseconds"},
     "width": {"type": "integer", "minimum": 0},
     "height": {"type": "integer", "minimum": 0},
+    "tilt_axis_deg": {"type": "number", "description": "direction of the tilt axis in the image, degrees"},
     "drift_px": {"type": "array", "items": {"type": "number"}, "minItems": 2, "maxItems": 2,
                  "description": "measured specimen drift (x, y), pixels"}
   },
@@ -277,10 +281,12 @@ mod tests {
             dwell_us: 1.2,
             width: 2048,
             height: 1536,
+            tilt_axis_deg: Some(0.0),
             drift_px: Some([0.5, -1.0]),
         };
         let full = info.clone();
         info.drift_px = None;
+        info.tilt_axis_deg = None;
         assert_schema_matches(FRAME_INFO_SCHEMA, &full, &info);
     }
 

@@ -29,6 +29,7 @@ fn frame_info(role: FrameRole, index: u64, tilt: f64) -> FrameInfo {
         dwell_us: 0.8,
         width: 8,
         height: 6,
+        tilt_axis_deg: Some(0.0),
         drift_px: (role == FrameRole::Tracking).then_some([0.25, -0.5]),
     }
 }
