@@ -12,6 +12,7 @@ use crate::config::{Config, LogFormat};
 mod acquire;
 mod check_config;
 mod daemon;
+mod eval;
 mod inspect;
 mod logging;
 mod status;
@@ -92,6 +93,8 @@ pub enum Command {
     Submit(submit::SubmitArgs),
     /// List the spool's jobs (name, state, reason) and what the daemon is doing.
     Status(status::StatusArgs),
+    /// Print measured figures against ground truth (simulator scenes, shared real data).
+    Eval(eval::EvalArgs),
 }
 
 /// Runs one command.
@@ -117,5 +120,6 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Daemon(args) => daemon::run(&args),
         Command::Submit(args) => submit::run(&args),
         Command::Status(args) => status::run(&args),
+        Command::Eval(args) => eval::run(&args),
     }
 }

@@ -9,6 +9,17 @@ pub mod synthetic;
 
 use std::path::PathBuf;
 
+/// What every `sdsem eval …` command takes.
+#[derive(Debug, Clone)]
+pub struct EvalOptions {
+    /// The shared evaluation data (`--data`, else [`data_dir`]).
+    pub data_dir: PathBuf,
+    /// A smaller, faster set of cases (a smoke run, not the reported figures).
+    pub quick: bool,
+    /// Print the figures as JSON on stdout instead of a table.
+    pub json: bool,
+}
+
 /// Where the shared evaluation data lives: `$SDSEM_DATA`, else
 /// `<repository root>/../shared/data`.
 #[must_use]
