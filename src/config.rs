@@ -346,4 +346,54 @@ mod tests {
         let again = load(&c.to_toml(), &[], &[]).unwrap();
         assert_eq!(c, again);
     }
+
+    fn leaf_keys(prefix: &str, v: &toml::Value, out: &mut Vec<String>) {
+        if let toml::Value::Table(t) = v {
+            for (k, v) in t {
+                leaf_keys(&format!("{prefix}{k}."), v, out);
+            }
+        } else {
+            out.push(prefix.trim_end_matches('.').to_owned());
+        }
+    }
+
+    /// config/sdsem.toml documents every key with its default: loading it
+    /// gives the built-in defaults, and it names every key they have.
+    #[test]
+    fn the_documented_configuration_is_the_default_one() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("config/sdsem.toml");
+        let loaded = Config::load_with_env(Some(&path), &[], std::iter::empty()).unwrap();
+        assert_eq!(
+            loaded,
+            Config::default(),
+            "a value in {} is not the default",
+            path.display()
+        );
+        let text = std::fs::read_to_string(&path).unwrap();
+        let file: toml::Value = toml::from_str(&text).unwrap();
+        let mut documented = Vec::new();
+        leaf_keys("", &file, &mut documented);
+        let mut known = Vec::new();
+        leaf_keys(
+            "",
+            &toml::Value::try_from(Config::default()).unwrap(),
+            &mut known,
+        );
+        let missing: Vec<_> = known.iter().filter(|k| !documented.contains(k)).collect();
+        assert!(
+            missing.is_empty(),
+            "keys not documented in config/sdsem.toml: {missing:?}"
+        );
+    }
+
+    #[test]
+    fn the_simulator_configuration_loads() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("config/sim.toml");
+        let c = Config::load_with_env(Some(&path), &[], std::iter::empty()).unwrap();
+        assert!(
+            c.simulator.is_some(),
+            "config/sim.toml must start the simulator"
+        );
+        assert_eq!(c.plan().unwrap().tilts().len(), 8, "0→7° in 1° steps");
+    }
 }
