@@ -464,7 +464,12 @@ fn bad_input_is_refused_before_anything_is_sent() {
     let rig = Rig::new();
     // (what, added to [series], --set, what the one-line message must name)
     let cases: [(&str, &str, &[&str], &[&str]); 4] = [
-        ("unknown key", "end_tilt = 5.0\n", &[], &["end_tilt"]),
+        (
+            "unknown key",
+            "end_tilt = 5.0\n",
+            &[],
+            &["unknown field `end_tilt`"],
+        ),
         (
             "zero step",
             "",
@@ -522,9 +527,10 @@ fn bad_input_is_refused_before_anything_is_sent() {
         assert!(!out.status.success(), "{what}: accepted");
         assert_eq!(stderr.lines().count(), 1, "{what}: not one line:\n{stderr}");
         for needle in needles {
-            assert!(
-                stderr.contains(needle),
-                "{what}: {needle:?} not in {stderr:?}"
+            assert_eq!(
+                stderr.matches(needle).count(),
+                1,
+                "{what}: {needle:?} not once in {stderr:?}"
             );
         }
         assert!(
