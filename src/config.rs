@@ -132,10 +132,18 @@ pub enum ConfigError {
     },
     #[error("--set {arg:?}: expected key=value, for example series.end_tilt_deg=5")]
     BadOverride { arg: String },
+    /// The message already is the plan error's, so it is not also its `source`
+    /// (a one-line `{:#}` would print it twice).
     #[error("invalid configuration: {0}")]
-    Plan(#[from] PlanError),
+    Plan(PlanError),
     #[error("invalid configuration: {0}")]
     Rule(String),
+}
+
+impl From<PlanError> for ConfigError {
+    fn from(e: PlanError) -> Self {
+        Self::Plan(e)
+    }
 }
 
 /// Prefix of the environment variables that override configuration keys:

@@ -91,8 +91,21 @@ impl Instruments {
     /// # Errors
     /// [`InstrumentsError`] naming the link and the remedy.
     pub async fn connect(config: &Config) -> Result<Self, InstrumentsError> {
+        Self::connect_observed(config, Arc::default()).await
+    }
+
+    /// [`Instruments::connect`] reporting to `observer` from the first byte on:
+    /// a run that connects its own instruments attaches its record first, so
+    /// the connection handshake (`*IDN?`, `SVO?`, `FRF?`, limits) is in
+    /// `/stage/io` too.
+    ///
+    /// # Errors
+    /// As [`Instruments::connect`].
+    pub async fn connect_observed(
+        config: &Config,
+        observer: Arc<RunObserver>,
+    ) -> Result<Self, InstrumentsError> {
         let (stage_config, imaging_config, simulator) = Self::endpoints(config)?;
-        let observer = Arc::new(RunObserver::default());
         let dyn_observer: Arc<dyn StageObserver> = observer.clone();
         let stage = StageDriver::open(stage_config, dyn_observer).await?;
         let stage_identity = stage.identity().to_owned();

@@ -8,12 +8,14 @@
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 use tracing::{error, info, warn};
 
 use super::cancel::Cancel;
-use super::instruments::Instruments;
+use super::instruments::{Instruments, RunObserver};
 use super::machine::{FrameRole, Outcome, Series};
+use super::plan::SeriesPlan;
 use super::runner::{Captured, SeriesContext, SeriesRecord, run_series};
 use crate::config::Config;
 use crate::imaging::file::{MicrographTags, SampleDepth, write_micrograph_tiff};
@@ -21,6 +23,7 @@ use crate::record::{
     RecordLogSwitch, RecordSummary, Recorder, RecorderHandle, RecorderOptions, RunOutcome,
     RunStatus, topics,
 };
+use crate::stage::StageAxis;
 use crate::stage::observer::wall_ns;
 use crate::vision::pipeline::PairGeometry;
 use crate::vision::registration::PhaseCorrelationParams;
@@ -199,16 +202,30 @@ async fn acquire(
     };
     let mut owned;
     let instruments = match instruments {
-        Some(i) => i,
-        None => match Instruments::connect(config).await {
-            Ok(i) => {
-                owned = i;
-                &mut owned
+        Some(i) => {
+            i.observer.attach(rec.clone());
+            i
+        }
+        None => {
+            // Recording from the first byte: the handshake is in /stage/io too.
+            let observer = Arc::new(RunObserver::default());
+            observer.attach(rec.clone());
+            match Instruments::connect_observed(config, observer).await {
+                Ok(i) => {
+                    owned = i;
+                    &mut owned
+                }
+                Err(e) => return (failed(format!("cannot reach the instruments: {e}")), None),
             }
-            Err(e) => return (failed(format!("cannot reach the instruments: {e}")), None),
-        },
+        }
     };
-    instruments.observer.attach(rec.clone());
+    // The controller's soft limits are only known now: a series beyond them is
+    // refused before the stage moves at all, not at the step that hits them.
+    let limits = instruments.stage.limits(StageAxis::Tilt);
+    if let Err(reason) = check_plan_against_limits(&plan, config.stage.safe_tilt_deg, limits) {
+        instruments.observer.detach();
+        return (failed(reason), None);
+    }
     let mut ids = BTreeMap::new();
     ids.insert("stage".to_owned(), instruments.stage_identity.clone());
     ids.insert("sem".to_owned(), instruments.sem_identity.clone());
@@ -312,6 +329,35 @@ pub fn pair_geometry(
     })
 }
 
+/// Every planned tilt and the safe tilt inside the limits the driver enforces
+/// (the configured ones narrowed to the controller's `TMN?`/`TMX?`).
+///
+/// # Errors
+/// One line naming the key, the value and both limits.
+fn check_plan_against_limits(
+    plan: &SeriesPlan,
+    safe: f64,
+    (min, max): (f64, f64),
+) -> Result<(), String> {
+    let outside = |t: f64| !(min..=max).contains(&t);
+    let (first, last) = (plan.first(), plan.last());
+    let culprit = [
+        ("series.start_tilt_deg", first),
+        ("series.end_tilt_deg", last),
+        ("stage.safe_tilt_deg", safe),
+    ]
+    .into_iter()
+    .find(|&(_, t)| outside(t));
+    match culprit {
+        None => Ok(()),
+        Some((key, tilt)) => Err(format!(
+            "{key} = {tilt}° is outside the tilt limits [{min}°, {max}°] of the stage \
+             controller (its soft limits TMN?/TMX? narrow stage.tilt_min_deg/tilt_max_deg); \
+             nothing was moved: choose tilts inside them"
+        )),
+    }
+}
+
 fn failed(reason: String) -> Outcome {
     error!("{reason}");
     Outcome::Failed { reason }
@@ -387,6 +433,36 @@ mod tests {
         // 2026-11-22 03:04:05 UTC
         let ns = 1_795_316_645_000_000_000;
         assert_eq!(compact_utc(ns), "20261122T030405Z");
+    }
+
+    #[test]
+    fn a_series_beyond_the_controller_limits_is_refused_naming_key_and_limits() {
+        let config = crate::acquisition::SeriesConfig {
+            start_tilt_deg: 0.0,
+            end_tilt_deg: 65.0,
+            step_deg: 1.0,
+        };
+        let plan = SeriesPlan::new(&config, -5.0, 70.0).unwrap();
+        assert!(check_plan_against_limits(&plan, 0.0, (-5.0, 70.0)).is_ok());
+        let e = check_plan_against_limits(&plan, 0.0, (-5.0, 60.0)).unwrap_err();
+        assert!(
+            e.contains("series.end_tilt_deg = 65°") && e.contains("[-5°, 60°]"),
+            "{e}"
+        );
+        let e = check_plan_against_limits(&plan, 0.0, (1.0, 70.0)).unwrap_err();
+        assert!(e.contains("series.start_tilt_deg = 0°"), "{e}");
+        let short = SeriesPlan::new(
+            &crate::acquisition::SeriesConfig {
+                start_tilt_deg: 10.0,
+                end_tilt_deg: 12.0,
+                step_deg: 1.0,
+            },
+            -5.0,
+            70.0,
+        )
+        .unwrap();
+        let e = check_plan_against_limits(&short, 0.0, (5.0, 70.0)).unwrap_err();
+        assert!(e.contains("stage.safe_tilt_deg = 0°"), "{e}");
     }
 
     #[test]

@@ -26,6 +26,9 @@ pub struct EvalArgs {
 
 #[derive(Debug, Subcommand)]
 pub enum Which {
+    /// The 0→7° series on the simulator: tilts, frames, stage I/O, re-centring
+    /// against ground truth, real-time overhead, the record in the Python reader.
+    Acquisition,
     /// SIFT flow on Middlebury RubberWhale against its ground truth (paper Table 3).
     Flow,
 }
@@ -41,6 +44,11 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<ExitCode> {
         json: args.json,
     };
     match args.which {
+        Which::Acquisition => {
+            if !eval::acquisition::run(&opts)? {
+                return Ok(ExitCode::FAILURE);
+            }
+        }
         Which::Flow => eval::flow::run(&opts)?,
     }
     Ok(ExitCode::SUCCESS)

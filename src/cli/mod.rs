@@ -14,7 +14,7 @@ mod check_config;
 mod daemon;
 mod eval;
 mod inspect;
-mod logging;
+pub(crate) mod logging;
 mod status;
 mod submit;
 mod vision;

@@ -2,6 +2,7 @@
 //! ignored tests and evaluation functions (not run by `cargo test`); they read
 //! `$SDSEM_DATA`, see [`data_dir`].
 
+pub mod acquisition;
 pub mod dense;
 pub mod flow;
 pub mod sparse;
