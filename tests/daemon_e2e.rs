@@ -5,7 +5,8 @@
 //!   `sdsem submit` and never queued; one that a SIGHUP-reloaded
 //!   configuration no longer allows is `rejected` at its turn; one whose
 //!   simulator disappears mid-job fails with its reason and a readable MCAP;
-//!   the daemon reconnects (with backoff) once the simulator is back;
+//!   the daemon reconnects (with backoff) once the simulator is back, and
+//!   again when a reload moves the links to another simulator;
 //! - SIGTERM mid-job: stage back at its safe tilt (from the record), MCAP
 //!   finished, job `interrupted`, exit 0 within 15 s;
 //! - `kill -9` mid-job, restart: that job `interrupted`, never re-run, the
@@ -142,13 +143,14 @@ fn three_jobs_done_rejected_failed_then_reconnect() {
     let spool = dir.path().join("spool");
     let (stage_port, sem_port) = (free_port(), free_port());
     let config_path = dir.path().join("sdsem.toml");
-    let endpoints = |tilt_max: f64| {
+    let config_for = |stage_port: u16, sem_port: u16, tilt_max: f64| {
         daemon_config(
             dir.path(),
             &format!("endpoint = \"tcp://127.0.0.1:{stage_port}\"\ntilt_max_deg = {tilt_max:.1}"),
             &format!("endpoint = \"tcp://127.0.0.1:{sem_port}\""),
         )
     };
+    let endpoints = |tilt_max: f64| config_for(stage_port, sem_port, tilt_max);
     std::fs::write(&config_path, endpoints(70.0)).unwrap();
     // The daemon publishes its configuration in the spool; before it runs,
     // submit checks against the same file.
@@ -293,17 +295,41 @@ fn three_jobs_done_rejected_failed_then_reconnect() {
     );
     assert!(daemon.log().contains("stage and imaging links are back"));
 
+    // A reload that moves the links while they are up: the daemon
+    // reconnects, and the next job runs on the new instruments.
+    let (stage2, sem2) = (free_port(), free_port());
+    let sim2 = start_simulator(stage2, sem2);
+    let frames_on_first = sim.last_frame();
+    std::fs::write(&config_path, config_for(stage2, sem2, 25.0)).unwrap();
+    let before = daemon.seen.len();
+    daemon.signal(Signal::HUP);
+    daemon.expect_after(before, Duration::from_secs(5), |l| l == "READY=1");
+    submit(&valid, &spool);
+    let done = wait_final(&spool, 5, Duration::from_secs(60));
+    assert_eq!(
+        done.state,
+        JobState::Done,
+        "{:?}\n{}",
+        done.reason,
+        daemon.log()
+    );
+    assert!(
+        sim2.last_frame().unwrap_or(0) >= 5,
+        "job 5 ran on the new simulator"
+    );
+    assert_eq!(sim.last_frame(), frames_on_first, "not on the old one");
+
     let out = sdsem(&["status", "--spool", spool.to_str().unwrap(), "--json"]);
     let json: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     let jobs = json["jobs"].as_array().unwrap();
     let states: Vec<&str> = jobs.iter().map(|j| j["state"].as_str().unwrap()).collect();
-    assert_eq!(states, ["done", "failed", "rejected", "done"]);
+    assert_eq!(states, ["done", "failed", "rejected", "done", "done"]);
     assert!(jobs[1]["reason"].is_string() && jobs[2]["reason"].is_string());
 
     daemon.signal(Signal::TERM);
     let (status, _) = daemon.wait_exit(Duration::from_secs(15));
     assert!(status.success(), "{}", daemon.log());
-    drop(sim);
+    drop((sim, sim2));
 }
 
 /// The last verified tilt in a record's `/stage/state`.
