@@ -309,8 +309,9 @@ fn the_service_unit_keeps_the_daemons_promises() {
     assert_eq!(one("StateDirectory"), "sdsem");
 }
 
-/// `systemd/verify.sh`: `systemd-analyze verify` prints nothing for the units.
-/// Skipped (with a note) where systemd-analyze is not installed.
+/// `systemd/verify.sh`: `systemd-analyze verify` prints nothing for the units,
+/// and the script does fail on a unit it complains about. Skipped (with a
+/// note) where systemd-analyze is not installed.
 #[test]
 fn the_units_pass_systemd_analyze_verify() {
     if Command::new("systemd-analyze")
@@ -321,13 +322,32 @@ fn the_units_pass_systemd_analyze_verify() {
         eprintln!("systemd-analyze not installed: unit verification skipped");
         return;
     }
-    let out = Command::new(concat!(env!("CARGO_MANIFEST_DIR"), "/systemd/verify.sh"))
+    let systemd = concat!(env!("CARGO_MANIFEST_DIR"), "/systemd");
+    let out = Command::new(format!("{systemd}/verify.sh"))
         .output()
         .unwrap();
+    let stdout = text(&out.stdout);
+    assert!(out.status.success(), "{stdout}{}", text(&out.stderr));
     assert!(
-        out.status.success(),
-        "{}{}",
-        text(&out.stdout),
+        stdout.contains("systemd-analyze verify: no output for sdsem-sim.service sdsem.service"),
+        "{stdout}"
+    );
+    assert!(stdout.contains("sdsem.service: 1."), "{stdout}");
+
+    // The same script beside a unit with a misspelt key must fail.
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::copy(format!("{systemd}/verify.sh"), dir.path().join("verify.sh")).unwrap();
+    let unit = std::fs::read_to_string(format!("{systemd}/sdsem.service")).unwrap();
+    std::fs::write(
+        dir.path().join("sdsem.service"),
+        unit.replace("ProtectHome=yes", "ProtectHom=yes"),
+    )
+    .unwrap();
+    let out = Command::new(dir.path().join("verify.sh")).output().unwrap();
+    assert!(!out.status.success(), "a broken unit passed verify.sh");
+    assert!(
+        text(&out.stderr).contains("ProtectHom"),
+        "{}",
         text(&out.stderr)
     );
 }
