@@ -4,6 +4,7 @@
 
 pub mod dense;
 pub mod flow;
+pub mod soak;
 pub mod sparse;
 pub mod synthetic;
 
