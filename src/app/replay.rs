@@ -50,8 +50,8 @@ pub struct ReplayReport {
 }
 
 impl ReplayReport {
-    /// True when the replay is a failure: without overrides, anything but an
-    /// identical height map (or no recorded one to compare with).
+    /// True when the replay is a failure: without overrides, a height map
+    /// that differs from the recorded one (none recorded is not a failure).
     #[must_use]
     pub fn is_mismatch(&self) -> bool {
         self.overrides.is_empty() && matches!(self.comparison, Comparison::Differs(_))
