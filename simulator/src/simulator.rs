@@ -432,6 +432,9 @@ mod tests {
             let mut sem = SemLink::connect(&sim);
             let mut gcs = Gcs::connect(&sim);
             gcs.send("MOV T 3\n");
+            // MOV is not answered: ask something, so the move has begun
+            // before the scan starts (else a loaded machine may start it late).
+            assert_eq!(gcs.ask("ERR?\n"), "0\n");
             // 100 × 50 × 200 µs = 1 simulated second of scan, during which the stage moves 1°.
             let t0 = clock.now_s();
             let f = sem.grab(100, 50, 200.0);
