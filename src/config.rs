@@ -170,16 +170,37 @@ impl Config {
         overrides: &[String],
         env: impl IntoIterator<Item = (String, String)>,
     ) -> Result<Self, ConfigError> {
+        let text = match file {
+            Some(path) => {
+                Some(
+                    std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+                        path: path.to_owned(),
+                        source,
+                    })?,
+                )
+            }
+            None => None,
+        };
+        Self::from_layers(text.as_deref(), file, overrides, env)
+    }
+
+    /// [`Config::load_with_env`] with the file's text given (e.g. the effective
+    /// configuration stored in a run record); `origin` names it in errors.
+    ///
+    /// # Errors
+    /// As [`Config::load`].
+    pub fn from_layers(
+        text: Option<&str>,
+        origin: Option<&Path>,
+        overrides: &[String],
+        env: impl IntoIterator<Item = (String, String)>,
+    ) -> Result<Self, ConfigError> {
         let mut builder = config::Config::builder();
-        if let Some(path) = file {
-            let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
-                path: path.to_owned(),
-                source,
-            })?;
-            builder = builder.add_source(config::File::from_str(&text, config::FileFormat::Toml));
+        if let Some(text) = text {
+            builder = builder.add_source(config::File::from_str(text, config::FileFormat::Toml));
         }
         let invalid = |e: config::ConfigError| ConfigError::Invalid {
-            origin: file.map(Path::to_owned),
+            origin: origin.map(Path::to_owned),
             message: e.to_string(),
         };
         for (name, value) in env {

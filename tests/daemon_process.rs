@@ -9,34 +9,16 @@
 
 mod daemon_support;
 
-use std::os::unix::net::UnixDatagram;
-use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Output, Stdio};
-use std::time::{Duration, Instant};
+use std::path::PathBuf;
+use std::process::Command;
+use std::time::Duration;
 
+use daemon_support::process::{Daemon, sdsem, state_of, text, write_job};
 use daemon_support::{Behaviour, FakeRunner, Script};
 use sdsem::daemon::spool::CRASH_REASON;
 use sdsem::daemon::{DaemonOptions, JobState, Spool, load_config, run_daemon};
 
 const CHILD_ENV: &str = "SDSEM_TEST_DAEMON_CONFIG";
-
-fn sdsem(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_sdsem"))
-        .args(args)
-        .env("RUST_LOG", "warn")
-        .output()
-        .unwrap()
-}
-
-fn text(bytes: &[u8]) -> String {
-    String::from_utf8_lossy(bytes).into_owned()
-}
-
-fn write_job(dir: &Path, file: &str, body: &str) -> String {
-    let path = dir.join(file);
-    std::fs::write(&path, body).unwrap();
-    path.to_str().unwrap().to_owned()
-}
 
 #[test]
 fn submit_refuses_invalid_jobs_and_status_lists_the_queue() {
@@ -162,121 +144,19 @@ fn daemon_child() {
     std::process::exit(code);
 }
 
-struct Daemon {
-    child: Child,
-    notify: UnixDatagram,
-    stderr: PathBuf,
-    seen: Vec<String>,
-}
-
-impl Daemon {
-    fn start(dir: &Path, config: &Path, tag: &str) -> Self {
-        let socket = dir.join(format!("notify-{tag}.sock"));
-        let notify = UnixDatagram::bind(&socket).unwrap();
-        notify
-            .set_read_timeout(Some(Duration::from_millis(200)))
-            .unwrap();
-        let stderr = dir.join(format!("daemon-{tag}.log"));
-        let child = Command::new(std::env::current_exe().unwrap())
-            .args([
-                "daemon_child",
-                "--exact",
-                "--ignored",
-                "--nocapture",
-                "--test-threads=1",
-            ])
-            .env(CHILD_ENV, config)
-            .env("NOTIFY_SOCKET", &socket)
-            .env("WATCHDOG_USEC", "1000000")
-            .stdout(Stdio::null())
-            .stderr(std::fs::File::create(&stderr).unwrap())
-            .spawn()
-            .unwrap();
-        Self {
-            child,
-            notify,
-            stderr,
-            seen: Vec::new(),
-        }
-    }
-
-    fn pid(&self) -> rustix::process::Pid {
-        rustix::process::Pid::from_child(&self.child)
-    }
-
-    fn signal(&self, signal: rustix::process::Signal) {
-        rustix::process::kill_process(self.pid(), signal).unwrap();
-    }
-
-    /// Reads notifications until one line satisfies `want`, at most `limit`.
-    fn expect(&mut self, limit: Duration, want: impl Fn(&str) -> bool) -> String {
-        self.expect_after(0, limit, want)
-    }
-
-    /// As [`Self::expect`], among the notifications after the first `from`.
-    fn expect_after(
-        &mut self,
-        from: usize,
-        limit: Duration,
-        want: impl Fn(&str) -> bool,
-    ) -> String {
-        let end = Instant::now() + limit;
-        if let Some(line) = self.seen.iter().skip(from).find(|l| want(l)) {
-            return line.clone();
-        }
-        let mut buf = [0u8; 4096];
-        while Instant::now() < end {
-            if let Ok(n) = self.notify.recv(&mut buf) {
-                for line in text(&buf[..n]).lines() {
-                    self.seen.push(line.to_owned());
-                    if want(line) {
-                        return line.to_owned();
-                    }
-                }
-            }
-        }
-        panic!(
-            "no such notification within {limit:?}; seen {:#?}\nlog:\n{}",
-            self.seen,
-            std::fs::read_to_string(&self.stderr).unwrap_or_default()
-        );
-    }
-
-    fn wait_exit(&mut self, limit: Duration) -> (std::process::ExitStatus, Duration) {
-        let start = Instant::now();
-        loop {
-            if let Some(status) = self.child.try_wait().unwrap() {
-                return (status, start.elapsed());
-            }
-            assert!(
-                start.elapsed() < limit,
-                "daemon still running after {limit:?}"
-            );
-            std::thread::sleep(Duration::from_millis(20));
-        }
-    }
-
-    fn log(&self) -> String {
-        std::fs::read_to_string(&self.stderr).unwrap_or_default()
-    }
-}
-
-impl Drop for Daemon {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
-
-fn state_of(spool: &Path, id: u64) -> Option<(JobState, Option<String>)> {
-    Spool::existing(spool)
-        .ok()?
-        .list()
-        .ok()?
-        .jobs
-        .into_iter()
-        .find(|j| j.id.0 == id)
-        .map(|j| (j.state, j.reason))
+/// This test binary as the daemon with the scripted runner.
+fn fake_daemon(dir: &std::path::Path, config: &std::path::Path, tag: &str) -> Daemon {
+    let mut command = Command::new(std::env::current_exe().unwrap());
+    command
+        .args([
+            "daemon_child",
+            "--exact",
+            "--ignored",
+            "--nocapture",
+            "--test-threads=1",
+        ])
+        .env(CHILD_ENV, config);
+    Daemon::spawn(command, dir, tag)
 }
 
 #[test]
@@ -304,7 +184,7 @@ fn daemon_process_signals_exclusivity_and_crash_recovery() {
     );
 
     // Start: READY once the links are checked, then STATUS idle, and watchdog pings.
-    let mut daemon = Daemon::start(dir.path(), &config, "1");
+    let mut daemon = fake_daemon(dir.path(), &config, "1");
     daemon.expect(Duration::from_secs(30), |l| l == "READY=1");
     daemon.expect(Duration::from_secs(5), |l| l == "STATUS=idle, 0 queued");
     daemon.expect(Duration::from_secs(5), |l| l == "WATCHDOG=1");
@@ -317,7 +197,7 @@ fn daemon_process_signals_exclusivity_and_crash_recovery() {
     });
 
     // A second daemon on the same spool is refused, naming the first one's PID.
-    let mut second = Daemon::start(dir.path(), &config, "2");
+    let mut second = fake_daemon(dir.path(), &config, "2");
     let (status, _) = second.wait_exit(Duration::from_secs(30));
     assert!(!status.success());
     let msg = second.log();
@@ -357,7 +237,7 @@ fn daemon_process_signals_exclusivity_and_crash_recovery() {
                 .success()
         );
     }
-    let mut daemon = Daemon::start(dir.path(), &config, "3");
+    let mut daemon = fake_daemon(dir.path(), &config, "3");
     daemon.expect(Duration::from_secs(30), |l| {
         l.starts_with("STATUS=running job 2 long")
     });
@@ -369,7 +249,7 @@ fn daemon_process_signals_exclusivity_and_crash_recovery() {
         "as the crash left it"
     );
 
-    let mut daemon = Daemon::start(dir.path(), &config, "4");
+    let mut daemon = fake_daemon(dir.path(), &config, "4");
     daemon.expect(Duration::from_secs(30), |l| l == "STATUS=idle, 0 queued");
     let (state, reason) = state_of(&spool, 2).unwrap();
     assert_eq!(state, JobState::Interrupted);
@@ -429,8 +309,9 @@ fn the_service_unit_keeps_the_daemons_promises() {
     assert_eq!(one("StateDirectory"), "sdsem");
 }
 
-/// `systemd/verify.sh`: `systemd-analyze verify` prints nothing for the units.
-/// Skipped (with a note) where systemd-analyze is not installed.
+/// `systemd/verify.sh`: `systemd-analyze verify` prints nothing for the units,
+/// and the script does fail on a unit it complains about. Skipped (with a
+/// note) where systemd-analyze is not installed.
 #[test]
 fn the_units_pass_systemd_analyze_verify() {
     if Command::new("systemd-analyze")
@@ -441,13 +322,32 @@ fn the_units_pass_systemd_analyze_verify() {
         eprintln!("systemd-analyze not installed: unit verification skipped");
         return;
     }
-    let out = Command::new(concat!(env!("CARGO_MANIFEST_DIR"), "/systemd/verify.sh"))
+    let systemd = concat!(env!("CARGO_MANIFEST_DIR"), "/systemd");
+    let out = Command::new(format!("{systemd}/verify.sh"))
         .output()
         .unwrap();
+    let stdout = text(&out.stdout);
+    assert!(out.status.success(), "{stdout}{}", text(&out.stderr));
     assert!(
-        out.status.success(),
-        "{}{}",
-        text(&out.stdout),
+        stdout.contains("systemd-analyze verify: no output for sdsem-sim.service sdsem.service"),
+        "{stdout}"
+    );
+    assert!(stdout.contains("sdsem.service: 1."), "{stdout}");
+
+    // The same script beside a unit with a misspelt key must fail.
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::copy(format!("{systemd}/verify.sh"), dir.path().join("verify.sh")).unwrap();
+    let unit = std::fs::read_to_string(format!("{systemd}/sdsem.service")).unwrap();
+    std::fs::write(
+        dir.path().join("sdsem.service"),
+        unit.replace("ProtectHome=yes", "ProtectHom=yes"),
+    )
+    .unwrap();
+    let out = Command::new(dir.path().join("verify.sh")).output().unwrap();
+    assert!(!out.status.success(), "a broken unit passed verify.sh");
+    assert!(
+        text(&out.stderr).contains("ProtectHom"),
+        "{}",
         text(&out.stderr)
     );
 }

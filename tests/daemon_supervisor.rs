@@ -600,3 +600,52 @@ async fn links_down_at_start_still_give_ready_and_are_rechecked_while_idle() {
     );
     assert_eq!(statuses[statuses.len() - 2], "idle, 0 queued");
 }
+
+#[tokio::test(start_paused = true)]
+async fn after_a_failed_job_the_idle_daemon_checks_the_links_again() {
+    let mut script = Script::default();
+    script.jobs.insert(
+        "a".into(),
+        Behaviour::Fail {
+            after: Duration::from_secs(2),
+            reason: "stage link lost: connection reset".into(),
+        },
+    );
+    // Start-up and before `a`: fine; after it the controller is off twice.
+    script.link_checks = [Ok(()), Ok(())]
+        .into_iter()
+        .chain((0..2).map(|_| Err("stage: connection refused".to_owned())))
+        .collect();
+    let rig = Rig::new(script);
+    rig.submit("a");
+    let (sup, ctl) = rig.supervisor();
+    let driver = async {
+        sleep(Duration::from_secs(30)).await;
+        ctl.send(stop()).await.unwrap();
+    };
+    let (result, ()) = tokio::join!(sup.run(), driver);
+    result.unwrap();
+    assert_eq!(rig.state_of("a"), JobState::Failed);
+    let oks: Vec<bool> = rig
+        .runner
+        .link_check_times()
+        .iter()
+        .map(|(_, ok)| *ok)
+        .collect();
+    assert_eq!(oks, [true, true, false, false, true], "checked while idle");
+    let statuses = rig.notices.statuses();
+    let failed_at = statuses
+        .iter()
+        .position(|s| s.starts_with("idle, 0 queued: link check 1 failed"))
+        .unwrap_or_else(|| panic!("{statuses:#?}"));
+    // Not "idle, 0 queued" (ready) between the failed job and that check.
+    assert!(
+        !statuses[..failed_at]
+            .iter()
+            .rev()
+            .take_while(|s| !s.starts_with("running job"))
+            .any(|s| s == "idle, 0 queued"),
+        "{statuses:#?}"
+    );
+    assert_eq!(statuses.last().unwrap(), "stopped (SIGTERM)");
+}

@@ -301,6 +301,29 @@ async fn reconstruct_series(
     Ok(())
 }
 
+/// What the geometry of a pair is computed from, per end micrograph: what
+/// the acquisition knew when it was grabbed, and what its record keeps
+/// (`/sem/frame_info`), so `sdsem replay` computes the very same geometry.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct EndGeometry {
+    /// The stage tilt verified before the frame was grabbed, degrees.
+    pub tilt_deg: f64,
+    /// The SEM's pixel size, µm.
+    pub pixel_size_um: f64,
+    /// φ as the SEM reported it, degrees; `None` if it did not.
+    pub tilt_axis_deg: Option<f64>,
+}
+
+impl From<&Captured> for EndGeometry {
+    fn from(c: &Captured) -> Self {
+        Self {
+            tilt_deg: c.stage.tilt_deg,
+            pixel_size_um: c.frame.meta.pixel_size_um,
+            tilt_axis_deg: Some(c.frame.meta.tilt_axis_deg),
+        }
+    }
+}
+
 /// θ from the verified tilts, pixel size and tilt axis from the SEM (the
 /// configured `reconstruction.tilt_axis_deg` wins when set).
 ///
@@ -311,21 +334,29 @@ pub fn pair_geometry(
     left: &Captured,
     right: &Captured,
 ) -> anyhow::Result<PairGeometry> {
-    let (ml, mr) = (&left.frame.meta, &right.frame.meta);
-    if (ml.pixel_size_um - mr.pixel_size_um).abs() > 1e-9 * ml.pixel_size_um.abs() {
-        anyhow::bail!(
-            "the micrographs have different pixel sizes ({} µm and {} µm)",
-            ml.pixel_size_um,
-            mr.pixel_size_um
-        );
+    pair_geometry_of(config, left.into(), right.into())
+}
+
+/// [`pair_geometry`] from the figures alone.
+///
+/// # Errors
+/// As [`pair_geometry`], and when no tilt axis is known.
+pub fn pair_geometry_of(
+    config: &Config,
+    left: EndGeometry,
+    right: EndGeometry,
+) -> anyhow::Result<PairGeometry> {
+    let (pl, pr) = (left.pixel_size_um, right.pixel_size_um);
+    if (pl - pr).abs() > 1e-9 * pl.abs() {
+        anyhow::bail!("the micrographs have different pixel sizes ({pl} µm and {pr} µm)");
     }
+    let Some(tilt_axis_deg) = config.reconstruction.tilt_axis_deg.or(left.tilt_axis_deg) else {
+        anyhow::bail!("no tilt axis: the SEM did not report it; set reconstruction.tilt_axis_deg");
+    };
     Ok(PairGeometry {
-        tilt_deg: right.stage.tilt_deg - left.stage.tilt_deg,
-        pixel_size_um: ml.pixel_size_um,
-        tilt_axis_deg: config
-            .reconstruction
-            .tilt_axis_deg
-            .unwrap_or(ml.tilt_axis_deg),
+        tilt_deg: right.tilt_deg - left.tilt_deg,
+        pixel_size_um: pl,
+        tilt_axis_deg,
     })
 }
 

@@ -3,3 +3,4 @@
 pub mod flow;
 pub mod reconstruct;
 pub mod rectify;
+pub mod replay;

@@ -41,26 +41,63 @@ fn acquisition_runner(_config: &Config) -> anyhow::Result<AcquisitionRunner> {
 }
 
 /// Runs each job as an acquisition, keeping the instruments connected between
-/// jobs; a job that fails drops them, so the next link check reconnects.
+/// jobs; a job that fails drops them, so the next link check reconnects, and
+/// so does a reload that changes how they are reached.
 struct AcquisitionRunner {
-    instruments: Option<Instruments>,
+    instruments: Option<(Instruments, LinkSettings)>,
+}
+
+/// What the connection to the instruments depends on: the stage section
+/// (endpoint, axes, timeouts, limits), the SEM link's endpoint and timeout,
+/// and the in-process simulator. Scan sizes and the rest apply per job.
+#[derive(Debug, Clone, PartialEq)]
+struct LinkSettings {
+    stage: crate::stage::StageConfig,
+    imaging_endpoint: String,
+    imaging_timeout_ms: u64,
+    simulator: Option<sdsem_sim::SimConfig>,
+}
+
+impl LinkSettings {
+    fn of(config: &Config) -> Self {
+        Self {
+            stage: config.stage.clone(),
+            imaging_endpoint: config.imaging.endpoint.clone(),
+            imaging_timeout_ms: config.imaging.timeout_ms,
+            simulator: config.simulator.clone(),
+        }
+    }
 }
 
 impl JobRunner for AcquisitionRunner {
     async fn check_links(&mut self, config: &Config) -> Result<(), String> {
-        if let Some(instruments) = &mut self.instruments {
-            match instruments.stage.position().await {
-                Ok(_) => return Ok(()),
-                Err(e) => {
-                    tracing::warn!("stage link lost between jobs ({e}); reconnecting");
-                    self.instruments = None;
+        let wanted = LinkSettings::of(config);
+        if let Some((instruments, settings)) = &mut self.instruments {
+            if *settings != wanted {
+                tracing::info!("the reloaded configuration changes the links; reconnecting");
+                self.instruments = None;
+            } else {
+                match instruments.stage.position().await {
+                    // The SEM link reconnects by itself on its next request.
+                    Ok(_) => {
+                        return instruments
+                            .imaging
+                            .identify()
+                            .await
+                            .map(drop)
+                            .map_err(|e| format!("SEM imaging link: {e}"));
+                    }
+                    Err(e) => {
+                        tracing::warn!("stage link lost between jobs ({e}); reconnecting");
+                        self.instruments = None;
+                    }
                 }
             }
         }
         let instruments = Instruments::connect(config)
             .await
             .map_err(|e| e.to_string())?;
-        self.instruments = Some(instruments);
+        self.instruments = Some((instruments, wanted));
         Ok(())
     }
 
@@ -71,7 +108,7 @@ impl JobRunner for AcquisitionRunner {
         run_dir: &Path,
         ctx: JobContext,
     ) -> JobOutcome {
-        let Some(instruments) = self.instruments.as_mut() else {
+        let Some((instruments, _)) = self.instruments.as_mut() else {
             return JobOutcome::Failed {
                 reason: "the instruments are not connected".into(),
             };

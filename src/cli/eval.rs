@@ -31,6 +31,38 @@ pub enum Which {
     Acquisition,
     /// SIFT flow on Middlebury RubberWhale against its ground truth (paper Table 3).
     Flow,
+    /// The daemon as a process through consecutive short jobs with seeded
+    /// random stage faults: final states, reasons, records, RSS and fds.
+    Soak(SoakArgs),
+    /// `kill -9` of the daemon at random moments, each followed by a restart:
+    /// no job lost or re-run, every record readable.
+    Kill(KillArgs),
+}
+
+#[derive(Debug, Args)]
+pub struct SoakArgs {
+    /// Jobs to run (default 50; 10 with --quick).
+    #[arg(long)]
+    pub jobs: Option<usize>,
+    /// Seed of the faults and of when the simulator is switched off.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Keep the work directory (spool, runs, daemon log).
+    #[arg(long)]
+    pub keep: bool,
+}
+
+#[derive(Debug, Args)]
+pub struct KillArgs {
+    /// Kill-and-restart rounds (default 20; 5 with --quick).
+    #[arg(long)]
+    pub rounds: Option<usize>,
+    /// Seed of the kill moments.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Keep the work directory (spool, runs, daemon logs).
+    #[arg(long)]
+    pub keep: bool,
 }
 
 /// Runs one evaluation.
@@ -43,13 +75,37 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<ExitCode> {
         quick: args.quick,
         json: args.json,
     };
-    match args.which {
+    match &args.which {
         Which::Acquisition => {
             if !eval::acquisition::run(&opts)? {
                 return Ok(ExitCode::FAILURE);
             }
         }
         Which::Flow => eval::flow::run(&opts)?,
+        Which::Soak(a) => {
+            let report = eval::soak::run_soak(&eval::soak::SoakOptions {
+                jobs: a.jobs.unwrap_or(if opts.quick { 10 } else { 50 }),
+                seed: a.seed,
+                keep: a.keep,
+                json: opts.json,
+            })?;
+            if !eval::soak::soak_passed(&report) {
+                eprintln!("soak: the daemon missed its targets (see the problems above)");
+                return Ok(ExitCode::FAILURE);
+            }
+        }
+        Which::Kill(a) => {
+            let report = eval::soak::run_kill(&eval::soak::KillOptions {
+                rounds: a.rounds.unwrap_or(if opts.quick { 5 } else { 20 }),
+                seed: a.seed,
+                keep: a.keep,
+                json: opts.json,
+            })?;
+            if !eval::soak::kill_passed(&report) {
+                eprintln!("kill: the daemon missed its targets (see the problems above)");
+                return Ok(ExitCode::FAILURE);
+            }
+        }
     }
     Ok(ExitCode::SUCCESS)
 }

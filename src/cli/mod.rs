@@ -15,6 +15,7 @@ mod daemon;
 mod eval;
 mod inspect;
 pub(crate) mod logging;
+mod replay;
 mod status;
 mod submit;
 mod vision;
@@ -93,6 +94,8 @@ pub enum Command {
     Submit(submit::SubmitArgs),
     /// List the spool's jobs (name, state, reason) and what the daemon is doing.
     Status(status::StatusArgs),
+    /// Reconstruct a run again from its record; says whether the height map is bit-identical.
+    Replay(replay::ReplayArgs),
     /// Print measured figures against ground truth (simulator scenes, shared real data).
     Eval(eval::EvalArgs),
 }
@@ -120,6 +123,7 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Daemon(args) => daemon::run(&args),
         Command::Submit(args) => submit::run(&args),
         Command::Status(args) => status::run(&args),
+        Command::Replay(args) => replay::run(&args),
         Command::Eval(args) => eval::run(&args),
     }
 }

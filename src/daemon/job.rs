@@ -10,7 +10,8 @@
 //! tracking.gain = 0.5
 //!
 //! [reconstruction]           # optional: overrides of reconstruction keys
-//! run.reconstruct = false
+//! run.reconstruct = true
+//! reconstruction.mode = "paper"
 //! ```
 //!
 //! The overrides are configuration keys written as in the configuration file,
@@ -35,9 +36,10 @@ pub const CAPTURE_KEYS: &[&str] = &[
     "tracking",
 ];
 
-/// Configuration keys a job's `[reconstruction]` table may set. The vision
-/// stages' sections belong here once they are part of [`Config`].
-pub const RECONSTRUCTION_KEYS: &[&str] = &["run.reconstruct"];
+/// Configuration keys a job's `[reconstruction]` table may set: whether to
+/// reconstruct, and every parameter of the pipeline (`reconstruction.mode`,
+/// `reconstruction.dense.levels`, …).
+pub const RECONSTRUCTION_KEYS: &[&str] = &["run.reconstruct", "reconstruction"];
 
 /// Longest job name accepted.
 pub const MAX_NAME_LEN: usize = 64;
@@ -462,6 +464,23 @@ mod tests {
         assert_eq!(c.tracking.gain, 0.5);
         assert!(!c.run.reconstruct);
         assert_eq!(c.run.output_dir, Config::default().run.output_dir);
+    }
+
+    #[test]
+    fn reconstruction_parameters_are_job_overrides() {
+        let c = job("name = \"a\"\nstart_tilt = 0\nend_tilt = 5\n\
+             [reconstruction]\nreconstruction.mode = \"paper\"\nreconstruction.dense.levels = 3\n")
+        .unwrap();
+        assert_eq!(c.reconstruction.mode, crate::vision::sift_flow::Mode::Paper);
+        assert_eq!(c.reconstruction.dense.levels, 3);
+        let err = JobSpec::parse(
+            "name = \"a\"\nstart_tilt = 0\nend_tilt = 5\n[capture]\nreconstruction.mode = \"paper\"\n",
+        )
+        .unwrap_err();
+        assert!(
+            err.to_string().contains("a job may not set this key"),
+            "{err}"
+        );
     }
 
     #[test]

@@ -499,8 +499,11 @@ impl Spool {
             let mut file = OpenOptions::new()
                 .write(true)
                 .create_new(true)
-                .mode(0o664)
+                .mode(RECORD_MODE)
                 .open(&tmp)?;
+            // Whatever the writer's umask: a submitter with umask 077 would
+            // otherwise queue a record the daemon cannot read (and stop on).
+            file.set_permissions(std::os::unix::fs::PermissionsExt::from_mode(RECORD_MODE))?;
             file.write_all(bytes)?;
             file.sync_all()
         };
@@ -529,6 +532,10 @@ fn effective_state(dir: JobState, recorded: JobState) -> JobState {
         dir
     }
 }
+
+/// Mode of every file the spool writes: readable by the daemon and by
+/// `sdsem status` whoever wrote it (the spool directories keep others out).
+const RECORD_MODE: u32 = 0o664;
 
 fn open_lock_file(path: &Path) -> io::Result<File> {
     // Read-only suffices for flock, and works for submitters who cannot write
@@ -771,6 +778,22 @@ mod tests {
     use std::time::UNIX_EPOCH;
 
     use super::*;
+
+    #[test]
+    fn records_are_readable_by_the_daemon_whatever_the_submitters_umask() {
+        use std::os::unix::fs::PermissionsExt;
+        let dir = tempfile::tempdir().unwrap();
+        let spool = Spool::open(dir.path()).unwrap();
+        // The process umask is shared by the test threads; 0o022 (a common
+        // default, and no narrower than theirs) would not show the fault.
+        let old = rustix::process::umask(rustix::fs::Mode::from_raw_mode(0o077));
+        let record = spool.submit(spec("private"), at(0));
+        rustix::process::umask(old);
+        let record = record.unwrap();
+        let path = spool.record_path(JobState::Queued, record.id);
+        let mode = fs::metadata(&path).unwrap().permissions().mode() & 0o777;
+        assert_eq!(mode, 0o664, "{}", path.display());
+    }
 
     fn spec(name: &str) -> JobSpec {
         JobSpec::parse(&format!("name = {name:?}\nstart_tilt = 0\nend_tilt = 5\n")).unwrap()

@@ -423,6 +423,11 @@ impl<R: JobRunner> Supervisor<R> {
         let now = SystemTime::now();
         let (state, reason) = final_state(outcome.as_ref(), cancelled.as_ref(), stop_timeout);
         let finished = self.core.spool.finish(&job, state, reason.clone(), now)?;
+        if state != JobState::Done {
+            // The runner drops links after a job that did not complete: until
+            // checked again, "idle" must not claim they are up.
+            self.core.links = None;
+        }
         match state {
             JobState::Done => info!(job = job.id.0, name = %job.name, "job done"),
             _ => {

@@ -50,8 +50,9 @@ pub use log_layer::{RecordLogLayer, RecordLogSwitch, record_log_layer};
 pub use messages::{FrameInfo, RunOutcome, RunStatus, StageIo, StageState};
 pub use read::{
     ChannelInfo, EndMicrographs, Extract, MetadataRecord, RecordedAttachment, RecordedImage,
-    RecordedJson, RecordedLog, RecordedMicrograph, RecordedPointCloud, ScanEnd, read_attachments,
-    read_end_micrographs, read_images, read_json, read_logs, read_metadata, read_point_clouds,
+    RecordedJson, RecordedLog, RecordedMicrograph, RecordedPointCloud, ReplayInputs, ScanEnd,
+    read_attachments, read_end_micrographs, read_images, read_json, read_logs, read_metadata,
+    read_point_clouds, read_replay_inputs,
 };
 pub use recorder::{RecordSummary, Recorder, RecorderHandle, RecorderOptions, RecorderStatus};
 pub use topics::FrameRole;

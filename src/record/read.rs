@@ -618,9 +618,20 @@ pub struct EndMicrographs {
 /// As [`scan`], and [`ReadError::Decode`] for an undecodable frame or frame info.
 pub fn read_end_micrographs(path: impl AsRef<Path>) -> Result<EndMicrographs, ReadError> {
     let path = path.as_ref();
-    let mut frames: Vec<(FrameRole, RecordedImage)> = Vec::new();
-    let mut infos: Vec<(u64, FrameInfo)> = Vec::new();
-    let end = scan(path, |item| {
+    let mut ends = EndCollector::default();
+    let end = scan(path, |item| ends.visit(path, &item))?;
+    ends.finish(path, end)
+}
+
+/// Collects the end micrographs and their frame info from the items of a scan.
+#[derive(Default)]
+struct EndCollector {
+    frames: Vec<(FrameRole, RecordedImage)>,
+    infos: Vec<(u64, FrameInfo)>,
+}
+
+impl EndCollector {
+    fn visit(&mut self, path: &Path, item: &ScanItem<'_>) -> Result<(), ReadError> {
         let ScanItem::Message {
             channel,
             log_time_ns,
@@ -634,33 +645,46 @@ pub fn read_end_micrographs(path: impl AsRef<Path>) -> Result<EndMicrographs, Re
                 .and_then(|id| id.parse::<FrameRole>().ok())
                 .filter(|r| *r != FrameRole::Tracking)
         {
-            frames.retain(|(r, _)| *r != role);
-            frames.push((role, decode_image(path, channel, log_time_ns, data)?));
+            self.frames.retain(|(r, _)| *r != role);
+            self.frames
+                .push((role, decode_image(path, channel, *log_time_ns, data)?));
         } else if channel.topic == topics::SEM_FRAME_INFO && channel.message_encoding == "json" {
             let info: FrameInfo =
                 serde_json::from_slice(data).map_err(|e| decode_error(path, channel, e))?;
             if info.role != FrameRole::Tracking {
-                infos.push((log_time_ns, info));
+                self.infos.push((*log_time_ns, info));
             }
         }
         Ok(())
-    })?;
-    let mut pick = |role: FrameRole| -> Result<Option<RecordedMicrograph>, ReadError> {
-        let Some(pos) = frames.iter().position(|(r, _)| *r == role) else {
+    }
+
+    fn finish(mut self, path: &Path, end: ScanEnd) -> Result<EndMicrographs, ReadError> {
+        let left = self.pick(path, FrameRole::Left)?;
+        let right = self.pick(path, FrameRole::Right)?;
+        Ok(EndMicrographs { left, right, end })
+    }
+
+    fn pick(
+        &mut self,
+        path: &Path,
+        role: FrameRole,
+    ) -> Result<Option<RecordedMicrograph>, ReadError> {
+        let Some(pos) = self.frames.iter().position(|(r, _)| *r == role) else {
             return Ok(None);
         };
-        let (_, frame) = frames.swap_remove(pos);
+        let (_, frame) = self.frames.swap_remove(pos);
         let image = frame.to_image().map_err(|e| ReadError::Decode {
             path: path.to_path_buf(),
             topic: topics::SEM_FRAME.to_owned(),
             schema: "foxglove.RawImage".to_owned(),
             cause: e.to_string(),
         })?;
-        let info = infos
+        let info = self
+            .infos
             .iter()
             .rev()
             .find(|(t, i)| i.role == role && *t == frame.log_time_ns)
-            .or_else(|| infos.iter().rev().find(|(_, i)| i.role == role))
+            .or_else(|| self.infos.iter().rev().find(|(_, i)| i.role == role))
             .map(|(_, i)| i.clone());
         Ok(Some(RecordedMicrograph {
             role,
@@ -668,8 +692,55 @@ pub fn read_end_micrographs(path: impl AsRef<Path>) -> Result<EndMicrographs, Re
             image,
             info,
         }))
-    };
-    let left = pick(FrameRole::Left)?;
-    let right = pick(FrameRole::Right)?;
-    Ok(EndMicrographs { left, right, end })
+    }
+}
+
+/// What `sdsem replay` needs from a record, read in one pass.
+#[derive(Debug, Clone)]
+pub struct ReplayInputs {
+    /// The entries of the `sdsem.run` metadata record (job, effective configuration, …).
+    pub run: Option<BTreeMap<String, String>>,
+    /// How the run ended (`sdsem.outcome`), if the record got that far.
+    pub outcome: Option<super::RunOutcome>,
+    /// The end micrographs with their frame info; `end` says how the read ended.
+    pub ends: EndMicrographs,
+    /// The last `/recon/height` message (32FC1, µm).
+    pub height: Option<RecordedImage>,
+}
+
+/// The run metadata, the outcome, the end micrographs and the recorded height map.
+///
+/// # Errors
+/// As [`scan`], and [`ReadError::Decode`] for an undecodable frame or height map.
+pub fn read_replay_inputs(path: impl AsRef<Path>) -> Result<ReplayInputs, ReadError> {
+    let path = path.as_ref();
+    let mut ends = EndCollector::default();
+    let mut run = None;
+    let mut outcome = None;
+    let mut height = None;
+    let end = scan(path, |item| {
+        match &item {
+            ScanItem::Metadata { name, entries } if *name == topics::METADATA_RUN => {
+                run = Some((*entries).clone());
+            }
+            ScanItem::Metadata { name, entries } if *name == topics::METADATA_OUTCOME => {
+                outcome = super::RunOutcome::from_map(entries);
+            }
+            ScanItem::Message {
+                channel,
+                log_time_ns,
+                data,
+            } if channel.topic == topics::RECON_HEIGHT => {
+                height = Some(decode_image(path, channel, *log_time_ns, data)?);
+            }
+            _ => {}
+        }
+        ends.visit(path, &item)
+    })?;
+    Ok(ReplayInputs {
+        run,
+        outcome,
+        ends: ends.finish(path, end)?,
+        height,
+    })
 }

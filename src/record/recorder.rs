@@ -676,12 +676,18 @@ impl WriterState {
                     self.try_flush()?;
                 }
             }
-            EntryKind::Metadata { name, entries } => writer
-                .write_metadata(&Metadata {
-                    name,
-                    metadata: entries,
-                })
-                .map_err(|e| failure("writing a metadata record", &e))?,
+            EntryKind::Metadata { name, entries } => {
+                writer
+                    .write_metadata(&Metadata {
+                        name,
+                        metadata: entries,
+                    })
+                    .map_err(|e| failure("writing a metadata record", &e))?;
+                // Rare and precious (the run's configuration, its outcome): on
+                // disk at once, so a run killed before its first frame still
+                // leaves a readable record saying what it was.
+                self.try_flush()?;
+            }
             EntryKind::Attachment {
                 log_time_ns,
                 name,

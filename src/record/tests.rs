@@ -409,6 +409,32 @@ fn frames_are_readable_before_finish() {
     recorder.finish().unwrap();
 }
 
+/// A run killed right after it started still leaves a readable record with
+/// its metadata (the configuration), not an empty file.
+#[test]
+fn metadata_is_readable_before_the_first_frame() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("early.mcap");
+    let recorder = Recorder::create(&path, fast_options()).unwrap();
+    let rec = recorder.handle();
+    rec.metadata(
+        topics::METADATA_RUN,
+        [("config".to_owned(), "[run]\n".to_owned())].into(),
+    )
+    .unwrap();
+    for _ in 0..500 {
+        if rec.status().entries_written == 1 {
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(2));
+    }
+    let live = read_metadata(&path).unwrap();
+    assert_eq!(live.items.len(), 1, "{:?}", live.end);
+    assert_eq!(live.items[0].name, topics::METADATA_RUN);
+    assert!(!live.end.complete);
+    recorder.finish().unwrap();
+}
+
 #[test]
 fn dropping_an_unfinished_recorder_still_completes_the_file() {
     let dir = tempfile::tempdir().unwrap();
