@@ -195,7 +195,12 @@ impl Config {
         overrides: &[String],
         env: impl IntoIterator<Item = (String, String)>,
     ) -> Result<Self, ConfigError> {
-        let mut builder = config::Config::builder();
+        // The built-in defaults are the first layer, so a file may give part
+        // of a table (`[imaging.micrograph] width = 640`) and keep the rest.
+        let mut builder = config::Config::builder().add_source(config::File::from_str(
+            &Self::default().to_toml(),
+            config::FileFormat::Toml,
+        ));
         if let Some(text) = text {
             builder = builder.add_source(config::File::from_str(text, config::FileFormat::Toml));
         }
@@ -350,6 +355,24 @@ mod tests {
             err.to_string().contains("series.end_tilt_deg = 80"),
             "{err}"
         );
+    }
+
+    #[test]
+    fn a_partial_table_keeps_the_defaults_of_its_other_keys() {
+        let c = load(
+            "[imaging.micrograph]\nwidth = 640\nheight = 480\n",
+            &[],
+            &[],
+        )
+        .unwrap();
+        assert_eq!(c.imaging.micrograph.width, 640);
+        assert_eq!(
+            c.imaging.micrograph.dwell_us,
+            Config::default().imaging.micrograph.dwell_us
+        );
+        let c = load("", &["imaging.tracking.width=160"], &[]).unwrap();
+        assert_eq!(c.imaging.tracking.width, 160);
+        assert_eq!(c.imaging.tracking.height, 240);
     }
 
     #[test]

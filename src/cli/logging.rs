@@ -28,6 +28,7 @@ pub fn init(format: LogFormat, filter: Option<&str>) {
     } else {
         fmt::layer()
             .with_target(false)
+            .with_ansi(std::io::stderr().is_terminal())
             .with_writer(std::io::stderr)
             .boxed()
     };

@@ -100,14 +100,38 @@ pub enum Command {
     Eval(eval::EvalArgs),
 }
 
+impl Command {
+    /// The `[log]` section of the configuration this command reads, if it
+    /// reads one and it loads.
+    fn log_config(&self) -> Option<crate::config::LogConfig> {
+        let config = match self {
+            Self::Acquire { config } => config.load().ok()?,
+            Self::Reconstruct(args) => args.config.load().ok()?,
+            Self::Rectify(args) => args.config.load().ok()?,
+            Self::Flow(args) => args.config.load().ok()?,
+            Self::Daemon(args) => Config::load(Some(&args.config), &args.overrides).ok()?,
+            _ => return None,
+        };
+        Some(config.log)
+    }
+}
+
 /// Runs one command.
 ///
 /// # Errors
 /// Whatever the command fails with; `main` prints it on one line.
 pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
+    // The configuration's [log] section applies to the commands that read a
+    // configuration; the command-line flags (and RUST_LOG) beat it. A file
+    // that does not load is reported by the command itself, after this.
+    let from_config = cli.command.log_config();
     logging::init(
-        cli.log_format.unwrap_or(LogFormat::Auto),
-        cli.log.as_deref(),
+        cli.log_format
+            .or(from_config.as_ref().map(|l| l.format))
+            .unwrap_or(LogFormat::Auto),
+        cli.log
+            .as_deref()
+            .or(from_config.as_ref().map(|l| l.filter.as_str())),
     );
     match cli.command {
         Command::Acquire { config } => acquire::run(&config),
