@@ -8,6 +8,7 @@ use std::process::ExitCode;
 use clap::{Args, Subcommand};
 
 use crate::eval::{self, EvalOptions};
+use crate::vision::sift_flow::Mode;
 
 #[derive(Debug, Args)]
 pub struct EvalArgs {
@@ -28,6 +29,44 @@ pub struct EvalArgs {
 pub enum Which {
     /// SIFT flow on Middlebury RubberWhale against its ground truth (paper Table 3).
     Flow,
+    /// The dense stage on the simulator's ground-truth scenes: coverage, RMSE, disparity error, scale.
+    Dense(DenseArgs),
+    /// Agreement of the Potamogeton height maps from three tilt pairs (real Zeiss data).
+    Potamogeton {
+        /// Only this mode (default: improved and paper).
+        #[arg(long, value_parser = parse_mode)]
+        mode: Option<Mode>,
+    },
+}
+
+#[derive(Debug, Args)]
+pub struct DenseArgs {
+    /// Rectify with the simulator's exact geometry instead of the sparse stage (dense errors alone).
+    #[arg(long)]
+    pub true_rectification: bool,
+    /// Only this mode (default: improved and paper).
+    #[arg(long, value_parser = parse_mode)]
+    pub mode: Option<Mode>,
+    /// Only the cases whose label ("dome 640x480") contains this text.
+    #[arg(long, value_name = "TEXT")]
+    pub only: Option<String>,
+    /// Override a dense parameter, KEY=VALUE as in [reconstruction.dense] (repeatable).
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    pub set: Vec<String>,
+    /// Render the micrographs without scan noise (the noise floor apart).
+    #[arg(long)]
+    pub noiseless: bool,
+    /// Only write the selected cases' micrographs (16-bit TIFF with tilt and pixel size) into DIR.
+    #[arg(long, value_name = "DIR")]
+    pub write_pairs: Option<PathBuf>,
+}
+
+fn parse_mode(s: &str) -> Result<Mode, String> {
+    match s {
+        "paper" => Ok(Mode::Paper),
+        "improved" => Ok(Mode::Improved),
+        _ => Err(format!("unknown mode `{s}`: paper or improved")),
+    }
 }
 
 /// Runs one evaluation.
@@ -40,8 +79,20 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<ExitCode> {
         quick: args.quick,
         json: args.json,
     };
-    match args.which {
+    match &args.which {
         Which::Flow => eval::flow::run(&opts)?,
+        Which::Dense(d) => eval::dense::run(
+            &opts,
+            &eval::dense::DenseEvalArgs {
+                true_rectification: d.true_rectification,
+                mode: d.mode,
+                only: d.only.clone(),
+                set: d.set.clone(),
+                noiseless: d.noiseless,
+                write_pairs: d.write_pairs.clone(),
+            },
+        )?,
+        Which::Potamogeton { mode } => eval::potamogeton::run(&opts, *mode)?,
     }
     Ok(ExitCode::SUCCESS)
 }

@@ -4,6 +4,7 @@
 
 pub mod dense;
 pub mod flow;
+pub mod potamogeton;
 pub mod sparse;
 pub mod synthetic;
 

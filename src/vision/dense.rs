@@ -16,6 +16,7 @@ use super::Image;
 use super::bilateral_grid::{BilateralParams, GridInfo, bilateral_filter};
 use super::consistency::left_right_check;
 use super::sift_flow::{self, FlowParams, FlowStats, LevelReport, Mode};
+use super::subpixel::{RefineParams, upsample_flow};
 
 /// Errors of the dense stage, each naming the cause and the remedy.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -74,6 +75,8 @@ pub enum DenseError {
 /// | `lr_tolerance` | 2.0 | left–right disagreement (pixels) above which a pixel is masked as occluded (1.0 rejected 6–13 % of the visible pixels of simulated scenes at 1024×768, θ = 11°; 2.0 keeps coverage ≥ 98 % there with the same RMSE on the dome) |
 /// | `bilateral` | σs = σr = 3 | bilateral grid filter of the disparity |
 /// | `max_strips` | 4 | parallel row strips of the BP sweeps (1 = sequential BP-S) |
+/// | `finest_level` | none | finest pyramid level of BP; none = 0 (paper) or 1 (improved: the intensity refinement takes the disparity to full resolution) |
+/// | `refine` | see [`RefineParams`] | improved mode: Lucas–Kanade refinement of the flow on the rectified intensities (`iterations = 0`: none) |
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct DenseParams {
@@ -93,6 +96,8 @@ pub struct DenseParams {
     pub lr_tolerance: f32,
     pub bilateral: BilateralParams,
     pub max_strips: usize,
+    pub finest_level: Option<usize>,
+    pub refine: RefineParams,
 }
 
 impl Default for DenseParams {
@@ -115,6 +120,8 @@ impl Default for DenseParams {
             lr_tolerance: 2.0,
             bilateral: BilateralParams::default(),
             max_strips: f.max_strips,
+            finest_level: f.finest_level,
+            refine: f.refine,
         }
     }
 }
@@ -139,6 +146,8 @@ impl DenseParams {
             top_iterations: self.top_iterations,
             iterations: self.iterations,
             max_strips: self.max_strips,
+            finest_level: self.finest_level,
+            refine: self.refine,
         }
     }
 }
@@ -147,6 +156,8 @@ impl DenseParams {
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Default)]
 pub struct DenseTimings {
     pub matching_ms: f64,
+    /// Intensity refinement of both directions (improved mode).
+    pub refine_ms: f64,
     pub consistency_ms: f64,
     pub filter_ms: f64,
     pub total_ms: f64,
@@ -166,6 +177,14 @@ pub struct DenseStats {
     pub coverage: f64,
     /// Fraction of valid left pixels rejected by the left–right check.
     pub rejected_fraction: f64,
+    /// Finest pyramid level BP ran on (0 = full resolution).
+    pub finest_level: usize,
+    /// Fraction of valid left pixels whose intensity refinement hit its
+    /// `max_step` bound (improved mode; 0 otherwise).
+    pub refine_clamped_fraction: f64,
+    /// Mean normalised cross-correlation of the refined matches over the
+    /// window, valid left pixels (1 without refinement).
+    pub refine_mean_ncc: f64,
     pub grid: GridInfo,
     pub timings: DenseTimings,
 }
@@ -268,19 +287,74 @@ pub fn dense_disparity(
     let (fwd, bwd) = engine.run(&a, &b, Some(&va), Some(&vb), improved);
     let matching_ms = ms(tm);
 
-    let u = Image::from_vec(w, h, fwd.u).expect("flow has the canvas size");
-    let v = Image::from_vec(w, h, fwd.v).expect("flow has the canvas size");
+    // To full resolution: refined on the intensities (improved) or upsampled.
+    let tr = Instant::now();
+    let finest = engine.finest;
+    let refine = fp.refinement();
+    let alpha = params.alpha.max(1e-6);
+    let mut margin = fwd.margin.clone();
+    let (mut mw, mut mh) = (fwd.width, fwd.height);
+    for l in (0..finest).rev() {
+        let (mut wf, mut hf) = (w, h);
+        for _ in 0..l {
+            (wf, hf) = (
+                sift_flow::pyramid::half_size(wf),
+                sift_flow::pyramid::half_size(hf),
+            );
+        }
+        margin = upsample_flow(&margin, mw, mh, wf, hf, 1.0);
+        (mw, mh) = (wf, hf);
+    }
+    let fwd_levels = fwd.levels.clone();
+    let bwd_levels = bwd.as_ref().map(|b| b.levels.clone());
+    // The left–right check of the SIFT-flow fields themselves, at their own
+    // level: the intensity refinement smooths the flow over its window, which
+    // would let a narrow occlusion pass the check on the refined fields alone.
+    let matching_rejected: Option<Vec<bool>> = bwd.as_ref().map(|bw| {
+        let (cw, ch) = (fwd.width, fwd.height);
+        let img = |d: &[f32]| Image::from_vec(cw, ch, d.to_vec()).expect("level size");
+        let scale = (1u32 << finest) as f32;
+        let c = left_right_check(
+            &img(&fwd.u),
+            &img(&fwd.v),
+            &img(&bw.u),
+            &img(&bw.v),
+            params.lr_tolerance / scale,
+        );
+        let f = 1usize << finest;
+        (0..w * h)
+            .map(|p| {
+                let (x, y) = (((p % w) / f).min(cw - 1), ((p / w) / f).min(ch - 1));
+                c.rejected[y * cw + x]
+            })
+            .collect()
+    });
+    let (fwd_full, bwd_full) = rayon::join(
+        || sift_flow::to_full_resolution(&a, &b, Some(&va), Some(&vb), fwd, finest, refine),
+        || {
+            bwd.map(|bw| {
+                sift_flow::to_full_resolution(&b, &a, Some(&vb), Some(&va), bw, finest, refine)
+            })
+        },
+    );
+    let refine_ms = ms(tr);
+
+    let u = Image::from_vec(w, h, fwd_full.u).expect("flow has the canvas size");
+    let v = Image::from_vec(w, h, fwd_full.v).expect("flow has the canvas size");
     let flow_stats = FlowStats::of(&u, &v);
 
     // Consistency and confidence.
     let tc = Instant::now();
-    let alpha = params.alpha.max(1e-6);
-    let ambiguity: Vec<f32> = fwd
-        .margin
+    let ambiguity: Vec<f32> = margin
         .iter()
-        .map(|&m| 1.0 - (-m / alpha).exp())
+        .zip(&fwd_full.ncc)
+        .zip(&fwd_full.clamped)
+        .map(|((&m, &c), &cl)| {
+            let a = 1.0 - (-m / alpha).exp();
+            a * c * if cl { 0.1 } else { 1.0 }
+        })
         .collect();
-    let (rejected, agreement) = match &bwd {
+    let (rejected, agreement) = match &bwd_full {
         Some(bw) => {
             let ur = Image::from_vec(w, h, bw.u.clone()).expect("flow has the canvas size");
             let vr = Image::from_vec(w, h, bw.v.clone()).expect("flow has the canvas size");
@@ -298,7 +372,11 @@ pub fn dense_disparity(
                     }
                 })
                 .collect();
-            (c.rejected, agreement)
+            let rejected = match &matching_rejected {
+                Some(m) => c.rejected.iter().zip(m).map(|(a, b)| *a || *b).collect(),
+                None => c.rejected,
+            };
+            (rejected, agreement)
         }
         None => (vec![false; w * h], vec![1.0; w * h]),
     };
@@ -332,16 +410,31 @@ pub fn dense_disparity(
 
     let known = raw.data().iter().filter(|d| d.is_finite()).count();
     let n_rejected = va.iter().zip(&rejected).filter(|(v, r)| **v && **r).count();
+    let n_clamped = va
+        .iter()
+        .zip(&fwd_full.clamped)
+        .filter(|(v, c)| **v && **c)
+        .count();
+    let ncc_sum: f64 = va
+        .iter()
+        .zip(&fwd_full.ncc)
+        .filter(|(v, _)| **v)
+        .map(|(_, &c)| f64::from(c))
+        .sum();
     let stats = DenseStats {
         mode: params.mode,
-        levels: fwd.levels,
-        levels_right_to_left: bwd.map(|b| b.levels),
+        levels: fwd_levels,
+        levels_right_to_left: bwd_levels,
         flow: flow_stats,
         coverage: known as f64 / n_valid as f64,
         rejected_fraction: n_rejected as f64 / n_valid as f64,
+        finest_level: finest,
+        refine_clamped_fraction: n_clamped as f64 / n_valid as f64,
+        refine_mean_ncc: ncc_sum / n_valid as f64,
         grid,
         timings: DenseTimings {
             matching_ms,
+            refine_ms,
             consistency_ms,
             filter_ms,
             total_ms: ms(t0),
