@@ -535,6 +535,12 @@ mod tests {
             );
         }
         assert!(dense["flow"]["v2_over_u2"].as_f64().unwrap() < 0.1);
+        let table4 = &json["reconstruction"]["rectification"];
+        for key in ["v2_over_u2_before", "v2_over_u2_after", "v2_over_u2_dense"] {
+            let v = table4[key].as_f64().unwrap();
+            assert!((0.0..0.1).contains(&v), "{key} = {v}");
+        }
+        assert!(table4["rmse_after_px"].as_f64().unwrap() < 0.5);
         assert!(json["peak_rss_mib"].as_f64().unwrap() > 0.0);
         assert_eq!(report.outputs.len(), 5);
     }

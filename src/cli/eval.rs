@@ -36,6 +36,9 @@ pub enum Which {
         /// Only this mode (default: improved and paper).
         #[arg(long, value_parser = parse_mode)]
         mode: Option<Mode>,
+        /// Override a dense parameter, KEY=VALUE as in [reconstruction.dense] (repeatable).
+        #[arg(long = "set", value_name = "KEY=VALUE")]
+        set: Vec<String>,
     },
 }
 
@@ -92,7 +95,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<ExitCode> {
                 write_pairs: d.write_pairs.clone(),
             },
         )?,
-        Which::Potamogeton { mode } => eval::potamogeton::run(&opts, *mode)?,
+        Which::Potamogeton { mode, set } => eval::potamogeton::run(&opts, *mode, set)?,
     }
     Ok(ExitCode::SUCCESS)
 }

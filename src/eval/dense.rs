@@ -24,7 +24,7 @@ use sdsem_sim::scene::{Scene, SceneKind, SceneParams};
 use serde::Serialize;
 
 use crate::vision::Image;
-use crate::vision::dense::{DenseParams, DenseStats, dense_disparity};
+use crate::vision::dense::{DenseParams, DenseStats, dense_disparity_in_range};
 use crate::vision::depth::{StereoGeometry, height_on_left_grid};
 use crate::vision::sift_flow::Mode;
 use crate::vision::sparse::{SparseParams, rectify_pair};
@@ -192,6 +192,8 @@ struct Rectified {
     right: Warped,
     h_left: Matrix3<f64>,
     h_right: Matrix3<f64>,
+    /// Disparity range of the sparse inliers on the canvas (sparse only).
+    range: Option<(f64, f64)>,
 }
 
 /// The flow's errors on the canvas: every visible left pixel and its exact
@@ -360,6 +362,10 @@ pub fn evaluate_case(
         Rectifier::Sparse => {
             let r = rectify_pair(&left, &right, Some(case.tilt_axis_deg), sparse)?;
             Rectified {
+                range: crate::vision::pipeline::inlier_disparity_range(
+                    &r.sparse.inliers,
+                    &r.sparse.rectification,
+                ),
                 h_left: r.sparse.rectification.h_left,
                 h_right: r.sparse.rectification.h_right,
                 left: r.left,
@@ -373,17 +379,19 @@ pub fn evaluate_case(
                 right: warp(&right, &hm, cw, ch).ok_or(SimEvalError::Singular)?,
                 h_left: hm,
                 h_right: hm,
+                range: None,
             }
         }
     };
     let sparse_ms = t.elapsed().as_secs_f64() * 1e3;
     let t = Instant::now();
-    let disp = dense_disparity(
+    let disp = dense_disparity_in_range(
         &rect.left.image,
         &rect.right.image,
         Some(&rect.left.valid),
         Some(&rect.right.valid),
         dense,
+        rect.range,
     )?;
     let dense_ms = t.elapsed().as_secs_f64() * 1e3;
     let geometry = StereoGeometry {

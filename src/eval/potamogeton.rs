@@ -106,9 +106,11 @@ pub fn reconstruct_series(
     dir: &Path,
     mode: Mode,
     quick: bool,
+    set: &[String],
 ) -> anyhow::Result<Vec<(PairFigures, Image)>> {
     let params = ReconstructionParams {
         mode,
+        dense: super::dense::apply_overrides(&crate::vision::dense::DenseParams::default(), set)?,
         ..ReconstructionParams::default()
     };
     let rights: &[&str] = if quick { &RIGHTS[..2] } else { &RIGHTS };
@@ -150,12 +152,12 @@ pub fn reconstruct_series(
 ///
 /// # Errors
 /// When the data are missing or a reconstruction fails.
-pub fn run(opts: &super::EvalOptions, mode: Option<Mode>) -> anyhow::Result<()> {
+pub fn run(opts: &super::EvalOptions, mode: Option<Mode>, set: &[String]) -> anyhow::Result<()> {
     let dir = opts.data_dir.join("potamogeton");
     let modes = mode.map_or(vec![Mode::Improved, Mode::Paper], |m| vec![m]);
     let mut json = Vec::new();
     for mode in modes {
-        let series = reconstruct_series(&dir, mode, opts.quick)?;
+        let series = reconstruct_series(&dir, mode, opts.quick, set)?;
         let m = format!("{mode:?}").to_lowercase();
         let mut agreements = Vec::new();
         for (f, _) in &series {

@@ -6,6 +6,17 @@
 //! error), then — in the improved mode — sub-pixel disparity, a left–right
 //! consistency check that masks occlusions, and a per-pixel confidence; last,
 //! the bilateral-grid filter of the disparity.
+//!
+//! The improved mode runs BP down to half resolution only (`finest_level` 1)
+//! and takes the flow to full resolution with the Lucas–Kanade refinement of
+//! [`super::subpixel::refine_flow`] on the rectified intensities: the
+//! descriptors cannot resolve a fraction of a pixel, the intensities can, and
+//! the finest BP level and its dense SIFT were two thirds of the time. Its
+//! NCC and whether it hit its step bound feed the confidence; the left–right
+//! check runs on both the SIFT-flow and the refined fields. Given the
+//! disparity range of the sparse matches ([`dense_disparity_in_range`]), the
+//! search is centred on it and the pyramid deepened until the top window
+//! spans it.
 
 use std::time::Instant;
 
@@ -177,8 +188,15 @@ pub struct DenseStats {
     pub coverage: f64,
     /// Fraction of valid left pixels rejected by the left–right check.
     pub rejected_fraction: f64,
+    /// Of those, the fraction the check of the SIFT-flow fields rejected
+    /// (improved mode; the rest failed on the refined fields only).
+    pub rejected_by_matching_fraction: f64,
     /// Finest pyramid level BP ran on (0 = full resolution).
     pub finest_level: usize,
+    /// Pyramid levels used (more than `levels` when a known disparity range
+    /// needed a wider search) and the disparity the search was centred on.
+    pub levels_used: usize,
+    pub search_centre_px: f32,
     /// Fraction of valid left pixels whose intensity refinement hit its
     /// `max_step` bound (improved mode; 0 otherwise).
     pub refine_clamped_fraction: f64,
@@ -244,6 +262,65 @@ pub fn dense_disparity(
     valid_right: Option<&[bool]>,
     params: &DenseParams,
 ) -> Result<Disparity, DenseError> {
+    dense_disparity_in_range(left_rect, right_rect, valid_left, valid_right, params, None)
+}
+
+/// Extra search margin around a disparity range known beforehand: a
+/// quarter of the range plus this many pixels on each side.
+const RANGE_MARGIN_PX: f64 = 8.0;
+
+/// [`dense_disparity`] knowing roughly where the disparities lie (the
+/// rectified sparse matches: `(min, max)`, canvas pixels). In the improved
+/// mode the search is then centred on that range and the pyramid gets as
+/// many levels as the top window needs to span it (a fixed window misses the
+/// large parallax of high tilts or tall specimens); the paper mode ignores it.
+///
+/// # Errors
+/// As [`dense_disparity`].
+pub fn dense_disparity_in_range(
+    left_rect: &Image,
+    right_rect: &Image,
+    valid_left: Option<&[bool]>,
+    valid_right: Option<&[bool]>,
+    params: &DenseParams,
+    range: Option<(f64, f64)>,
+) -> Result<Disparity, DenseError> {
+    let mut params = *params;
+    let mut top_shift = 0.0f32;
+    if let Some((lo, hi)) = range.filter(|(lo, hi)| lo.is_finite() && hi.is_finite() && hi >= lo)
+        && params.mode == Mode::Improved
+    {
+        let (w, h) = left_rect.dimensions();
+        let half = (hi - lo) / 2.0 * 1.25 + RANGE_MARGIN_PX;
+        while (params.top_window as f64) * f64::from(1u32 << (params.levels - 1)) < half
+            && params.levels < 8
+            && sift_flow::check_size(w, h, params.levels + 1).is_ok()
+        {
+            params.levels += 1;
+        }
+        // Lies within the image size.
+        #[allow(clippy::cast_possible_truncation)]
+        let centre = ((lo + hi) / 2.0) as f32;
+        top_shift = centre;
+    }
+    dense_disparity_impl(
+        left_rect,
+        right_rect,
+        valid_left,
+        valid_right,
+        &params,
+        top_shift,
+    )
+}
+
+fn dense_disparity_impl(
+    left_rect: &Image,
+    right_rect: &Image,
+    valid_left: Option<&[bool]>,
+    valid_right: Option<&[bool]>,
+    params: &DenseParams,
+    top_shift: f32,
+) -> Result<Disparity, DenseError> {
     let t0 = Instant::now();
     let (w, h) = left_rect.dimensions();
     if right_rect.dimensions() != (w, h) {
@@ -278,8 +355,9 @@ pub fn dense_disparity(
     let a = sift_flow::fill_non_finite(left_rect);
     let b = sift_flow::fill_non_finite(right_rect);
     let improved = params.mode == Mode::Improved;
-    let engine =
+    let mut engine =
         fp.engine(improved.then_some((params.vertical_window, params.vertical_top_window)));
+    engine.top_shift = top_shift;
 
     // Matching: both directions at once in the improved mode (two cores, two
     // sequential sweeps: the backward field is almost free in wall time).
@@ -410,6 +488,9 @@ pub fn dense_disparity(
 
     let known = raw.data().iter().filter(|d| d.is_finite()).count();
     let n_rejected = va.iter().zip(&rejected).filter(|(v, r)| **v && **r).count();
+    let n_rejected_matching = matching_rejected
+        .as_ref()
+        .map_or(0, |m| va.iter().zip(m).filter(|(v, r)| **v && **r).count());
     let n_clamped = va
         .iter()
         .zip(&fwd_full.clamped)
@@ -428,7 +509,10 @@ pub fn dense_disparity(
         flow: flow_stats,
         coverage: known as f64 / n_valid as f64,
         rejected_fraction: n_rejected as f64 / n_valid as f64,
+        rejected_by_matching_fraction: n_rejected_matching as f64 / n_valid as f64,
         finest_level: finest,
+        levels_used: params.levels,
+        search_centre_px: top_shift,
         refine_clamped_fraction: n_clamped as f64 / n_valid as f64,
         refine_mean_ncc: ncc_sum / n_valid as f64,
         grid,

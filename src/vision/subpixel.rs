@@ -78,7 +78,7 @@ pub fn refine(data: &DataTerm, space: &LabelSpace, labels: &[Vec<u16>; 2]) -> [V
 /// | `window_sigma` | 6.0 | σ of the Gaussian window of the normal equations, pixels: smaller follows finer relief, larger is less noisy (simulated 640×480 pairs, exact rectification: σ 2 → 6 lowers the median disparity error 0.19–0.24 → 0.12–0.16 px, the height scale of rough relief 0.98 → 0.94) |
 /// | `normalise_sigma` | 2.5 | σ of the local mean and contrast normalisation, pixels: a band-pass that keeps the fine texture, which moves with the surface, and drops the slow shading, which changes with tilt (4 → 2.5: RMSE 9.5 → 7.9 % of the relief on rough) |
 /// | `presmooth_sigma` | 0 | Gaussian blur of both images first, pixels (0 = none): on simulated SEM pairs any blur costs more accuracy than it saves noise (0.8 → 1.5: median error +0.02 px) |
-/// | `iterations` | 5 | Gauss–Newton steps per pyramid level |
+/// | `iterations` | 3 | Gauss–Newton steps per pyramid level (the start is the window-smoothed SIFT flow: 5 raises the height scale of rough relief 0.925 → 0.936 and the median error 0.110 → 0.119 px, for 40 % more time) |
 /// | `max_step` | 1.5 | largest change from the starting flow, pixels (finest-level pixels) |
 /// | `vertical` | true | refine the vertical flow too (false: keep it) |
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -98,7 +98,7 @@ impl Default for RefineParams {
             window_sigma: 6.0,
             normalise_sigma: 2.5,
             presmooth_sigma: 0.0,
-            iterations: 5,
+            iterations: 3,
             max_step: 1.5,
             vertical: true,
         }

@@ -198,6 +198,9 @@ pub(crate) struct Engine {
     pub max_strips: usize,
     /// The finest level BP runs on (0 = full resolution).
     pub finest: usize,
+    /// Horizontal displacement the top level's window is centred on, from A
+    /// to B, full-resolution pixels (B to A: the opposite); 0 = none.
+    pub top_shift: f32,
 }
 
 /// The finest level's result of the engine.
@@ -337,6 +340,7 @@ impl FlowParams {
             plan,
             max_strips: self.max_strips,
             finest: self.finest(),
+            top_shift: 0.0,
         }
     }
 }
@@ -499,6 +503,7 @@ impl Engine {
                     masks_b[l].as_deref(),
                     up_a.and_then(|s| coarse(&fwd, s)),
                     descriptor_ms,
+                    self.top_shift,
                 )
             };
             let backward = || {
@@ -511,6 +516,7 @@ impl Engine {
                     masks_a[l].as_deref(),
                     up_b.and_then(|s| coarse(&bwd, s)),
                     descriptor_ms,
+                    -self.top_shift,
                 )
             };
             let (f, b) = if both {
@@ -560,12 +566,18 @@ impl Engine {
         mask_b: Option<&[bool]>,
         coarser: Option<Coarser<'_>>,
         descriptor_ms: f64,
+        shift: f32,
     ) -> Direction {
         let plan = self.plan[l];
+        // The shift in this level's pixels (bounded by the image size).
+        #[allow(clippy::cast_possible_truncation)]
+        let top = (shift / (1u32 << l.min(31)) as f32).round() as i32;
         let offset = match coarser {
-            // Top: proportional correspondence when the sizes differ.
+            // Top: proportional correspondence when the sizes differ, plus the shift.
             None => [
-                (0..w * h).map(|p| proportional(p % w, w, w2)).collect(),
+                (0..w * h)
+                    .map(|p| proportional(p % w, w, w2) + top)
+                    .collect(),
                 (0..w * h).map(|p| proportional(p / w, h, h2)).collect(),
             ],
             Some((flow, (wc, hc))) => [
