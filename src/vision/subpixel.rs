@@ -204,30 +204,42 @@ fn box_pass<const C: usize>(
             }
         });
     } else {
+        // Bands of rows, each with its own running sum started afresh: parallel,
+        // and the band boundaries depend on the height only (not on threads).
+        let band = h.div_ceil(VERTICAL_BANDS).max(1);
         let row = |i: isize| &src[(i.clamp(0, h as isize - 1) as usize) * w..][..w];
-        let mut acc = vec![[0f64; C]; w];
-        for k in -r..=r {
-            for (a, v) in acc.iter_mut().zip(row(k)) {
-                for (ac, &vc) in a.iter_mut().zip(v) {
-                    *ac += f64::from(vc);
+        out.par_chunks_mut(band * w)
+            .enumerate()
+            .for_each(|(b, chunk)| {
+                let y0 = (b * band) as isize;
+                let mut acc = vec![[0f64; C]; w];
+                for k in y0 - r..=y0 + r {
+                    for (a, v) in acc.iter_mut().zip(row(k)) {
+                        for (ac, &vc) in a.iter_mut().zip(v) {
+                            *ac += f64::from(vc);
+                        }
+                    }
                 }
-            }
-        }
-        for (y, orow) in out.chunks_mut(w).enumerate() {
-            for (o, a) in orow.iter_mut().zip(&acc) {
-                for (oc, &ac) in o.iter_mut().zip(a) {
-                    *oc = (ac * norm) as f32;
+                for (i, orow) in chunk.chunks_mut(w).enumerate() {
+                    let y = y0 + i as isize;
+                    for (o, a) in orow.iter_mut().zip(&acc) {
+                        for (oc, &ac) in o.iter_mut().zip(a) {
+                            *oc = (ac * norm) as f32;
+                        }
+                    }
+                    let (add, sub) = (row(y + r + 1), row(y - r));
+                    for ((a, p), m) in acc.iter_mut().zip(add).zip(sub) {
+                        for ((ac, &pc), &mc) in a.iter_mut().zip(p).zip(m) {
+                            *ac += f64::from(pc) - f64::from(mc);
+                        }
+                    }
                 }
-            }
-            let (add, sub) = (row(y as isize + r + 1), row(y as isize - r));
-            for ((a, p), m) in acc.iter_mut().zip(add).zip(sub) {
-                for ((ac, &pc), &mc) in a.iter_mut().zip(p).zip(m) {
-                    *ac += f64::from(pc) - f64::from(mc);
-                }
-            }
-        }
+            });
     }
 }
+
+/// Row bands of the vertical box pass.
+const VERTICAL_BANDS: usize = 16;
 
 /// Separable Gaussian blur of a row-major buffer of `C`-channel pixels
 /// (replicated border): exact taps up to [`BOX_SIGMA`], a cascade of three
