@@ -341,3 +341,212 @@ pub fn peak_rss_mib() -> Option<f64> {
     let kib: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
     Some(kib / 1024.0)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::eval::synthetic::{Texture, dome, render};
+
+    fn save_png(path: &Path, img: &Image) {
+        image::GrayImage::from_raw(img.width() as u32, img.height() as u32, img.to_u8())
+            .expect("buffer of w × h bytes")
+            .save(path)
+            .expect("temporary PNG written");
+    }
+
+    fn textured(w: usize, h: usize, seed: u64) -> Image {
+        let t = Texture::new(seed);
+        Image::from_fn(w, h, |x, y| t.at(x as f64, y as f64) as f32)
+    }
+
+    /// Runs `reconstruct` on `left`/`right` and returns its one-line error,
+    /// checking that the output directory holds nothing afterwards.
+    fn refused(dir: &Path, left: &Path, right: &Path, given: GeometryOverrides) -> String {
+        let out = dir.join("out");
+        let err = run(
+            left,
+            right,
+            &out,
+            given,
+            None,
+            &ReconstructionParams::default(),
+            &MeshParams::default(),
+        )
+        .expect_err("the pair must be refused");
+        let line = format!("{err:#}");
+        assert!(!line.contains('\n'), "not one line: {line}");
+        let left_behind = std::fs::read_dir(&out).map_or(0, Iterator::count);
+        assert_eq!(left_behind, 0, "outputs left behind after: {line}");
+        line
+    }
+
+    #[test]
+    fn bad_inputs_are_refused_in_one_line_without_outputs() {
+        let dir = tempfile::tempdir().unwrap();
+        let d = dir.path();
+        let a = d.join("a.png");
+        let b = d.join("b.png");
+        let small = d.join("small.png");
+        let flat = d.join("flat.png");
+        let other = d.join("other.png");
+        let text = d.join("notes.png");
+        save_png(&a, &textured(160, 120, 1));
+        save_png(&b, &textured(160, 120, 1).map(|v| 0.9 * v + 0.05));
+        save_png(&small, &textured(150, 120, 1));
+        save_png(&flat, &Image::filled(160, 120, 0.5));
+        save_png(&other, &textured(160, 120, 77));
+        std::fs::write(&text, "not an image\n").unwrap();
+        let flags = GeometryOverrides {
+            tilt_deg: Some(5.0),
+            pixel_size_um: Some(0.1),
+            tilt_axis_deg: Some(0.0),
+        };
+
+        let e = refused(d, &a, &small, flags);
+        assert!(e.contains("differ in size"), "{e}");
+        let e = refused(d, &a, &text, flags);
+        assert!(e.contains("notes.png") && e.contains("not an image"), "{e}");
+        for tilt in [0.0, -3.0, 61.0] {
+            let e = refused(
+                d,
+                &a,
+                &b,
+                GeometryOverrides {
+                    tilt_deg: Some(tilt),
+                    ..flags
+                },
+            );
+            assert!(e.contains("tilt"), "θ = {tilt}: {e}");
+        }
+        let e = refused(
+            d,
+            &a,
+            &b,
+            GeometryOverrides {
+                pixel_size_um: None,
+                ..flags
+            },
+        );
+        assert!(
+            e.contains("no pixel size") && e.contains("--pixel-size"),
+            "{e}"
+        );
+        let e = refused(
+            d,
+            &a,
+            &b,
+            GeometryOverrides {
+                tilt_deg: None,
+                ..flags
+            },
+        );
+        assert!(e.contains("--tilt"), "{e}");
+        let e = refused(d, &flat, &flat, flags);
+        assert!(e.contains("texture"), "{e}");
+        // Two unrelated specimens: no overlap, no epipolar geometry.
+        let e = refused(d, &a, &other, flags);
+        assert!(e.contains("sparse stage"), "{e}");
+    }
+
+    /// A dome seen with a horizontal parallax (φ = −90°): every output is
+    /// written, the GSF obeys DESIGN §7, the relief comes out raised, and the
+    /// report carries the energies of every level and the flow statistics.
+    #[test]
+    fn a_pair_gives_every_output_with_the_relief_raised() {
+        let (w, h) = (192, 144);
+        let pair = render(
+            w,
+            h,
+            Texture::new(5),
+            &dome(w, h, 0.0, 6.0, 0.35),
+            0.0,
+            0.005,
+        );
+        let dir = tempfile::tempdir().unwrap();
+        let (l, r) = (dir.path().join("l.png"), dir.path().join("r.png"));
+        save_png(&l, &pair.left);
+        save_png(&r, &pair.right);
+        let out = dir.path().join("out");
+        let params = ReconstructionParams {
+            dense: crate::vision::dense::DenseParams {
+                levels: 3,
+                ..crate::vision::dense::DenseParams::default()
+            },
+            ..ReconstructionParams::default()
+        };
+        let report = run(
+            &l,
+            &r,
+            &out,
+            GeometryOverrides {
+                tilt_deg: Some(6.0),
+                pixel_size_um: Some(0.05),
+                tilt_axis_deg: Some(-90.0),
+            },
+            None,
+            &params,
+            &MeshParams::default(),
+        )
+        .unwrap();
+        for name in [
+            files::HEIGHT_TIFF,
+            files::HEIGHT_GSF,
+            files::POINT_CLOUD,
+            files::MESH,
+            files::REPORT,
+        ] {
+            assert!(out.join(name).is_file(), "{name} missing");
+        }
+        let gsf = std::fs::read(out.join(files::HEIGHT_GSF)).unwrap();
+        let data_start = gsf.len() - w * h * 4;
+        assert_eq!(data_start % 4, 0);
+        let pad = gsf[..data_start]
+            .iter()
+            .rev()
+            .take_while(|&&b| b == 0)
+            .count();
+        assert!((1..=4).contains(&pad), "{pad} NUL bytes");
+        let field = crate::export::gsf::read_gsf(&out.join(files::HEIGHT_GSF)).unwrap();
+        assert_eq!((field.xres, field.yres), (w, h));
+        let height = field.height_um().unwrap();
+        let centre = height.get(w / 2, h / 2);
+        let rim = height.get(w / 2, h / 2 + 55);
+        assert!(
+            f64::from(centre - rim) > 0.5 * 6.0 * params_um_per_px(),
+            "centre {centre}, rim {rim}"
+        );
+
+        let json: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(out.join(files::REPORT)).unwrap()).unwrap();
+        let dense = &json["reconstruction"]["dense"];
+        let levels = dense["levels"].as_array().unwrap();
+        assert!(!levels.is_empty());
+        for l in levels {
+            let e: Vec<f64> = l["energy"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|v| v.as_f64().unwrap())
+                .collect();
+            assert_eq!(e.len(), l["iterations"].as_u64().unwrap() as usize);
+            assert!(
+                e.last().unwrap() <= e.first().unwrap(),
+                "energy rose: {e:?}"
+            );
+        }
+        assert!(dense["flow"]["v2_over_u2"].as_f64().unwrap() < 0.1);
+        let table4 = &json["reconstruction"]["rectification"];
+        for key in ["v2_over_u2_before", "v2_over_u2_after", "v2_over_u2_dense"] {
+            let v = table4[key].as_f64().unwrap();
+            assert!((0.0..0.1).contains(&v), "{key} = {v}");
+        }
+        assert!(table4["rmse_after_px"].as_f64().unwrap() < 0.5);
+        assert!(json["peak_rss_mib"].as_f64().unwrap() > 0.0);
+        assert_eq!(report.outputs.len(), 5);
+    }
+
+    /// µm of height per pixel of disparity of the test above (θ = 6°, 0.05 µm).
+    fn params_um_per_px() -> f64 {
+        0.05 / (2.0 * 3f64.to_radians().sin())
+    }
+}

@@ -8,6 +8,7 @@ use std::process::ExitCode;
 use clap::{Args, Subcommand};
 
 use crate::eval::{self, EvalOptions};
+use crate::vision::sift_flow::Mode;
 
 #[derive(Debug, Args)]
 pub struct EvalArgs {
@@ -37,6 +38,17 @@ pub enum Which {
     /// `kill -9` of the daemon at random moments, each followed by a restart:
     /// no job lost or re-run, every record readable.
     Kill(KillArgs),
+    /// The dense stage on the simulator's ground-truth scenes: coverage, RMSE, disparity error, scale.
+    Dense(DenseArgs),
+    /// Agreement of the Potamogeton height maps from three tilt pairs (real Zeiss data).
+    Potamogeton {
+        /// Only this mode (default: improved and paper).
+        #[arg(long, value_parser = parse_mode)]
+        mode: Option<Mode>,
+        /// Override a dense parameter, KEY=VALUE as in [reconstruction.dense] (repeatable).
+        #[arg(long = "set", value_name = "KEY=VALUE")]
+        set: Vec<String>,
+    },
 }
 
 #[derive(Debug, Args)]
@@ -63,6 +75,36 @@ pub struct KillArgs {
     /// Keep the work directory (spool, runs, daemon logs).
     #[arg(long)]
     pub keep: bool,
+}
+
+#[derive(Debug, Args)]
+pub struct DenseArgs {
+    /// Rectify with the simulator's exact geometry instead of the sparse stage (dense errors alone).
+    #[arg(long)]
+    pub true_rectification: bool,
+    /// Only this mode (default: improved and paper).
+    #[arg(long, value_parser = parse_mode)]
+    pub mode: Option<Mode>,
+    /// Only the cases whose label ("dome 640x480") contains this text.
+    #[arg(long, value_name = "TEXT")]
+    pub only: Option<String>,
+    /// Override a dense parameter, KEY=VALUE as in [reconstruction.dense] (repeatable).
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    pub set: Vec<String>,
+    /// Render the micrographs without scan noise (the noise floor apart).
+    #[arg(long)]
+    pub noiseless: bool,
+    /// Only write the selected cases' micrographs (16-bit TIFF with tilt and pixel size) into DIR.
+    #[arg(long, value_name = "DIR")]
+    pub write_pairs: Option<PathBuf>,
+}
+
+fn parse_mode(s: &str) -> Result<Mode, String> {
+    match s {
+        "paper" => Ok(Mode::Paper),
+        "improved" => Ok(Mode::Improved),
+        _ => Err(format!("unknown mode `{s}`: paper or improved")),
+    }
 }
 
 /// Runs one evaluation.
@@ -106,6 +148,18 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<ExitCode> {
                 return Ok(ExitCode::FAILURE);
             }
         }
+        Which::Dense(d) => eval::dense::run(
+            &opts,
+            &eval::dense::DenseEvalArgs {
+                true_rectification: d.true_rectification,
+                mode: d.mode,
+                only: d.only.clone(),
+                set: d.set.clone(),
+                noiseless: d.noiseless,
+                write_pairs: d.write_pairs.clone(),
+            },
+        )?,
+        Which::Potamogeton { mode, set } => eval::potamogeton::run(&opts, *mode, set)?,
     }
     Ok(ExitCode::SUCCESS)
 }

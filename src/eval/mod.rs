@@ -5,6 +5,7 @@
 pub mod acquisition;
 pub mod dense;
 pub mod flow;
+pub mod potamogeton;
 pub mod soak;
 pub mod sparse;
 pub mod synthetic;

@@ -6,6 +6,17 @@
 //! error), then — in the improved mode — sub-pixel disparity, a left–right
 //! consistency check that masks occlusions, and a per-pixel confidence; last,
 //! the bilateral-grid filter of the disparity.
+//!
+//! The improved mode runs BP down to half resolution only (`finest_level` 1)
+//! and takes the flow to full resolution with the Lucas–Kanade refinement of
+//! [`super::subpixel::refine_flow`] on the rectified intensities: the
+//! descriptors cannot resolve a fraction of a pixel, the intensities can, and
+//! the finest BP level and its dense SIFT were two thirds of the time. Its
+//! NCC and whether it hit its step bound feed the confidence; the left–right
+//! check runs on both the SIFT-flow and the refined fields. Given the
+//! disparity range of the sparse matches ([`dense_disparity_in_range`]), the
+//! search is centred on it and the pyramid deepened until the top window
+//! spans it.
 
 use std::time::Instant;
 
@@ -16,6 +27,7 @@ use super::Image;
 use super::bilateral_grid::{BilateralParams, GridInfo, bilateral_filter};
 use super::consistency::left_right_check;
 use super::sift_flow::{self, FlowParams, FlowStats, LevelReport, Mode};
+use super::subpixel::{RefineParams, upsample_flow};
 
 /// Errors of the dense stage, each naming the cause and the remedy.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -74,6 +86,8 @@ pub enum DenseError {
 /// | `lr_tolerance` | 2.0 | left–right disagreement (pixels) above which a pixel is masked as occluded (1.0 rejected 6–13 % of the visible pixels of simulated scenes at 1024×768, θ = 11°; 2.0 keeps coverage ≥ 98 % there with the same RMSE on the dome) |
 /// | `bilateral` | σs = σr = 3 | bilateral grid filter of the disparity |
 /// | `max_strips` | 4 | parallel row strips of the BP sweeps (1 = sequential BP-S) |
+/// | `finest_level` | none | finest pyramid level of BP; none = 0 (paper) or 1 (improved: the intensity refinement takes the disparity to full resolution) |
+/// | `refine` | see [`RefineParams`] | improved mode: Lucas–Kanade refinement of the flow on the rectified intensities (`iterations = 0`: none) |
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct DenseParams {
@@ -93,6 +107,8 @@ pub struct DenseParams {
     pub lr_tolerance: f32,
     pub bilateral: BilateralParams,
     pub max_strips: usize,
+    pub finest_level: Option<usize>,
+    pub refine: RefineParams,
 }
 
 impl Default for DenseParams {
@@ -115,6 +131,8 @@ impl Default for DenseParams {
             lr_tolerance: 2.0,
             bilateral: BilateralParams::default(),
             max_strips: f.max_strips,
+            finest_level: f.finest_level,
+            refine: f.refine,
         }
     }
 }
@@ -139,6 +157,8 @@ impl DenseParams {
             top_iterations: self.top_iterations,
             iterations: self.iterations,
             max_strips: self.max_strips,
+            finest_level: self.finest_level,
+            refine: self.refine,
         }
     }
 }
@@ -147,6 +167,8 @@ impl DenseParams {
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Default)]
 pub struct DenseTimings {
     pub matching_ms: f64,
+    /// Intensity refinement of both directions (improved mode).
+    pub refine_ms: f64,
     pub consistency_ms: f64,
     pub filter_ms: f64,
     pub total_ms: f64,
@@ -166,6 +188,21 @@ pub struct DenseStats {
     pub coverage: f64,
     /// Fraction of valid left pixels rejected by the left–right check.
     pub rejected_fraction: f64,
+    /// Of those, the fraction the check of the SIFT-flow fields rejected
+    /// (improved mode; the rest failed on the refined fields only).
+    pub rejected_by_matching_fraction: f64,
+    /// Finest pyramid level BP ran on (0 = full resolution).
+    pub finest_level: usize,
+    /// Pyramid levels used (more than `levels` when a known disparity range
+    /// needed a wider search) and the disparity the search was centred on.
+    pub levels_used: usize,
+    pub search_centre_px: f32,
+    /// Fraction of valid left pixels whose intensity refinement hit its
+    /// `max_step` bound (improved mode; 0 otherwise).
+    pub refine_clamped_fraction: f64,
+    /// Mean normalised cross-correlation of the refined matches over the
+    /// window, valid left pixels (1 without refinement).
+    pub refine_mean_ncc: f64,
     pub grid: GridInfo,
     pub timings: DenseTimings,
 }
@@ -225,6 +262,65 @@ pub fn dense_disparity(
     valid_right: Option<&[bool]>,
     params: &DenseParams,
 ) -> Result<Disparity, DenseError> {
+    dense_disparity_in_range(left_rect, right_rect, valid_left, valid_right, params, None)
+}
+
+/// Extra search margin around a disparity range known beforehand: a
+/// quarter of the range plus this many pixels on each side.
+const RANGE_MARGIN_PX: f64 = 8.0;
+
+/// [`dense_disparity`] knowing roughly where the disparities lie (the
+/// rectified sparse matches: `(min, max)`, canvas pixels). In the improved
+/// mode the search is then centred on that range and the pyramid gets as
+/// many levels as the top window needs to span it (a fixed window misses the
+/// large parallax of high tilts or tall specimens); the paper mode ignores it.
+///
+/// # Errors
+/// As [`dense_disparity`].
+pub fn dense_disparity_in_range(
+    left_rect: &Image,
+    right_rect: &Image,
+    valid_left: Option<&[bool]>,
+    valid_right: Option<&[bool]>,
+    params: &DenseParams,
+    range: Option<(f64, f64)>,
+) -> Result<Disparity, DenseError> {
+    let mut params = *params;
+    let mut top_shift = 0.0f32;
+    if let Some((lo, hi)) = range.filter(|(lo, hi)| lo.is_finite() && hi.is_finite() && hi >= lo)
+        && params.mode == Mode::Improved
+    {
+        let (w, h) = left_rect.dimensions();
+        let half = (hi - lo) / 2.0 * 1.25 + RANGE_MARGIN_PX;
+        while (params.top_window as f64) * f64::from(1u32 << (params.levels - 1)) < half
+            && params.levels < 8
+            && sift_flow::check_size(w, h, params.levels + 1).is_ok()
+        {
+            params.levels += 1;
+        }
+        // Lies within the image size.
+        #[allow(clippy::cast_possible_truncation)]
+        let centre = ((lo + hi) / 2.0) as f32;
+        top_shift = centre;
+    }
+    dense_disparity_impl(
+        left_rect,
+        right_rect,
+        valid_left,
+        valid_right,
+        &params,
+        top_shift,
+    )
+}
+
+fn dense_disparity_impl(
+    left_rect: &Image,
+    right_rect: &Image,
+    valid_left: Option<&[bool]>,
+    valid_right: Option<&[bool]>,
+    params: &DenseParams,
+    top_shift: f32,
+) -> Result<Disparity, DenseError> {
     let t0 = Instant::now();
     let (w, h) = left_rect.dimensions();
     if right_rect.dimensions() != (w, h) {
@@ -259,8 +355,9 @@ pub fn dense_disparity(
     let a = sift_flow::fill_non_finite(left_rect);
     let b = sift_flow::fill_non_finite(right_rect);
     let improved = params.mode == Mode::Improved;
-    let engine =
+    let mut engine =
         fp.engine(improved.then_some((params.vertical_window, params.vertical_top_window)));
+    engine.top_shift = top_shift;
 
     // Matching: both directions at once in the improved mode (two cores, two
     // sequential sweeps: the backward field is almost free in wall time).
@@ -268,19 +365,74 @@ pub fn dense_disparity(
     let (fwd, bwd) = engine.run(&a, &b, Some(&va), Some(&vb), improved);
     let matching_ms = ms(tm);
 
-    let u = Image::from_vec(w, h, fwd.u).expect("flow has the canvas size");
-    let v = Image::from_vec(w, h, fwd.v).expect("flow has the canvas size");
+    // To full resolution: refined on the intensities (improved) or upsampled.
+    let tr = Instant::now();
+    let finest = engine.finest;
+    let refine = fp.refinement();
+    let alpha = params.alpha.max(1e-6);
+    let mut margin = fwd.margin.clone();
+    let (mut mw, mut mh) = (fwd.width, fwd.height);
+    for l in (0..finest).rev() {
+        let (mut wf, mut hf) = (w, h);
+        for _ in 0..l {
+            (wf, hf) = (
+                sift_flow::pyramid::half_size(wf),
+                sift_flow::pyramid::half_size(hf),
+            );
+        }
+        margin = upsample_flow(&margin, mw, mh, wf, hf, 1.0);
+        (mw, mh) = (wf, hf);
+    }
+    let fwd_levels = fwd.levels.clone();
+    let bwd_levels = bwd.as_ref().map(|b| b.levels.clone());
+    // The left–right check of the SIFT-flow fields themselves, at their own
+    // level: the intensity refinement smooths the flow over its window, which
+    // would let a narrow occlusion pass the check on the refined fields alone.
+    let matching_rejected: Option<Vec<bool>> = bwd.as_ref().map(|bw| {
+        let (cw, ch) = (fwd.width, fwd.height);
+        let img = |d: &[f32]| Image::from_vec(cw, ch, d.to_vec()).expect("level size");
+        let scale = (1u32 << finest) as f32;
+        let c = left_right_check(
+            &img(&fwd.u),
+            &img(&fwd.v),
+            &img(&bw.u),
+            &img(&bw.v),
+            params.lr_tolerance / scale,
+        );
+        let f = 1usize << finest;
+        (0..w * h)
+            .map(|p| {
+                let (x, y) = (((p % w) / f).min(cw - 1), ((p / w) / f).min(ch - 1));
+                c.rejected[y * cw + x]
+            })
+            .collect()
+    });
+    let (fwd_full, bwd_full) = rayon::join(
+        || sift_flow::to_full_resolution(&a, &b, Some(&va), Some(&vb), fwd, finest, refine),
+        || {
+            bwd.map(|bw| {
+                sift_flow::to_full_resolution(&b, &a, Some(&vb), Some(&va), bw, finest, refine)
+            })
+        },
+    );
+    let refine_ms = ms(tr);
+
+    let u = Image::from_vec(w, h, fwd_full.u).expect("flow has the canvas size");
+    let v = Image::from_vec(w, h, fwd_full.v).expect("flow has the canvas size");
     let flow_stats = FlowStats::of(&u, &v);
 
     // Consistency and confidence.
     let tc = Instant::now();
-    let alpha = params.alpha.max(1e-6);
-    let ambiguity: Vec<f32> = fwd
-        .margin
+    let ambiguity: Vec<f32> = margin
         .iter()
-        .map(|&m| 1.0 - (-m / alpha).exp())
+        .zip(&fwd_full.ncc)
+        .zip(&fwd_full.clamped)
+        .map(|((&m, &c), &cl)| {
+            let a = 1.0 - (-m / alpha).exp();
+            a * c * if cl { 0.1 } else { 1.0 }
+        })
         .collect();
-    let (rejected, agreement) = match &bwd {
+    let (rejected, agreement) = match &bwd_full {
         Some(bw) => {
             let ur = Image::from_vec(w, h, bw.u.clone()).expect("flow has the canvas size");
             let vr = Image::from_vec(w, h, bw.v.clone()).expect("flow has the canvas size");
@@ -298,7 +450,11 @@ pub fn dense_disparity(
                     }
                 })
                 .collect();
-            (c.rejected, agreement)
+            let rejected = match &matching_rejected {
+                Some(m) => c.rejected.iter().zip(m).map(|(a, b)| *a || *b).collect(),
+                None => c.rejected,
+            };
+            (rejected, agreement)
         }
         None => (vec![false; w * h], vec![1.0; w * h]),
     };
@@ -332,16 +488,37 @@ pub fn dense_disparity(
 
     let known = raw.data().iter().filter(|d| d.is_finite()).count();
     let n_rejected = va.iter().zip(&rejected).filter(|(v, r)| **v && **r).count();
+    let n_rejected_matching = matching_rejected
+        .as_ref()
+        .map_or(0, |m| va.iter().zip(m).filter(|(v, r)| **v && **r).count());
+    let n_clamped = va
+        .iter()
+        .zip(&fwd_full.clamped)
+        .filter(|(v, c)| **v && **c)
+        .count();
+    let ncc_sum: f64 = va
+        .iter()
+        .zip(&fwd_full.ncc)
+        .filter(|(v, _)| **v)
+        .map(|(_, &c)| f64::from(c))
+        .sum();
     let stats = DenseStats {
         mode: params.mode,
-        levels: fwd.levels,
-        levels_right_to_left: bwd.map(|b| b.levels),
+        levels: fwd_levels,
+        levels_right_to_left: bwd_levels,
         flow: flow_stats,
         coverage: known as f64 / n_valid as f64,
         rejected_fraction: n_rejected as f64 / n_valid as f64,
+        rejected_by_matching_fraction: n_rejected_matching as f64 / n_valid as f64,
+        finest_level: finest,
+        levels_used: params.levels,
+        search_centre_px: top_shift,
+        refine_clamped_fraction: n_clamped as f64 / n_valid as f64,
+        refine_mean_ncc: ncc_sum / n_valid as f64,
         grid,
         timings: DenseTimings {
             matching_ms,
+            refine_ms,
             consistency_ms,
             filter_ms,
             total_ms: ms(t0),

@@ -17,7 +17,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::Image;
-use super::dense::{DenseError, DenseParams, DenseStats, dense_disparity};
+use super::dense::{DenseError, DenseParams, DenseStats, dense_disparity_in_range};
 use super::depth::{StereoGeometry, height_on_left_grid};
 use super::sift_flow::Mode;
 use super::sparse::{SparseError, SparseParams, rectify_pair};
@@ -123,6 +123,27 @@ pub struct DepthReport {
     pub um_per_disparity_px: f64,
 }
 
+/// The paper's Table 4 for this pair: how vertical the correspondences are
+/// before and after rectification, and the rectification error.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct RectificationFigures {
+    /// Σv²/Σu² of the sparse inliers' displacements in the original images.
+    pub v2_over_u2_before: f64,
+    /// The same on the rectified canvas.
+    pub v2_over_u2_after: f64,
+    /// Σv²/Σu² of the dense flow on the canvas (`dense.flow`).
+    pub v2_over_u2_dense: f64,
+    /// RMS vertical misalignment of the inliers before / after, pixels.
+    pub rmse_before_px: f64,
+    pub rmse_after_px: f64,
+}
+
+/// Σv²/Σu² of displacements `(u, v)`.
+fn v2_over_u2(d: impl Iterator<Item = (f64, f64)>) -> f64 {
+    let (su, sv) = d.fold((0.0, 0.0), |(su, sv), (u, v)| (su + u * u, sv + v * v));
+    if su > 0.0 { sv / su } else { f64::NAN }
+}
+
 /// Everything a reconstruction reports (report.json, `/recon/report`).
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct ReconReport {
@@ -131,6 +152,8 @@ pub struct ReconReport {
     pub image_size: (usize, usize),
     pub sparse: SparseReport,
     pub dense: DenseStats,
+    /// Table 4 of the paper.
+    pub rectification: RectificationFigures,
     pub depth: DepthReport,
     pub timings: StageTimings,
 }
@@ -165,12 +188,14 @@ pub fn reconstruct(
     let sparse_ms = ms(t);
 
     let t = Instant::now();
-    let disp = dense_disparity(
+    let range = inlier_disparity_range(&rect.sparse.inliers, &rect.sparse.rectification);
+    let disp = dense_disparity_in_range(
         &rect.left.image,
         &rect.right.image,
         Some(&rect.left.valid),
         Some(&rect.right.valid),
         &params.dense_params(),
+        range,
     )?;
     let dense_ms = ms(t);
 
@@ -191,6 +216,24 @@ pub fn reconstruct(
     let depth_ms = ms(t);
 
     let s = &rect.sparse;
+    let map = |hm: &Matrix3<f64>, p: [f64; 2]| {
+        let q = hm * Vector3::new(p[0], p[1], 1.0);
+        (q.x / q.z, q.y / q.z)
+    };
+    let rectification = RectificationFigures {
+        v2_over_u2_before: v2_over_u2(
+            s.inliers
+                .iter()
+                .map(|c| (c.right[0] - c.left[0], c.right[1] - c.left[1])),
+        ),
+        v2_over_u2_after: v2_over_u2(s.inliers.iter().map(|c| {
+            let (l, r) = (map(&r.h_left, c.left), map(&r.h_right, c.right));
+            (r.0 - l.0, r.1 - l.1)
+        })),
+        v2_over_u2_dense: disp.stats.flow.v2_over_u2,
+        rmse_before_px: r.initial_error_px,
+        rmse_after_px: r.final_error_px,
+    };
     let report = ReconReport {
         mode: params.mode,
         geometry: *geometry,
@@ -213,6 +256,7 @@ pub fn reconstruct(
             timings: s.timings,
         },
         dense: disp.stats,
+        rectification,
         depth,
         timings: StageTimings {
             sparse_ms,
@@ -226,6 +270,30 @@ pub fn reconstruct(
         confidence,
         report,
     })
+}
+
+/// The 1st and 99th percentile of the rectified horizontal disparity of the
+/// sparse inliers (canvas pixels), `None` with fewer than 8 of them.
+#[must_use]
+pub fn inlier_disparity_range(
+    inliers: &[super::sparse::Correspondence],
+    r: &super::rectify::Rectification,
+) -> Option<(f64, f64)> {
+    let x = |hm: &Matrix3<f64>, p: [f64; 2]| {
+        let q = hm * Vector3::new(p[0], p[1], 1.0);
+        q.x / q.z
+    };
+    let mut d: Vec<f64> = inliers
+        .iter()
+        .map(|c| x(&r.h_right, c.right) - x(&r.h_left, c.left))
+        .filter(|v| v.is_finite())
+        .collect();
+    if d.len() < 8 {
+        return None;
+    }
+    d.sort_by(f64::total_cmp);
+    let at = |q: f64| d[((d.len() - 1) as f64 * q).round() as usize];
+    Some((at(0.01), at(0.99)))
 }
 
 fn validate(g: &PairGeometry) -> Result<(), ReconstructError> {

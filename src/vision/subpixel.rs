@@ -8,9 +8,24 @@
 //! shift) where a parabola pulls estimates towards the integers. The minimum
 //! of the V moves the label by
 //! `δ = (c₋ − c₊) / (2 · max(c₋ − c₀, c₊ − c₀))`, limited to ±0.5.
+//!
+//! The descriptor cost is blunt at the scale of a pixel (a descriptor spans
+//! `4 · cell_size` pixels and the smoothness pulls neighbours together), so
+//! the improved mode then refines the flow on the intensities themselves
+//! ([`refine_flow`]): a dense Lucas–Kanade (Lucas & Kanade 1981) in the
+//! "warp, then filter" form — every pixel warps the second image by its own
+//! flow, the Gauss–Newton normal equations are summed over a Gaussian window,
+//! and every pixel takes its own step — on images whose local mean and
+//! contrast are normalised (the secondary-electron yield changes a little
+//! with tilt), with the symmetric gradient of ESM (Benhimane & Malis 2004) and
+//! cubic interpolation (Keys 1981) so that the estimate is not pulled towards
+//! integer shifts. Per pixel, rows in parallel, no reduction in a
+//! thread-dependent order: the result does not depend on the thread count.
 
 use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
 
+use super::Image;
 use super::sift_flow::energy::{DataTerm, LabelSpace};
 
 /// Minimum of the V through `(−1, cm)`, `(0, c0)`, `(1, cp)`; 0 when `c0`
@@ -56,9 +71,791 @@ pub fn refine(data: &DataTerm, space: &LabelSpace, labels: &[Vec<u16>; 2]) -> [V
     [layer(0), layer(1)]
 }
 
+/// Parameters of the intensity refinement of a flow ([`refine_flow`]).
+///
+/// | parameter | default | effect |
+/// | --- | --- | --- |
+/// | `window_sigma` | 6.0 | σ of the Gaussian window of the normal equations, pixels: smaller follows finer relief, larger is less noisy (simulated 640×480 pairs, exact rectification: σ 2 → 6 lowers the median disparity error 0.19–0.24 → 0.12–0.16 px, the height scale of rough relief 0.98 → 0.94) |
+/// | `normalise_sigma` | 2.5 | σ of the local mean and contrast normalisation, pixels: a band-pass that keeps the fine texture, which moves with the surface, and drops the slow shading, which changes with tilt (4 → 2.5: RMSE 9.5 → 7.9 % of the relief on rough) |
+/// | `presmooth_sigma` | 0 | Gaussian blur of both images first, pixels (0 = none): on simulated SEM pairs any blur costs more accuracy than it saves noise (0.8 → 1.5: median error +0.02 px) |
+/// | `iterations` | 3 | Gauss–Newton steps per pyramid level (the start is the window-smoothed SIFT flow: 5 raises the height scale of rough relief 0.925 → 0.936 and the median error 0.110 → 0.119 px, for 40 % more time) |
+/// | `max_step` | 1.5 | largest change from the starting flow, pixels (finest-level pixels) |
+/// | `vertical` | true | refine the vertical flow too (false: keep it) |
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct RefineParams {
+    pub window_sigma: f32,
+    pub normalise_sigma: f32,
+    pub presmooth_sigma: f32,
+    pub iterations: usize,
+    pub max_step: f32,
+    pub vertical: bool,
+}
+
+impl Default for RefineParams {
+    fn default() -> Self {
+        Self {
+            window_sigma: 6.0,
+            normalise_sigma: 2.5,
+            presmooth_sigma: 0.0,
+            iterations: 3,
+            max_step: 1.5,
+            vertical: true,
+        }
+    }
+}
+
+impl RefineParams {
+    /// Whether every figure is usable; the name of the first bad one otherwise.
+    #[must_use]
+    pub fn invalid_field(&self) -> Option<&'static str> {
+        let ok = |v: f32, lo: f32| v.is_finite() && v >= lo;
+        if !ok(self.window_sigma, 0.3) || self.window_sigma > 20.0 {
+            Some("refine.window_sigma")
+        } else if !ok(self.normalise_sigma, 0.5) || self.normalise_sigma > 50.0 {
+            Some("refine.normalise_sigma")
+        } else if !ok(self.presmooth_sigma, 0.0) || self.presmooth_sigma > 10.0 {
+            Some("refine.presmooth_sigma")
+        } else if !ok(self.max_step, 0.0) {
+            Some("refine.max_step")
+        } else if self.iterations > 100 {
+            Some("refine.iterations")
+        } else {
+            None
+        }
+    }
+}
+
+/// A refined flow on the grid of the first image.
+#[derive(Debug, Clone)]
+pub struct RefinedFlow {
+    pub u: Vec<f32>,
+    pub v: Vec<f32>,
+    /// Zero-mean normalised cross-correlation of the two normalised images
+    /// over the window at the final flow, in `[0, 1]` (0 where no match).
+    pub ncc: Vec<f32>,
+    /// The pixel's flow hit the `max_step` bound (the estimate is unreliable).
+    pub clamped: Vec<bool>,
+}
+
+/// Normalised Gaussian taps `exp(−k²/2σ²)` for `k = −r..=r`, `r = ⌈3σ⌉`.
+fn gaussian_taps(sigma: f32) -> Vec<f32> {
+    let r = (3.0 * sigma).ceil().max(1.0) as i32;
+    let mut t: Vec<f32> = (-r..=r)
+        .map(|k| (-(k * k) as f32 / (2.0 * sigma * sigma)).exp())
+        .collect();
+    let s: f32 = t.iter().sum();
+    for v in &mut t {
+        *v /= s;
+    }
+    t
+}
+
+/// Beyond this σ the Gaussian is approximated by three box filters (Wells
+/// 1986), whose cost does not grow with σ.
+const BOX_SIGMA: f32 = 2.5;
+
+/// Widths (odd) of the three boxes whose cascade has variance `σ²`
+/// (Kovesi's construction: `m` boxes of width `wl`, the rest `wl + 2`).
+fn box_widths(sigma: f32) -> [usize; 3] {
+    let s2 = f64::from(sigma).powi(2);
+    let ideal = (12.0 * s2 / 3.0 + 1.0).sqrt();
+    let mut wl = ideal.floor() as i64;
+    if wl % 2 == 0 {
+        wl -= 1;
+    }
+    let wl = wl.max(1);
+    let wlf = wl as f64;
+    let m = ((12.0 * s2 - 3.0 * wlf * wlf - 12.0 * wlf - 9.0) / (-4.0 * wlf - 4.0)).round() as i64;
+    let w_of = |i: i64| (if i < m { wl } else { wl + 2 }) as usize;
+    [w_of(0), w_of(1), w_of(2)]
+}
+
+/// One box filter of odd width `width` along rows (`horizontal`) or columns,
+/// replicated border, sums in f64 in a fixed order.
+fn box_pass<const C: usize>(
+    src: &[[f32; C]],
+    out: &mut [[f32; C]],
+    w: usize,
+    h: usize,
+    width: usize,
+    horizontal: bool,
+) {
+    let r = (width / 2) as isize;
+    let norm = 1.0 / width as f64;
+    if horizontal {
+        out.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+            let s = &src[y * w..(y + 1) * w];
+            let at = |i: isize| &s[i.clamp(0, w as isize - 1) as usize];
+            let mut acc = [0f64; C];
+            for k in -r..=r {
+                for (a, &v) in acc.iter_mut().zip(at(k)) {
+                    *a += f64::from(v);
+                }
+            }
+            for (x, o) in row.iter_mut().enumerate() {
+                for (oc, &a) in o.iter_mut().zip(&acc) {
+                    *oc = (a * norm) as f32;
+                }
+                let (add, sub) = (at(x as isize + r + 1), at(x as isize - r));
+                for ((a, &p), &m) in acc.iter_mut().zip(add).zip(sub) {
+                    *a += f64::from(p) - f64::from(m);
+                }
+            }
+        });
+    } else {
+        // Bands of rows, each with its own running sum started afresh: parallel,
+        // and the band boundaries depend on the height only (not on threads).
+        let band = h.div_ceil(VERTICAL_BANDS).max(1);
+        let row = |i: isize| &src[(i.clamp(0, h as isize - 1) as usize) * w..][..w];
+        out.par_chunks_mut(band * w)
+            .enumerate()
+            .for_each(|(b, chunk)| {
+                let y0 = (b * band) as isize;
+                let mut acc = vec![[0f64; C]; w];
+                for k in y0 - r..=y0 + r {
+                    for (a, v) in acc.iter_mut().zip(row(k)) {
+                        for (ac, &vc) in a.iter_mut().zip(v) {
+                            *ac += f64::from(vc);
+                        }
+                    }
+                }
+                for (i, orow) in chunk.chunks_mut(w).enumerate() {
+                    let y = y0 + i as isize;
+                    for (o, a) in orow.iter_mut().zip(&acc) {
+                        for (oc, &ac) in o.iter_mut().zip(a) {
+                            *oc = (ac * norm) as f32;
+                        }
+                    }
+                    let (add, sub) = (row(y + r + 1), row(y - r));
+                    for ((a, p), m) in acc.iter_mut().zip(add).zip(sub) {
+                        for ((ac, &pc), &mc) in a.iter_mut().zip(p).zip(m) {
+                            *ac += f64::from(pc) - f64::from(mc);
+                        }
+                    }
+                }
+            });
+    }
+}
+
+/// Row bands of the vertical box pass.
+const VERTICAL_BANDS: usize = 16;
+
+/// Separable Gaussian blur of a row-major buffer of `C`-channel pixels
+/// (replicated border): exact taps up to [`BOX_SIGMA`], a cascade of three
+/// box filters beyond.
+fn blur<const C: usize>(src: &[[f32; C]], w: usize, h: usize, sigma: f32) -> Vec<[f32; C]> {
+    if sigma > BOX_SIGMA {
+        // Two buffers, ping-pong: six passes without six allocations.
+        let widths = box_widths(sigma);
+        let mut a = vec![[0f32; C]; w * h];
+        let mut b = vec![[0f32; C]; w * h];
+        box_pass(src, &mut a, w, h, widths[0], true);
+        box_pass(&a, &mut b, w, h, widths[1], true);
+        box_pass(&b, &mut a, w, h, widths[2], true);
+        box_pass(&a, &mut b, w, h, widths[0], false);
+        box_pass(&b, &mut a, w, h, widths[1], false);
+        box_pass(&a, &mut b, w, h, widths[2], false);
+        return b;
+    }
+    blur_taps(src, w, h, sigma)
+}
+
+/// [`blur`] with the sampled Gaussian taps.
+fn blur_taps<const C: usize>(src: &[[f32; C]], w: usize, h: usize, sigma: f32) -> Vec<[f32; C]> {
+    let taps = gaussian_taps(sigma);
+    let r = (taps.len() / 2) as isize;
+    let mut tmp = vec![[0f32; C]; w * h];
+    tmp.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+        let s = &src[y * w..(y + 1) * w];
+        for (x, o) in row.iter_mut().enumerate() {
+            let mut acc = [0f32; C];
+            for (t, &k) in taps.iter().enumerate() {
+                let sx = (x as isize + t as isize - r).clamp(0, w as isize - 1) as usize;
+                for (a, &v) in acc.iter_mut().zip(&s[sx]) {
+                    *a += k * v;
+                }
+            }
+            *o = acc;
+        }
+    });
+    let mut out = vec![[0f32; C]; w * h];
+    out.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+        for (t, &k) in taps.iter().enumerate() {
+            let sy = (y as isize + t as isize - r).clamp(0, h as isize - 1) as usize;
+            for (o, v) in row.iter_mut().zip(&tmp[sy * w..(sy + 1) * w]) {
+                for (a, &b) in o.iter_mut().zip(v) {
+                    *a += k * b;
+                }
+            }
+        }
+    });
+    out
+}
+
+fn blur_plane(src: &[f32], w: usize, h: usize, sigma: f32) -> Vec<f32> {
+    let packed: Vec<[f32; 1]> = src.iter().map(|&v| [v]).collect();
+    blur(&packed, w, h, sigma)
+        .into_iter()
+        .map(|v| v[0])
+        .collect()
+}
+
+/// The image with its local mean removed and its local contrast scaled to
+/// one (Gaussian windows of `sigma`), after an optional pre-smoothing.
+/// `eps` — a tenth of the mean local contrast — keeps flat areas from
+/// turning into amplified noise.
+#[must_use]
+pub fn normalise_contrast(img: &Image, presmooth: f32, sigma: f32) -> Image {
+    let (w, h) = img.dimensions();
+    let base: Vec<f32> = if presmooth > 0.0 {
+        blur_plane(img.data(), w, h, presmooth)
+    } else {
+        img.data().to_vec()
+    };
+    let mean = blur_plane(&base, w, h, sigma);
+    let hp: Vec<f32> = base.iter().zip(&mean).map(|(a, m)| a - m).collect();
+    let sq: Vec<f32> = hp.iter().map(|v| v * v).collect();
+    let var = blur_plane(&sq, w, h, sigma);
+    // Sequential sum: the same figure whatever the thread count.
+    let mean_sd = var
+        .iter()
+        .map(|v| f64::from(v.max(0.0)).sqrt())
+        .sum::<f64>()
+        / var.len().max(1) as f64;
+    let eps2 = (0.1 * mean_sd as f32).powi(2).max(1e-12);
+    let data = hp
+        .iter()
+        .zip(&var)
+        .map(|(a, v)| a / (v.max(0.0) + eps2).sqrt())
+        .collect();
+    Image::from_vec(w, h, data).expect("same size as the input")
+}
+
+/// Central differences, one-sided at the border.
+fn gradients(img: &Image) -> (Vec<f32>, Vec<f32>) {
+    let (w, h) = img.dimensions();
+    let d = img.data();
+    let mut gx = vec![0f32; w * h];
+    let mut gy = vec![0f32; w * h];
+    gx.par_chunks_mut(w)
+        .zip(gy.par_chunks_mut(w))
+        .enumerate()
+        .for_each(|(y, (rx, ry))| {
+            let (yu, yd) = (y.saturating_sub(1), (y + 1).min(h - 1));
+            let sy = if yd > yu { 1.0 / (yd - yu) as f32 } else { 0.0 };
+            for x in 0..w {
+                let (xl, xr) = (x.saturating_sub(1), (x + 1).min(w - 1));
+                let sx = if xr > xl { 1.0 / (xr - xl) as f32 } else { 0.0 };
+                rx[x] = (d[y * w + xr] - d[y * w + xl]) * sx;
+                ry[x] = (d[yd * w + x] - d[yu * w + x]) * sy;
+            }
+        });
+    (gx, gy)
+}
+
+/// Keys' cubic convolution weights (a = −½) of the samples at −1, 0, 1, 2
+/// for a fractional position `t ∈ [0, 1)`.
+#[inline]
+fn keys_weights(t: f32) -> [f32; 4] {
+    let t2 = t * t;
+    let t3 = t2 * t;
+    [
+        -0.5 * t3 + t2 - 0.5 * t,
+        1.5 * t3 - 2.5 * t2 + 1.0,
+        -1.5 * t3 + 2.0 * t2 + 0.5 * t,
+        0.5 * t3 - 0.5 * t2,
+    ]
+}
+
+/// One image prepared for sampling at real positions: the normalised
+/// intensities, their gradients and the validity of every pixel.
+struct Sampled<'a> {
+    w: usize,
+    h: usize,
+    img: &'a [f32],
+    gx: &'a [f32],
+    gy: &'a [f32],
+    valid: Option<&'a [bool]>,
+}
+
+impl Sampled<'_> {
+    /// `(I, ∂x I, ∂y I)` at `(x, y)`: the intensity by cubic convolution,
+    /// the gradients bilinearly. `None` outside the pixel-centre hull or
+    /// next to an invalid pixel.
+    #[inline]
+    fn at(&self, x: f32, y: f32) -> Option<[f32; 3]> {
+        let (w, h) = (self.w, self.h);
+        if !(x >= 0.0 && y >= 0.0 && x <= (w - 1) as f32 && y <= (h - 1) as f32) {
+            return None;
+        }
+        let (x0, y0) = (x.floor() as usize, y.floor() as usize);
+        let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));
+        if let Some(m) = self.valid
+            && !(m[y0 * w + x0] && m[y0 * w + x1] && m[y1 * w + x0] && m[y1 * w + x1])
+        {
+            return None;
+        }
+        let (tx, ty) = (x - x0 as f32, y - y0 as f32);
+        let (kx, ky) = (keys_weights(tx), keys_weights(ty));
+        let mut v = 0f32;
+        for (j, &wy) in ky.iter().enumerate() {
+            let yy = (y0 as isize + j as isize - 1).clamp(0, h as isize - 1) as usize;
+            let row = &self.img[yy * w..(yy + 1) * w];
+            let mut acc = 0f32;
+            for (i, &wx) in kx.iter().enumerate() {
+                let xx = (x0 as isize + i as isize - 1).clamp(0, w as isize - 1) as usize;
+                acc += wx * row[xx];
+            }
+            v += wy * acc;
+        }
+        let bil = |g: &[f32]| {
+            let top = g[y0 * w + x0] * (1.0 - tx) + g[y0 * w + x1] * tx;
+            let bottom = g[y1 * w + x0] * (1.0 - tx) + g[y1 * w + x1] * tx;
+            top * (1.0 - ty) + bottom * ty
+        };
+        Some([v, bil(self.gx), bil(self.gy)])
+    }
+}
+
+/// Regularisation of the normal equations, relative to the window weight:
+/// keeps textureless or one-dimensional windows from taking huge steps.
+const TIKHONOV: f32 = 1e-3;
+/// Largest step of one Gauss–Newton iteration, pixels.
+const MAX_ITERATION_STEP: f32 = 0.5;
+
+/// Refines the flow `(u, v)` from `a` to `b` (same pixel grid as `a`; `b`
+/// may differ in size) on the intensities, at one resolution. `valid_a` and
+/// `valid_b` mark usable pixels (`None`: all). `max_step` bounds the change
+/// from the starting flow.
+#[must_use]
+#[allow(clippy::too_many_arguments)]
+fn refine_level(
+    a: &Image,
+    b: &Image,
+    valid_a: Option<&[bool]>,
+    valid_b: Option<&[bool]>,
+    u0: &[f32],
+    v0: &[f32],
+    params: &RefineParams,
+    max_step: f32,
+) -> RefinedFlow {
+    let (w, h) = a.dimensions();
+    let na = normalise_contrast(a, params.presmooth_sigma, params.normalise_sigma);
+    let nb = normalise_contrast(b, params.presmooth_sigma, params.normalise_sigma);
+    let (gax, gay) = gradients(&na);
+    let (gbx, gby) = gradients(&nb);
+    let sb = Sampled {
+        w: b.width(),
+        h: b.height(),
+        img: nb.data(),
+        gx: &gbx,
+        gy: &gby,
+        valid: valid_b,
+    };
+    // Start from the flow smoothed over the window: every update below is a
+    // ratio of window sums, hence smooth, so pixel-scale noise of the start
+    // (the equiangular offsets, label steps) would otherwise stay for good.
+    let smooth_start = |f: &[f32]| blur_plane(f, w, h, params.window_sigma);
+    let u0 = &smooth_start(u0);
+    let v0 = &smooth_start(v0);
+    let mut u = u0.clone();
+    let mut v = v0.clone();
+    let usable = |p: usize| valid_a.is_none_or(|m| m[p]) && u0[p].is_finite() && v0[p].is_finite();
+    let warped = |u: &[f32], v: &[f32], p: usize| -> Option<[f32; 3]> {
+        if !usable(p) {
+            return None;
+        }
+        let (x, y) = ((p % w) as f32, (p / w) as f32);
+        sb.at(x + u[p], y + v[p])
+    };
+    let mut clamped = vec![false; w * h];
+    let mut products = vec![[0f32; 6]; w * h];
+    for _ in 0..params.iterations {
+        // Per pixel: the Gauss–Newton products with its own warp.
+        products.par_iter_mut().enumerate().for_each(|(p, out)| {
+            *out = {
+                let Some([bw, bx, by]) = warped(&u, &v, p) else {
+                    *out = [0.0; 6];
+                    return;
+                };
+                let gx = 0.5 * (gax[p] + bx);
+                let gy = if params.vertical {
+                    0.5 * (gay[p] + by)
+                } else {
+                    0.0
+                };
+                let e = bw - na.data()[p];
+                [gx * gx, gx * gy, gy * gy, gx * e, gy * e, 1.0]
+            };
+        });
+        let sums = blur(&products, w, h, params.window_sigma);
+        u.par_iter_mut()
+            .zip(v.par_iter_mut())
+            .zip(clamped.par_iter_mut())
+            .enumerate()
+            .for_each(|(p, ((up, vp), cl))| {
+                let [sxx, sxy, syy, sxe, sye, s1] = sums[p];
+                if !usable(p) || s1 < 1e-3 {
+                    return;
+                }
+                let lam = TIKHONOV * s1;
+                let (du, dv) = if params.vertical {
+                    let (a11, a22) = (sxx + lam, syy + lam);
+                    let det = a11 * a22 - sxy * sxy;
+                    if det <= 0.0 {
+                        return;
+                    }
+                    (
+                        -(a22 * sxe - sxy * sye) / det,
+                        -(a11 * sye - sxy * sxe) / det,
+                    )
+                } else {
+                    (-sxe / (sxx + lam), 0.0)
+                };
+                let lim = |d: f32| d.clamp(-MAX_ITERATION_STEP, MAX_ITERATION_STEP);
+                let (nu, nv) = (*up + lim(du), *vp + lim(dv));
+                let bound = |n: f32, o: f32| {
+                    let c = n.clamp(o - max_step, o + max_step);
+                    (c, c != n)
+                };
+                let (cu, hu) = bound(nu, u0[p]);
+                let (cv, hv) = bound(nv, v0[p]);
+                *up = cu;
+                *vp = cv;
+                *cl = hu || hv;
+            });
+    }
+    // Quality of the final match: NCC of the normalised images over the window.
+    let corr: Vec<[f32; 4]> = (0..w * h)
+        .into_par_iter()
+        .map(|p| match warped(&u, &v, p) {
+            Some([bw, _, _]) => {
+                let av = na.data()[p];
+                [av * av, bw * bw, av * bw, 1.0]
+            }
+            None => [0.0; 4],
+        })
+        .collect();
+    let corr = blur(&corr, w, h, params.window_sigma);
+    let ncc = corr
+        .iter()
+        .enumerate()
+        .map(|(p, &[saa, sbb, sab, s1])| {
+            if !usable(p) || s1 < 1e-3 || saa <= 0.0 || sbb <= 0.0 {
+                0.0
+            } else {
+                (sab / (saa * sbb).sqrt()).clamp(0.0, 1.0)
+            }
+        })
+        .collect();
+    RefinedFlow { u, v, ncc, clamped }
+}
+
+/// Bilinear upsampling of a flow component from `wc × hc` to `wf × hf`,
+/// values scaled by `sx` (the grid's scale factor along the component).
+#[must_use]
+pub fn upsample_flow(
+    coarse: &[f32],
+    wc: usize,
+    hc: usize,
+    wf: usize,
+    hf: usize,
+    s: f32,
+) -> Vec<f32> {
+    let (fx_scale, fy_scale) = (
+        if wf > 1 {
+            (wc - 1) as f32 / (wf - 1) as f32
+        } else {
+            0.0
+        },
+        if hf > 1 {
+            (hc - 1) as f32 / (hf - 1) as f32
+        } else {
+            0.0
+        },
+    );
+    // Level l+1's pixel i sits at 2i of level l (pyramid::halve_*): the exact
+    // mapping is x/2; the ratio above only differs by the rounding of odd sizes.
+    let half = wc == wf.div_ceil(2) && hc == hf.div_ceil(2);
+    let mut out = vec![0f32; wf * hf];
+    out.par_chunks_mut(wf).enumerate().for_each(|(y, row)| {
+        let fy = if half {
+            y as f32 / 2.0
+        } else {
+            y as f32 * fy_scale
+        }
+        .min((hc - 1) as f32);
+        let y0 = fy.floor() as usize;
+        let y1 = (y0 + 1).min(hc - 1);
+        let ty = fy - y0 as f32;
+        for (x, o) in row.iter_mut().enumerate() {
+            let fx = if half {
+                x as f32 / 2.0
+            } else {
+                x as f32 * fx_scale
+            }
+            .min((wc - 1) as f32);
+            let x0 = fx.floor() as usize;
+            let x1 = (x0 + 1).min(wc - 1);
+            let tx = fx - x0 as f32;
+            let top = coarse[y0 * wc + x0] * (1.0 - tx) + coarse[y0 * wc + x1] * tx;
+            let bottom = coarse[y1 * wc + x0] * (1.0 - tx) + coarse[y1 * wc + x1] * tx;
+            *o = s * (top * (1.0 - ty) + bottom * ty);
+        }
+    });
+    out
+}
+
+/// Refines a flow from `a` to `b` given at pyramid level `level` (the images
+/// halved `level` times, [`super::sift_flow::pyramid::halve_image`]): refined
+/// at that level, upsampled, refined again, down to full resolution.
+#[must_use]
+pub fn refine_flow(
+    a: &Image,
+    b: &Image,
+    valid_a: Option<&[bool]>,
+    valid_b: Option<&[bool]>,
+    flow: (&[f32], &[f32]),
+    level: usize,
+    params: &RefineParams,
+) -> RefinedFlow {
+    use super::sift_flow::pyramid::{halve_image, halve_mask};
+    // Pyramids of both images and masks, finest first.
+    let mut imgs = vec![(a.clone(), b.clone())];
+    let mut masks = vec![(valid_a.map(<[bool]>::to_vec), valid_b.map(<[bool]>::to_vec))];
+    for l in 1..=level {
+        let (ia, ib) = &imgs[l - 1];
+        let (ma, mb) = &masks[l - 1];
+        let next_m = (
+            ma.as_ref().map(|m| halve_mask(m, ia.width(), ia.height())),
+            mb.as_ref().map(|m| halve_mask(m, ib.width(), ib.height())),
+        );
+        let next = (halve_image(ia), halve_image(ib));
+        imgs.push(next);
+        masks.push(next_m);
+    }
+    let mut u = flow.0.to_vec();
+    let mut v = flow.1.to_vec();
+    let mut result = None;
+    for l in (0..=level).rev() {
+        let (ia, ib) = &imgs[l];
+        let (ma, mb) = &masks[l];
+        if let Some(prev) = result.take() {
+            let RefinedFlow { u: pu, v: pv, .. } = prev;
+            let (wc, hc) = imgs[l + 1].0.dimensions();
+            let (wf, hf) = ia.dimensions();
+            u = upsample_flow(&pu, wc, hc, wf, hf, 2.0);
+            v = upsample_flow(&pv, wc, hc, wf, hf, 2.0);
+        }
+        let max_step = params.max_step / (1u32 << l) as f32;
+        result = Some(refine_level(
+            ia,
+            ib,
+            ma.as_deref(),
+            mb.as_deref(),
+            &u,
+            &v,
+            params,
+            // A coarse level may move a little more: its error doubles on the way up.
+            if l > 0 { max_step.max(1.0) } else { max_step },
+        ));
+    }
+    result.expect("level 0 always runs")
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    use crate::eval::synthetic::Texture;
+
+    /// The Gaussian blur by its definition: a double sum over the window.
+    fn naive_blur(src: &[f32], w: usize, h: usize, sigma: f32) -> Vec<f32> {
+        let taps = gaussian_taps(sigma);
+        let r = (taps.len() / 2) as isize;
+        (0..w * h)
+            .map(|p| {
+                let (x, y) = ((p % w) as isize, (p / w) as isize);
+                let mut acc = 0f64;
+                for (j, &ky) in taps.iter().enumerate() {
+                    for (i, &kx) in taps.iter().enumerate() {
+                        let sx = (x + i as isize - r).clamp(0, w as isize - 1) as usize;
+                        let sy = (y + j as isize - r).clamp(0, h as isize - 1) as usize;
+                        acc += f64::from(kx * ky * src[sy * w + sx]);
+                    }
+                }
+                acc as f32
+            })
+            .collect()
+    }
+
+    #[test]
+    fn separable_blur_matches_the_double_sum() {
+        let (w, h) = (13, 9);
+        let src: Vec<f32> = (0..w * h).map(|i| ((i * 37) % 17) as f32).collect();
+        for sigma in [0.5f32, 1.3, 2.0, 3.5] {
+            let fast = blur_plane_taps(&src, w, h, sigma);
+            let slow = naive_blur(&src, w, h, sigma);
+            for (a, b) in fast.iter().zip(&slow) {
+                assert!((a - b).abs() < 1e-4, "σ {sigma}: {a} vs {b}");
+            }
+        }
+    }
+
+    /// A box filter by its definition: the mean of the clamped window.
+    fn naive_box(src: &[f32], w: usize, h: usize, width: usize, horizontal: bool) -> Vec<f32> {
+        let r = (width / 2) as isize;
+        (0..w * h)
+            .map(|p| {
+                let (x, y) = ((p % w) as isize, (p / w) as isize);
+                let sum: f64 = (-r..=r)
+                    .map(|k| {
+                        let (sx, sy) = if horizontal { (x + k, y) } else { (x, y + k) };
+                        let (sx, sy) = (sx.clamp(0, w as isize - 1), sy.clamp(0, h as isize - 1));
+                        f64::from(src[sy as usize * w + sx as usize])
+                    })
+                    .sum();
+                (sum / width as f64) as f32
+            })
+            .collect()
+    }
+
+    #[test]
+    fn running_box_sums_match_the_window_means() {
+        let (w, h) = (17, 11);
+        let src: Vec<f32> = (0..w * h).map(|i| ((i * 53) % 29) as f32 * 0.1).collect();
+        let packed: Vec<[f32; 1]> = src.iter().map(|&v| [v]).collect();
+        for width in [1, 3, 7, 25] {
+            for horizontal in [true, false] {
+                let mut fast = vec![[0f32; 1]; w * h];
+                box_pass(&packed, &mut fast, w, h, width, horizontal);
+                let slow = naive_box(&src, w, h, width, horizontal);
+                for (a, b) in fast.iter().zip(&slow) {
+                    assert!((a[0] - b).abs() < 1e-5, "width {width}: {} vs {b}", a[0]);
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn box_cascade_has_the_variance_of_the_gaussian() {
+        for sigma in [2.6f32, 4.0, 6.0, 9.5] {
+            let var: f64 = box_widths(sigma)
+                .iter()
+                .map(|&b| ((b * b) as f64 - 1.0) / 12.0)
+                .sum();
+            assert!(
+                (var.sqrt() - f64::from(sigma)).abs() < 0.35,
+                "σ {sigma}: {}",
+                var.sqrt()
+            );
+            // An impulse spreads like the Gaussian of that σ.
+            let (w, h) = (81, 81);
+            let mut img = vec![0f32; w * h];
+            img[40 * w + 40] = 1.0;
+            let fast = blur_plane(&img, w, h, sigma);
+            let slow = blur_plane_taps(&img, w, h, sigma);
+            let peak = slow[40 * w + 40];
+            for (a, b) in fast.iter().zip(&slow) {
+                assert!((a - b).abs() < 0.15 * peak, "σ {sigma}: {a} vs {b}");
+            }
+        }
+    }
+
+    fn blur_plane_taps(src: &[f32], w: usize, h: usize, sigma: f32) -> Vec<f32> {
+        let packed: Vec<[f32; 1]> = src.iter().map(|&v| [v]).collect();
+        blur_taps(&packed, w, h, sigma)
+            .into_iter()
+            .map(|v| v[0])
+            .collect()
+    }
+
+    #[test]
+    fn cubic_sampling_is_exact_at_pixels_and_on_a_quadratic() {
+        let (w, h) = (8, 6);
+        let f = |x: f32, y: f32| 0.3 * x * x - 0.2 * x * y + 0.5 * y + 1.0;
+        let img: Vec<f32> = (0..w * h)
+            .map(|p| f((p % w) as f32, (p / w) as f32))
+            .collect();
+        let zeros = vec![0f32; w * h];
+        let s = Sampled {
+            w,
+            h,
+            img: &img,
+            gx: &zeros,
+            gy: &zeros,
+            valid: None,
+        };
+        assert_eq!(s.at(3.0, 2.0).unwrap()[0], f(3.0, 2.0));
+        // Keys' kernel reproduces quadratics away from the border.
+        let got = s.at(3.37, 2.61).unwrap()[0];
+        assert!((got - f(3.37, 2.61)).abs() < 1e-4, "{got}");
+        assert!(s.at(7.5, 2.0).is_none());
+    }
+
+    /// A texture shifted by a smooth sub-pixel disparity: the refinement
+    /// starting from the rounded disparity recovers it within a few hundredths
+    /// of a pixel, with no pull towards integers.
+    #[test]
+    fn refinement_recovers_a_subpixel_shift_without_pixel_locking() {
+        let (w, h) = (96, 64);
+        let tex = Texture::new(4);
+        let truth = |x: f64, y: f64| 1.0 + 1.5 * x / w as f64 + 0.2 * (y / 20.0).sin();
+        let a = Image::from_fn(w, h, |x, y| tex.at(x as f64, y as f64) as f32);
+        // b(x + d(x)) = a(x): solve x from x' by a fixed point.
+        let b = Image::from_fn(w, h, |xr, y| {
+            let mut x = xr as f64;
+            for _ in 0..30 {
+                x = xr as f64 - truth(x, y as f64);
+            }
+            (0.8 * tex.at(x, y as f64) + 0.1) as f32
+        });
+        let u0: Vec<f32> = (0..w * h)
+            .map(|p| truth((p % w) as f64, (p / w) as f64).round() as f32)
+            .collect();
+        let v0 = vec![0f32; w * h];
+        let r = refine_flow(&a, &b, None, None, (&u0, &v0), 0, &RefineParams::default());
+        let mut errs = Vec::new();
+        let mut frac_err = [0f64; 2];
+        for y in 8..h - 8 {
+            for x in 8..w - 8 {
+                let p = y * w + x;
+                let t = truth(x as f64, y as f64);
+                let e = f64::from(r.u[p]) - t;
+                errs.push(e.abs());
+                // Pixel locking shows as errors correlated with the distance
+                // of the truth to the nearest integer.
+                let f = t - t.round();
+                frac_err[0] += e * f;
+                frac_err[1] += f * f;
+            }
+        }
+        errs.sort_by(f64::total_cmp);
+        let median = errs[errs.len() / 2];
+        assert!(median < 0.03, "median error {median} px");
+        let locking = frac_err[0] / frac_err[1];
+        assert!(
+            locking.abs() < 0.05,
+            "error vs fractional part slope {locking}"
+        );
+        assert!(r.ncc[40 * w + 40] > 0.9, "ncc {}", r.ncc[40 * w + 40]);
+    }
+
+    #[test]
+    fn coarse_start_is_refined_through_the_pyramid() {
+        let (w, h) = (128, 96);
+        let tex = Texture::new(9);
+        let a = Image::from_fn(w, h, |x, y| tex.at(x as f64, y as f64) as f32);
+        let b = Image::from_fn(w, h, |x, y| tex.at(x as f64 - 3.3, y as f64 + 0.4) as f32);
+        // Half-resolution start 1.5 / −0.0 (true 1.65 / −0.2).
+        let (wc, hc) = (w.div_ceil(2), h.div_ceil(2));
+        let (u0, v0) = (vec![1.5f32; wc * hc], vec![0f32; wc * hc]);
+        let r = refine_flow(&a, &b, None, None, (&u0, &v0), 1, &RefineParams::default());
+        let p = 48 * w + 64;
+        assert!((r.u[p] - 3.3).abs() < 0.03, "u {}", r.u[p]);
+        assert!((r.v[p] + 0.4).abs() < 0.03, "v {}", r.v[p]);
+    }
 
     #[test]
     fn equiangular_fit_recovers_the_apex_of_a_v() {

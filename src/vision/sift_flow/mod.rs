@@ -19,6 +19,7 @@ use self::energy::{DataTerm, EnergyWeights, LabelSpace};
 use super::Image;
 use super::dense::DenseError;
 use super::dense_sift::{DenseSiftParams, DescriptorImage, dense_sift};
+use super::subpixel::{RefineParams, RefinedFlow, refine_flow, upsample_flow};
 
 /// Which pipeline to run.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
@@ -51,6 +52,8 @@ pub enum Mode {
 /// | `top_iterations` | none | BP iterations at the top level; none = 60 (paper) or 20 (improved) |
 /// | `iterations` | none | BP iterations at the finest level (falling to 60 % at the coarsest but one); none = 30 (paper) or 8 (improved) |
 /// | `max_strips` | 4 | parallel row strips of the BP sweeps; 1 = strictly sequential BP-S |
+/// | `finest_level` | none | the finest pyramid level BP runs on; none = 0 (paper) or 1 (improved, where the intensity refinement takes the flow to full resolution) |
+/// | `refine` | see [`RefineParams`] | improved mode: Lucas–Kanade refinement of the flow on the intensities (`iterations = 0`: none) |
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct FlowParams {
@@ -66,6 +69,8 @@ pub struct FlowParams {
     pub top_iterations: Option<usize>,
     pub iterations: Option<usize>,
     pub max_strips: usize,
+    pub finest_level: Option<usize>,
+    pub refine: RefineParams,
 }
 
 impl Default for FlowParams {
@@ -83,6 +88,8 @@ impl Default for FlowParams {
             top_iterations: None,
             iterations: None,
             max_strips: 4,
+            finest_level: None,
+            refine: RefineParams::default(),
         }
     }
 }
@@ -189,10 +196,18 @@ pub(crate) struct Engine {
     /// Finest first.
     pub plan: Vec<LevelPlan>,
     pub max_strips: usize,
+    /// The finest level BP runs on (0 = full resolution).
+    pub finest: usize,
+    /// Horizontal displacement the top level's window is centred on, from A
+    /// to B, full-resolution pixels (B to A: the opposite); 0 = none.
+    pub top_shift: f32,
 }
 
 /// The finest level's result of the engine.
 pub(crate) struct EngineRun {
+    /// Size of the grid of `u`, `v` and `margin` (level `finest` of image A).
+    pub width: usize,
+    pub height: usize,
     pub u: Vec<f32>,
     pub v: Vec<f32>,
     /// Per pixel, how much worse the second-best distinct u label is than the
@@ -261,7 +276,29 @@ impl FlowParams {
         if self.max_strips == 0 {
             return bad("max_strips", "must be at least 1");
         }
+        if self.finest_level.is_some_and(|f| f >= self.levels) {
+            return bad("finest_level", "must be below `levels`");
+        }
+        if let Some(name) = self.refine.invalid_field() {
+            return bad(name, "out of its range (see the parameter table)");
+        }
         Ok(())
+    }
+
+    /// The finest BP level of this mode.
+    #[must_use]
+    pub fn finest(&self) -> usize {
+        match self.mode {
+            Mode::Paper => self.finest_level.unwrap_or(0),
+            Mode::Improved => self.finest_level.unwrap_or(1),
+        }
+        .min(self.levels.saturating_sub(1))
+    }
+
+    /// The intensity refinement of this mode, if any.
+    #[must_use]
+    pub fn refinement(&self) -> Option<&RefineParams> {
+        (self.mode == Mode::Improved && self.refine.iterations > 0).then_some(&self.refine)
     }
 
     pub(crate) fn engine(&self, vertical: Option<(usize, usize)>) -> Engine {
@@ -302,6 +339,8 @@ impl FlowParams {
             t: self.t,
             plan,
             max_strips: self.max_strips,
+            finest: self.finest(),
+            top_shift: 0.0,
         }
     }
 }
@@ -428,7 +467,7 @@ impl Engine {
 
         let mut fwd: Option<Direction> = None;
         let mut bwd: Option<Direction> = None;
-        for l in (0..levels).rev() {
+        for l in (self.finest..levels).rev() {
             let td = Instant::now();
             let computed;
             let (da, db) = if self.mode == Mode::Paper {
@@ -464,6 +503,7 @@ impl Engine {
                     masks_b[l].as_deref(),
                     up_a.and_then(|s| coarse(&fwd, s)),
                     descriptor_ms,
+                    self.top_shift,
                 )
             };
             let backward = || {
@@ -476,6 +516,7 @@ impl Engine {
                     masks_a[l].as_deref(),
                     up_b.and_then(|s| coarse(&bwd, s)),
                     descriptor_ms,
+                    -self.top_shift,
                 )
             };
             let (f, b) = if both {
@@ -490,11 +531,15 @@ impl Engine {
                 (prev, None) => prev,
             };
         }
-        let finish = |d: Direction| {
+        let (width, height) = (sizes[self.finest].0, sizes[self.finest].1);
+        let (width_b, height_b) = (sizes[self.finest].2, sizes[self.finest].3);
+        let finish = |d: Direction, (width, height): (usize, usize)| {
             let [u, v] = d.flow;
             let mut reports = d.reports;
             reports.reverse();
             EngineRun {
+                width,
+                height,
                 u,
                 v,
                 margin: d.margin,
@@ -502,7 +547,10 @@ impl Engine {
             }
         };
         let fwd = fwd.expect("at least one level ran");
-        (finish(fwd), bwd.map(finish))
+        (
+            finish(fwd, (width, height)),
+            bwd.map(|b| finish(b, (width_b, height_b))),
+        )
     }
 
     /// Solves one level in one direction, from the flow of the coarser level
@@ -518,12 +566,18 @@ impl Engine {
         mask_b: Option<&[bool]>,
         coarser: Option<Coarser<'_>>,
         descriptor_ms: f64,
+        shift: f32,
     ) -> Direction {
         let plan = self.plan[l];
+        // The shift in this level's pixels (bounded by the image size).
+        #[allow(clippy::cast_possible_truncation)]
+        let top = (shift / (1u32 << l.min(31)) as f32).round() as i32;
         let offset = match coarser {
-            // Top: proportional correspondence when the sizes differ.
+            // Top: proportional correspondence when the sizes differ, plus the shift.
             None => [
-                (0..w * h).map(|p| proportional(p % w, w, w2)).collect(),
+                (0..w * h)
+                    .map(|p| proportional(p % w, w, w2) + top)
+                    .collect(),
                 (0..w * h).map(|p| proportional(p / w, h, h2)).collect(),
             ],
             Some((flow, (wc, hc))) => [
@@ -563,7 +617,7 @@ impl Engine {
         bp.warm_start(plan.hierarchy, warm_iterations);
         let outcome = bp.run(plan.iterations);
         let bp_ms = ms(tbp);
-        let flow = if l == 0 && self.mode == Mode::Improved {
+        let flow = if l == self.finest && self.mode == Mode::Improved {
             super::subpixel::refine(&data, &space, &outcome.labels)
         } else {
             [0, 1].map(|k| {
@@ -572,7 +626,11 @@ impl Engine {
                     .collect()
             })
         };
-        let margin = if l == 0 { bp.margins(0) } else { Vec::new() };
+        let margin = if l == self.finest {
+            bp.margins(0)
+        } else {
+            Vec::new()
+        };
         let _ = h2;
         Direction {
             flow,
@@ -625,14 +683,55 @@ pub fn sift_flow(a: &Image, b: &Image, params: &FlowParams) -> Result<Flow, Dens
     let t0 = Instant::now();
     let a = fill_non_finite(a);
     let b = fill_non_finite(b);
-    let (run, _) = params.engine(None).run(&a, &b, None, None, false);
+    let engine = params.engine(None);
+    let (run, _) = engine.run(&a, &b, None, None, false);
     let (w, h) = a.dimensions();
+    let levels = run.levels.clone();
+    let full = to_full_resolution(&a, &b, None, None, run, engine.finest, params.refinement());
     Ok(Flow {
-        u: Image::from_vec(w, h, run.u).expect("flow has the size of image A"),
-        v: Image::from_vec(w, h, run.v).expect("flow has the size of image A"),
-        levels: run.levels,
+        u: Image::from_vec(w, h, full.u).expect("flow has the size of image A"),
+        v: Image::from_vec(w, h, full.v).expect("flow has the size of image A"),
+        levels,
         total_ms: ms(t0),
     })
+}
+
+/// The engine's flow (at level `finest`) carried to the full resolution of
+/// `a`: refined on the intensities through the pyramid when `refine` is
+/// given, else upsampled bilinearly. `ncc` is 1 and nothing is clamped
+/// without a refinement.
+pub(crate) fn to_full_resolution(
+    a: &Image,
+    b: &Image,
+    valid_a: Option<&[bool]>,
+    valid_b: Option<&[bool]>,
+    run: EngineRun,
+    finest: usize,
+    refine: Option<&RefineParams>,
+) -> RefinedFlow {
+    if let Some(params) = refine {
+        return refine_flow(a, b, valid_a, valid_b, (&run.u, &run.v), finest, params);
+    }
+    let (mut u, mut v) = (run.u, run.v);
+    let mut size = (run.width, run.height);
+    let mut sizes = vec![a.dimensions()];
+    for _ in 0..finest {
+        let &(w, h) = sizes.last().expect("not empty");
+        sizes.push((pyramid::half_size(w), pyramid::half_size(h)));
+    }
+    for l in (0..finest).rev() {
+        let (wf, hf) = sizes[l];
+        u = upsample_flow(&u, size.0, size.1, wf, hf, 2.0);
+        v = upsample_flow(&v, size.0, size.1, wf, hf, 2.0);
+        size = (wf, hf);
+    }
+    let n = u.len();
+    RefinedFlow {
+        u,
+        v,
+        ncc: vec![1.0; n],
+        clamped: vec![false; n],
+    }
 }
 
 /// Replaces non-finite samples by the nearest finite one on the same row (or
