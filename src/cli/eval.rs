@@ -28,6 +28,10 @@ pub struct EvalArgs {
 pub enum Which {
     /// SIFT flow on Middlebury RubberWhale against its ground truth (paper Table 3).
     Flow,
+    /// The sparse stage (SIFT, ORSA, rectification): simulator pairs against their true
+    /// correspondences, the grid over several seeds, the Potamogeton pairs beside the paper's
+    /// Table 2, and the time per step at 1280×960.
+    Sparse,
 }
 
 /// Runs one evaluation.
@@ -42,6 +46,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<ExitCode> {
     };
     match args.which {
         Which::Flow => eval::flow::run(&opts)?,
+        Which::Sparse => eval::sparse::run(&opts)?,
     }
     Ok(ExitCode::SUCCESS)
 }
