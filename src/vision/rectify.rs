@@ -22,7 +22,9 @@ use serde::{Deserialize, Serialize};
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct RectifyParams {
-    /// Levenberg–Marquardt iterations at most (default 200).
+    /// Levenberg–Marquardt iterations at most, per phase (default 60). The cost is nearly flat
+    /// along the focal length near parallel projection: beyond 60 the final error moved by
+    /// < 0.001 px on the simulator sweep and the Potamogeton pair, at 4× the time.
     pub max_iterations: usize,
     /// Stop when one step lowers the cost by less than this fraction (default 1e-9).
     pub tolerance: f64,
@@ -71,7 +73,7 @@ pub struct RectifyParams {
 impl Default for RectifyParams {
     fn default() -> Self {
         Self {
-            max_iterations: 200,
+            max_iterations: 60,
             tolerance: 1e-9,
             rotation_prior: 1.0,
             tilt_axis_prior: 10.0,
