@@ -5,7 +5,9 @@ use std::path::Path;
 use anyhow::{Context, bail};
 
 use crate::vision::Image;
-use crate::vision::sparse::{Correspondence, SparseParams, SparseResult, rectify_pair};
+use crate::vision::sparse::{
+    Correspondence, Side, SparseError, SparseParams, SparseResult, rectify_pair,
+};
 
 /// Loads a grey micrograph as samples in `[0, 1]`: 8/16-bit grey or palette TIFF (the palette
 /// turned into luminance), or anything the `image` crate reads (PNG …), converted to luma.
@@ -155,7 +157,8 @@ pub fn run_rectify(
 ) -> anyhow::Result<()> {
     let l = load_gray(left)?;
     let r = load_gray(right)?;
-    let pair = rectify_pair(&l, &r, tilt_axis_deg, params)?;
+    let pair =
+        rectify_pair(&l, &r, tilt_axis_deg, params).map_err(|e| name_files(e, left, right))?;
     std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
     save_png(&pair.left.filled(0.0), &out.join("rectified_left.png"))?;
     save_png(&pair.right.filled(0.0), &out.join("rectified_right.png"))?;
@@ -169,6 +172,21 @@ pub fn run_rectify(
     std::fs::write(&path, serde_json::to_string_pretty(&json)? + "\n")
         .with_context(|| format!("cannot write {}", path.display()))?;
     Ok(())
+}
+
+/// The stage's refusal with the file(s) it concerns: the one image at fault, or the pair.
+fn name_files(e: SparseError, left: &Path, right: &Path) -> anyhow::Error {
+    let side = match &e {
+        SparseError::ImageTooSmall { side, .. } | SparseError::NoTexture { side, .. } => {
+            Some(*side)
+        }
+        _ => None,
+    };
+    match side {
+        Some(Side::Left) => anyhow::anyhow!("{}: {e}", left.display()),
+        Some(Side::Right) => anyhow::anyhow!("{}: {e}", right.display()),
+        None => anyhow::anyhow!("{} and {}: {e}", left.display(), right.display()),
+    }
 }
 
 fn matrix_rows(m: &nalgebra::Matrix3<f64>) -> [[f64; 3]; 3] {
@@ -190,11 +208,14 @@ pub fn rectification_json(
         "keypoints_left": r.keypoints_left,
         "keypoints_right": r.keypoints_right,
         "matches": r.matches.len(),
-        "inliers": r.inliers.len(),
+        "inliers": r.orsa_inliers,
+        "inliers_used": r.inliers.len(),
+        "refined_inliers": r.refined,
+        "rectification_outliers": rec.outliers.len(),
         "initial_error_px": rec.initial_error_px,
         "final_error_px": rec.final_error_px,
-        "error_definition": "RMS of y_left − y_right over the ORSA inliers, before (identity) and after rectification",
-        "final_sampson_error_px": rec.final_sampson_px,
+        "error_definition": "as Monasse's reference code (IPOL 2011) prints it and the SD-SEM paper's Table 2 reports it: RMS Sampson error of the inliers used, for the rectifying fundamental matrix, before (all rotations 0, = RMS(y_left − y_right)/√2) and after the optimisation; final_dy_rms_px is the RMS of y_left − y_right on the canvas",
+        "final_dy_rms_px": rec.final_dy_rms_px,
         "H_left": matrix_rows(&rec.h_left),
         "H_right": matrix_rows(&rec.h_right),
         "canvas_size": [rec.canvas.0, rec.canvas.1],
@@ -343,12 +364,50 @@ mod tests {
     }
 
     #[test]
-    fn non_image_file_is_a_clear_error() {
+    fn bad_inputs_are_refused_naming_the_file_and_the_cause() {
         let dir = tempfile::tempdir().unwrap();
-        let p = dir.path().join("notes.txt");
-        std::fs::write(&p, "hello").unwrap();
-        let err = load_gray(&p).unwrap_err();
-        assert!(format!("{err:#}").contains("notes.txt"), "{err:#}");
+        let pair = crate::vision::sparse::tests::sem_pair(200, 160, -90.0, (-3.0, 3.0), 0.0, false);
+        let (l, r) = (dir.path().join("left.png"), dir.path().join("right.png"));
+        save_png(&pair.left, &l).unwrap();
+        save_png(&pair.right, &r).unwrap();
+        let notes = dir.path().join("notes.txt");
+        std::fs::write(&notes, "hello").unwrap();
+        let small = dir.path().join("small.png");
+        save_png(
+            &Image::from_fn(180, 160, |x, y| pair.right.get(x, y)),
+            &small,
+        )
+        .unwrap();
+        let blank = dir.path().join("blank.png");
+        save_png(&Image::filled(200, 160, 0.4), &blank).unwrap();
+        let out = dir.path().join("out");
+        let p = SparseParams::default();
+        // What `main` prints: the cause chain on one line.
+        let fail = |a: &Path, b: &Path| {
+            let e = run_rectify(a, b, &out, Some(-90.0), &p).unwrap_err();
+            format!("{e:#}")
+        };
+        let e = fail(&l, &notes);
+        assert!(e.contains("notes.txt") && e.contains("not an image"), "{e}");
+        let e = fail(&dir.path().join("missing.tif"), &r);
+        assert!(
+            e.contains("missing.tif") && e.contains("cannot read"),
+            "{e}"
+        );
+        let e = fail(&l, &small);
+        assert!(
+            e.contains("left.png")
+                && e.contains("small.png")
+                && e.contains("differ in size: 200×160 vs 180×160"),
+            "{e}"
+        );
+        let e = fail(&l, &blank);
+        assert!(
+            e.starts_with(&format!("{}: right image has no texture", blank.display())),
+            "{e}"
+        );
+        assert!(!e.contains('\n'), "{e}");
+        assert!(!out.exists(), "nothing is written for a refused pair");
     }
 
     #[test]

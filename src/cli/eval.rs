@@ -49,6 +49,10 @@ pub enum Which {
         #[arg(long = "set", value_name = "KEY=VALUE")]
         set: Vec<String>,
     },
+    /// The sparse stage (SIFT, ORSA, rectification): simulator pairs against their true
+    /// correspondences, the grid over several seeds, the Potamogeton pairs beside the paper's
+    /// Table 2, and the time per step at 1280×960.
+    Sparse,
 }
 
 #[derive(Debug, Args)]
@@ -160,6 +164,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<ExitCode> {
             },
         )?,
         Which::Potamogeton { mode, set } => eval::potamogeton::run(&opts, *mode, set)?,
+        Which::Sparse => eval::sparse::run(&opts)?,
     }
     Ok(ExitCode::SUCCESS)
 }

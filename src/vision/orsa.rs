@@ -154,17 +154,26 @@ struct Candidate {
     f: Matrix3<f64>,
 }
 
+/// A test a model must pass to be scored at all (prior knowledge of the geometry, such as the
+/// direction of the tilt axis): `true` keeps it.
+pub type ModelFilter<'a> = &'a (dyn Fn(&Matrix3<f64>) -> bool + Sync);
+
 struct Problem<'a> {
     left: &'a [Vector2<f64>],
     right: &'a [Vector2<f64>],
     model: FundamentalModel,
     table: NfaTable,
     max_threshold: f64,
+    filter: Option<ModelFilter<'a>>,
 }
 
 impl Problem<'_> {
-    /// Scores `f` on all matches; `buf` is scratch space.
+    /// Scores `f` on all matches; `buf` is scratch space. `None` for a model the filter
+    /// refuses.
     fn score(&self, f: &Matrix3<f64>, buf: &mut Vec<f64>) -> Option<Candidate> {
+        if self.filter.is_some_and(|keep| !keep(f)) {
+            return None;
+        }
         buf.clear();
         buf.extend(
             self.left
@@ -291,6 +300,22 @@ pub fn orsa(
     image_sizes: [(usize, usize); 2],
     params: &OrsaParams,
 ) -> Result<OrsaResult, OrsaError> {
+    orsa_filtered(left, right, image_sizes, params, None)
+}
+
+/// [`orsa`] among the models that pass `filter` only: models the prior knowledge rules out
+/// are never scored, so a consistent set of wrong matches (a repetitive scene, or a nearly flat
+/// specimen whose matches leave the epipolar direction undetermined) cannot win.
+///
+/// # Errors
+/// As [`orsa`].
+pub fn orsa_filtered(
+    left: &[Vector2<f64>],
+    right: &[Vector2<f64>],
+    image_sizes: [(usize, usize); 2],
+    params: &OrsaParams,
+    filter: Option<ModelFilter<'_>>,
+) -> Result<OrsaResult, OrsaError> {
     let n = left.len().min(right.len());
     let m = params.model.sample_size();
     if n <= m {
@@ -309,6 +334,7 @@ pub fn orsa(
         model: params.model,
         table: NfaTable::new(n, m, params.model.max_models(), log_alpha0),
         max_threshold: params.max_threshold_px.unwrap_or(f64::INFINITY),
+        filter,
     };
     #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
     let reserve = ((params.max_iterations as f64 * params.reserve_fraction.clamp(0.0, 1.0)).round()
@@ -446,5 +472,24 @@ mod tests {
         );
         let err = orsa(&l[..5], &r[..5], [(640, 480); 2], &OrsaParams::default()).unwrap_err();
         assert_eq!(err, OrsaError::TooFewMatches { found: 5, need: 7 });
+    }
+
+    #[test]
+    fn the_filter_decides_which_models_are_scored() {
+        let (l, r) = contaminate(affine_pair(60, 4), 60, 12);
+        let p = OrsaParams {
+            model: FundamentalModel::Affine,
+            ..OrsaParams::default()
+        };
+        let free = orsa(&l, &r, [(640, 480); 2], &p).unwrap();
+        let all = |_: &Matrix3<f64>| true;
+        let kept = orsa_filtered(&l, &r, [(640, 480); 2], &p, Some(&all)).unwrap();
+        assert_eq!(kept, free);
+        let none = |_: &Matrix3<f64>| false;
+        let err = orsa_filtered(&l, &r, [(640, 480); 2], &p, Some(&none)).unwrap_err();
+        assert!(
+            matches!(err, OrsaError::NotMeaningful { inliers: 0, .. }),
+            "{err}"
+        );
     }
 }

@@ -22,7 +22,9 @@ use serde::{Deserialize, Serialize};
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct RectifyParams {
-    /// Levenberg–Marquardt iterations at most (default 200).
+    /// Levenberg–Marquardt iterations at most, per phase (default 60). The cost is nearly flat
+    /// along the focal length near parallel projection: beyond 60 the final error moved by
+    /// < 0.001 px on the simulator sweep and the Potamogeton pair, at 4× the time.
     pub max_iterations: usize,
     /// Stop when one step lowers the cost by less than this fraction (default 1e-9).
     pub tolerance: f64,
@@ -55,12 +57,23 @@ pub struct RectifyParams {
     /// Largest accepted angle between the tilt-axis normal `n` (when given) and the epipolar
     /// direction found, degrees (default 10).
     pub max_tilt_axis_mismatch_deg: f64,
+    /// Scale of a Cauchy loss on the Sampson residuals for a first, robust optimisation,
+    /// pixels (default 1; 0 = least squares only, Monasse's cost). Matches whose residual at
+    /// the robust optimum exceeds `outlier_factor` × this scale (default 3) are left out of the
+    /// final least-squares fit: wrong matches that slide along their epipolar line, which ORSA
+    /// cannot reject.
+    pub cauchy_scale_px: f64,
+    pub outlier_factor: f64,
+    /// `tilt_axis_prior` and `rotation_prior` of the robust pass, px per radian (default 100
+    /// both): the out-of-plane rotations could otherwise turn the rows in its stead.
+    pub robust_tilt_axis_prior: f64,
+    pub robust_rotation_prior: f64,
 }
 
 impl Default for RectifyParams {
     fn default() -> Self {
         Self {
-            max_iterations: 200,
+            max_iterations: 60,
             tolerance: 1e-9,
             rotation_prior: 1.0,
             tilt_axis_prior: 10.0,
@@ -71,6 +84,10 @@ impl Default for RectifyParams {
             max_final_error_px: 1.0,
             max_predicted_error_px: 0.75,
             max_tilt_axis_mismatch_deg: 10.0,
+            cauchy_scale_px: 1.0,
+            outlier_factor: 3.0,
+            robust_tilt_axis_prior: 100.0,
+            robust_rotation_prior: 100.0,
         }
     }
 }
@@ -126,13 +143,20 @@ pub struct Rectification {
     pub params: QuasiEuclidean,
     /// `f = 3^g (w + h)`, pixels.
     pub focal_px: f64,
-    /// RMS of `y_left − y_right` of the inliers before rectification (identity warps), pixels.
+    /// The rectification error before rectification, as Monasse's reference code defines and
+    /// prints it ("Initial rectification error"): the RMS Sampson error of the inliers for the
+    /// rectifying F of the start of the optimisation with all rotations 0 (`H = I`), which is
+    /// `RMS(y_left − y_right) / √2` of the original positions. Pixels.
     pub initial_error_px: f64,
-    /// RMS of `y_left − y_right` of the inliers on the rectified canvas, pixels.
+    /// The rectification error after rectification, as Monasse's code defines and prints it
+    /// ("Final rectification error", the figure of the SD-SEM paper's Table 2): the RMS Sampson
+    /// error (H&Z eq. 11.9) of the inliers for the rectifying `F = K⁻ᵀ R_rᵀ [e₁]ₓ R_l K⁻¹` at
+    /// the optimum, i.e. the RMS distance each correspondence must move (both points together)
+    /// to satisfy it; on rectified rows this is `RMS(y_left − y_right) / √2`. Pixels.
     pub final_error_px: f64,
-    /// RMS Sampson error of the inliers for the rectifying F at the optimum, pixels
-    /// (`final_error_px / √2` when the warps are exact).
-    pub final_sampson_px: f64,
+    /// RMS of `y_left − y_right` of the inliers on the rectified canvas, pixels (≈ √2 ×
+    /// `final_error_px`): the vertical disparity the dense stage sees.
+    pub final_dy_rms_px: f64,
     /// Standard deviation of the rectified rows' misalignment predicted from the matches, at
     /// the worst image corner, pixels (see `predicted_error`).
     pub predicted_error_px: f64,
@@ -142,6 +166,9 @@ pub struct Rectification {
     /// image at its centre, when φ was given. With `n_rectified.x > 0` (what the start
     /// enforces), a point higher above the specimen has a larger `x_right − x_left`.
     pub n_rectified: Option<[f64; 2]>,
+    /// Indices of the input matches left out of the final fit (see
+    /// [`RectifyParams::cauchy_scale_px`]); every figure above is over the others.
+    pub outliers: Vec<usize>,
 }
 
 /// Why no trustworthy rectification exists.
@@ -243,6 +270,12 @@ fn residuals_with_prior(
     out: &mut Vec<f64>,
 ) {
     residuals(frame, q, left, right, out);
+    if let Some(c) = prior.cauchy {
+        // ρ(r) = c² ln(1 + r²/c²) as a residual whose square is ρ.
+        for r in out.iter_mut() {
+            *r = r.signum() * c * (*r / c).mul_add(*r / c, 1.0).ln().sqrt();
+        }
+    }
     let r = prior.rotation;
     out.extend([r * q.left_y, r * q.right_x, r * q.right_y]);
     if let Some((weight, left_z)) = prior.axis {
@@ -259,6 +292,8 @@ struct Prior {
     /// along +x, when the axis is known: on nearly flat specimens the matches barely say where
     /// the parallax runs, and the axis does.
     axis: Option<(f64, f64)>,
+    /// Scale of the Cauchy loss on the Sampson residuals, pixels (`None`: least squares).
+    cauchy: Option<f64>,
 }
 
 /// Signed Sampson residuals of all matches for `q`.
@@ -292,9 +327,64 @@ fn rms(v: impl Iterator<Item = f64>) -> f64 {
     if n == 0 { 0.0 } else { (s / n as f64).sqrt() }
 }
 
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v.get(v.len() / 2).copied().unwrap_or(0.0)
+}
+
+/// The in-plane rotation of the right image relative to the left, robustly: the median, over
+/// pairs of matches at least `min_separation` apart, of the angle the segment joining them turns
+/// by. Wrong matches and parallax move single segments, not the median. 0 without such pairs.
+fn relative_rotation(left: &[Vector2<f64>], right: &[Vector2<f64>], min_separation: f64) -> f64 {
+    let n = left.len().min(right.len());
+    let mut angles = Vec::with_capacity(3 * n);
+    for i in 0..n {
+        for k in [n / 2, n / 3, n / 5] {
+            let j = (i + k.max(1)) % n;
+            let (dl, dr) = (left[j] - left[i], right[j] - right[i]);
+            if dl.norm() >= min_separation && dr.norm() > 0.0 {
+                let a = dr.y.atan2(dr.x) - dl.y.atan2(dl.x);
+                angles.push(
+                    (a + std::f64::consts::PI).rem_euclid(std::f64::consts::TAU)
+                        - std::f64::consts::PI,
+                );
+            }
+        }
+    }
+    median(angles)
+}
+
+/// The affine map `right ≈ A · left + t` fitted to the matches by least squares; `None` when
+/// they do not determine it (fewer than 3, or collinear).
+#[must_use]
+pub fn affine_map(
+    left: &[Vector2<f64>],
+    right: &[Vector2<f64>],
+) -> Option<(nalgebra::Matrix2<f64>, Vector2<f64>)> {
+    let n = left.len().min(right.len());
+    if n < 3 {
+        return None;
+    }
+    let c = left[..n].iter().sum::<Vector2<f64>>() / n as f64;
+    let cr = right[..n].iter().sum::<Vector2<f64>>() / n as f64;
+    let mut m = nalgebra::Matrix2::zeros();
+    let (mut bx, mut by) = (Vector2::zeros(), Vector2::zeros());
+    for (l, r) in left[..n].iter().zip(&right[..n]) {
+        let d = l - c;
+        m += d * d.transpose();
+        bx += d * (r.x - cr.x);
+        by += d * (r.y - cr.y);
+    }
+    let mi = m.try_inverse()?;
+    let (ax, ay) = (mi * bx, mi * by);
+    let a = nalgebra::Matrix2::new(ax.x, ax.y, ay.x, ay.y);
+    Some((a, cr - a * c))
+}
+
 /// Unit direction of the epipolar lines of the left image at its centre, from `F` (the line
 /// joining the centre to the epipole `e`, `F e = 0`; `e` may lie at infinity).
-fn epipolar_direction(f: &Matrix3<f64>, centre: Vector2<f64>) -> Option<Vector2<f64>> {
+#[must_use]
+pub fn epipolar_direction(f: &Matrix3<f64>, centre: Vector2<f64>) -> Option<Vector2<f64>> {
     let svd = f.svd(false, true);
     let vt = svd.v_t?;
     let k = (0..3).min_by(|&a, &b| svd.singular_values[a].total_cmp(&svd.singular_values[b]))?;
@@ -347,7 +437,10 @@ pub fn rectify(
         Vector2::new(-p.sin(), p.cos())
     });
     let (dl, dr) = if let Some(nv) = normal {
-        (nv, nv)
+        // The right shot may be turned in its plane (scan rotation, stage handling): its parallax
+        // runs along n turned by that rotation.
+        let psi = relative_rotation(left, right, frame.w.min(frame.h) / 8.0);
+        (nv, nalgebra::Rotation2::new(psi) * nv)
     } else {
         let mut dl = epipolar_direction(f, centre).ok_or(RectifyError::Degenerate)?;
         let mut dr = epipolar_direction(&f.transpose(), centre).ok_or(RectifyError::Degenerate)?;
@@ -359,7 +452,7 @@ pub fn rectify(
         }
         (dl, dr)
     };
-    let start = QuasiEuclidean {
+    let in_plane = QuasiEuclidean {
         left_y: 0.0,
         left_z: -dl.y.atan2(dl.x),
         right_x: 0.0,
@@ -367,16 +460,61 @@ pub fn rectify(
         right_z: -dr.y.atan2(dr.x),
         g: 0.0,
     };
-
-    // The focal length trades off against the out-of-plane rotations along a long shallow
-    // valley of the cost; solving first with g fixed, then with all six, avoids wandering in it.
+    let robust = params.cauchy_scale_px > 0.0;
     let prior = Prior {
         rotation: params.rotation_prior,
-        axis: normal.map(|_| (params.tilt_axis_prior, start.left_z)),
+        axis: normal.map(|_| (params.tilt_axis_prior, in_plane.left_z)),
+        cauchy: None,
     };
-    let (q, it1) = levenberg_marquardt(&frame, start, left, right, params, &prior, 5);
-    let (q, it2) = levenberg_marquardt(&frame, q, left, right, params, &prior, 6);
-    let iterations = it1 + it2;
+    // The robust pass holds the rows to the tilt axis firmly: a wrong match costs at most
+    // ~c² ln(1 + (r/c)²) under the Cauchy loss, so a weak pull would let a handful of them turn
+    // the rows where the true matches leave the direction open; many true matches with real
+    // parallax still turn them.
+    let robust_prior = Prior {
+        rotation: params.robust_rotation_prior,
+        axis: normal.map(|_| (params.robust_tilt_axis_prior, in_plane.left_z)),
+        cauchy: Some(params.cauchy_scale_px),
+    };
+    let (mut q, mut iterations) = optimise(
+        &frame,
+        &in_plane,
+        left,
+        right,
+        params,
+        if robust { &robust_prior } else { &prior },
+    );
+
+    // Robust pass (beyond Monasse): a few ORSA inliers can be wrong matches that slide along
+    // their epipolar lines (repetitive structure), which F cannot reject; far from the others in
+    // disparity, they decide the direction of the rows when the true matches leave it open
+    // (nearly flat specimens). Under the Cauchy loss they barely count; those the optimum cannot
+    // align are left out, and least squares on the rest gives the final figures.
+    let mut outliers = Vec::new();
+    let (mut kept_left, mut kept_right) = (left.to_vec(), right.to_vec());
+    if robust {
+        let mut buf = Vec::new();
+        residuals(&frame, &q, left, right, &mut buf);
+        let limit = params.outlier_factor * params.cauchy_scale_px;
+        outliers = (0..n).filter(|&i| buf[i].abs() > limit).collect();
+        if !outliers.is_empty() {
+            kept_left.clear();
+            kept_right.clear();
+            for i in (0..n).filter(|i| buf[*i].abs() <= limit) {
+                kept_left.push(left[i]);
+                kept_right.push(right[i]);
+            }
+            if kept_left.len() < NEED {
+                return Err(RectifyError::TooFewMatches {
+                    found: kept_left.len(),
+                    need: NEED,
+                });
+            }
+        }
+        let (q2, it) = levenberg_marquardt(&frame, q, &kept_left, &kept_right, params, &prior, 6);
+        q = q2;
+        iterations += it;
+    }
+    let (left, right) = (&kept_left[..], &kept_right[..]);
 
     // Plausibility of the optimum.
     let rel = (q.right_z - q.left_z + std::f64::consts::PI).rem_euclid(std::f64::consts::TAU)
@@ -444,17 +582,20 @@ pub fn rectify(
         (hi.y + offset.1).floor() as usize + 1,
     );
 
-    let initial_error_px = rms(left.iter().zip(right).map(|(a, b)| a.y - b.y));
-    let final_error_px = rms(left
+    // Monasse's figures: RMS Sampson error at P = 0 and at the optimum.
+    let mut buf = Vec::new();
+    let identity = QuasiEuclidean::from_vec(&[0.0; 6]);
+    residuals(&frame, &identity, left, right, &mut buf);
+    let initial_error_px = rms(buf.iter().copied());
+    residuals(&frame, &q, left, right, &mut buf);
+    let final_error_px = rms(buf.iter().copied());
+    let final_dy_rms_px = rms(left
         .iter()
         .zip(right)
         .map(|(a, b)| transform(&h_left, a).y - transform(&h_right, b).y));
-    let mut buf = Vec::new();
-    residuals(&frame, &q, left, right, &mut buf);
-    let final_sampson_px = rms(buf.iter().copied());
     check(
-        "final rectification error (px RMS)",
-        final_error_px,
+        "RMS vertical disparity of the inliers after rectification (px)",
+        final_dy_rms_px,
         params.max_final_error_px,
     )?;
     let predicted_error_px =
@@ -497,11 +638,51 @@ pub fn rectify(
         focal_px: 3f64.powf(q.g) * (frame.w + frame.h),
         initial_error_px,
         final_error_px,
-        final_sampson_px,
+        final_dy_rms_px,
         predicted_error_px,
         iterations,
         n_rectified,
+        outliers,
     })
+}
+
+/// Levenberg–Marquardt from two starts, the better optimum kept: Monasse's focal (g = 0), and
+/// a long focal where the homographies are nearly affine, the SEM's parallel projection. From
+/// g = 0 alone, the parallax of a parallel projection (two planes at different heights, say)
+/// can lead the first steps down the cost's nearly flat common-rotation direction into a wrong
+/// minimum. Each start fixes the rows' offset first, then solves with `g` fixed, then with all
+/// six unknowns (the focal length trades off against the out-of-plane rotations along a long
+/// shallow valley of the cost).
+fn optimise(
+    frame: &Frame,
+    in_plane: &QuasiEuclidean,
+    left: &[Vector2<f64>],
+    right: &[Vector2<f64>],
+    params: &RectifyParams,
+    prior: &Prior,
+) -> (QuasiEuclidean, usize) {
+    let mut best: Option<(QuasiEuclidean, usize, f64)> = None;
+    let mut buf = Vec::new();
+    for g0 in [0.0, LONG_FOCAL_G.clamp(params.g_range.0, params.g_range.1)] {
+        let mut start = QuasiEuclidean { g: g0, ..*in_plane };
+        // Turning the right camera about x by α moves its rows by −f·α.
+        let (hl, hr) = frame.homographies(&start);
+        let offset = median(
+            left.iter()
+                .zip(right)
+                .map(|(a, b)| transform(&hr, b).y - transform(&hl, a).y)
+                .collect(),
+        );
+        start.right_x = (offset / frame.k(g0)[(0, 0)]).atan();
+        let (q, it1) = levenberg_marquardt(frame, start, left, right, params, prior, 5);
+        let (q, it2) = levenberg_marquardt(frame, q, left, right, params, prior, 6);
+        residuals_with_prior(frame, &q, left, right, prior, &mut buf);
+        let cost = buf.iter().map(|x| x * x).sum::<f64>();
+        if best.as_ref().is_none_or(|b| cost < b.2) {
+            best = Some((q, it1 + it2, cost));
+        }
+    }
+    best.map_or((*in_plane, 0), |(q, it, _)| (q, it))
 }
 
 /// How well the matches pin the rectification down: the standard deviation (pixels) of the
@@ -563,10 +744,6 @@ fn predicted_error(
     let cov = jtj.try_inverse()? * sigma2;
     // A point at `pt` in the left image and at `pt + shift` in the right, `shift` the median
     // displacement of the matches: a typical correspondence, wherever in the image.
-    let median = |mut v: Vec<f64>| {
-        v.sort_by(f64::total_cmp);
-        v[v.len() / 2]
-    };
     let shift = Vector2::new(
         median(left.iter().zip(right).map(|(a, b)| b.x - a.x).collect()),
         median(left.iter().zip(right).map(|(a, b)| b.y - a.y).collect()),
@@ -603,6 +780,12 @@ fn check(what: &'static str, value: f64, limit: f64) -> Result<(), RectifyError>
         Err(RectifyError::Implausible { what, value, limit })
     }
 }
+
+const MAX_ANGLE_STEP: f64 = 0.1;
+/// The focal exponent of the second start: `f = 3⁴ (w + h)`, a field of view well under a
+/// degree.
+const LONG_FOCAL_G: f64 = 4.0;
+const MAX_G_STEP: f64 = 0.5;
 
 /// Levenberg–Marquardt (Marquardt's diagonal damping) on the Sampson residuals, with a
 /// central-difference Jacobian; `g` is kept inside `params.g_range`. Only the first `n_free`
@@ -692,9 +875,15 @@ fn levenberg_marquardt(
                 lambda *= 10.0;
                 continue;
             };
+            // A bounded step (0.1 rad, 0.5 in g): the cost has nearly flat directions (common
+            // rotations of both cameras) along which an undamped step would leave the basin.
+            let scale = (0..5)
+                .map(|k| delta[k].abs() / MAX_ANGLE_STEP)
+                .chain(std::iter::once(delta[5].abs() / MAX_G_STEP))
+                .fold(1.0f64, f64::max);
             let mut trial = p;
             for k in 0..6 {
-                trial[k] += delta[k];
+                trial[k] += delta[k] / scale;
             }
             let trial = clamp_g(trial);
             let ct = cost(&trial, &mut r_try);
@@ -844,5 +1033,81 @@ mod tests {
             ),
             "{err}"
         );
+    }
+
+    #[test]
+    fn errors_are_monasses_rms_sampson_figures() {
+        let (l, r) = sem_pair(-90.0, 0.8, 60);
+        let idx: Vec<usize> = (0..60).collect();
+        let f = eight_point(&l, &r, &idx).unwrap();
+        let rec = rectify(
+            &l,
+            &r,
+            &f,
+            (640, 480),
+            Some(-90.0),
+            &RectifyParams::default(),
+        )
+        .unwrap();
+        // Before: all rotations 0, H = I, F ∝ [e₁]ₓ: the Sampson error is Δy/√2 exactly.
+        let dy0 = rms(l.iter().zip(&r).map(|(a, b)| a.y - b.y));
+        assert!(
+            (rec.initial_error_px - dy0 / 2f64.sqrt()).abs() < 1e-9 * dy0,
+            "{} vs {}",
+            rec.initial_error_px,
+            dy0
+        );
+        // After: on rectified rows, again the vertical disparity over √2 (the warps are nearly
+        // distance-preserving).
+        assert!(rec.final_dy_rms_px > 0.0);
+        let ratio = rec.final_dy_rms_px / rec.final_error_px;
+        assert!((ratio - 2f64.sqrt()).abs() < 0.05, "ratio {ratio}");
+    }
+
+    #[test]
+    fn wrong_matches_sliding_along_the_rows_do_not_turn_them() {
+        // A flat specimen: every true match has the same parallax, so the matches leave the
+        // direction of the rows open and the tilt axis (φ = −90°: rows along x) decides. Two
+        // wrong matches 300 px along a line 6° off the rows, which an F through them accepts,
+        // would turn the rows by 6° under least squares; the robust pass leaves them out.
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(9);
+        let t = 3f64.to_radians();
+        let rot = nalgebra::Rotation2::new(0.5f64.to_radians());
+        let c = Vector2::new(320.0, 240.0);
+        let (mut l, mut r) = (Vec::new(), Vec::new());
+        for _ in 0..80 {
+            let (s, rr) = (
+                rng.random_range(-220.0..220.0),
+                rng.random_range(-180.0..180.0),
+            );
+            let noise = Vector2::new(rng.random_range(-0.1..0.1), rng.random_range(-0.1..0.1));
+            l.push(c + Vector2::new(rr * t.cos(), s));
+            r.push(c + rot * Vector2::new(rr * t.cos(), s) + Vector2::new(5.0, -3.0) + noise);
+        }
+        let off = Vector2::new(6f64.to_radians().cos(), 6f64.to_radians().sin()) * 300.0;
+        for k in [3, 17] {
+            let (a, b) = (l[k], r[k]);
+            l.push(a);
+            r.push(b + off);
+        }
+        let idx: Vec<usize> = (0..l.len()).collect();
+        let f = eight_point(&l, &r, &idx[..80]).unwrap();
+        let turned = |p: &RectifyParams| {
+            let rec = rectify(&l, &r, &f, (640, 480), Some(-90.0), p).unwrap();
+            let n = rec.n_rectified.unwrap();
+            (n[1].atan2(n[0]).to_degrees().abs(), rec.outliers)
+        };
+        let (least_squares, none) = turned(&RectifyParams {
+            cauchy_scale_px: 0.0,
+            ..RectifyParams::default()
+        });
+        assert!(none.is_empty());
+        assert!(
+            least_squares > 3.0,
+            "least squares turned the rows by {least_squares}°"
+        );
+        let (robust, outliers) = turned(&RectifyParams::default());
+        assert_eq!(outliers, vec![80, 81]);
+        assert!(robust < 0.5, "robust: rows turned by {robust}°");
     }
 }
