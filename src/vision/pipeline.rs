@@ -38,6 +38,28 @@ pub struct ReconstructionParams {
 }
 
 impl ReconstructionParams {
+    /// The sparse parameters with the pipeline's mode: in the paper mode, the
+    /// keys that [`SparseParams::paper`] changes (DoG threshold, sub-pixel
+    /// refinement of the inliers, robust rectification pass) take the paper's
+    /// values unless the configuration set them away from their defaults.
+    #[must_use]
+    pub fn sparse_params(&self) -> SparseParams {
+        let mut s = self.sparse.clone();
+        if self.mode == Mode::Paper {
+            let (ours, paper) = (SparseParams::default(), SparseParams::paper());
+            if s.sift.c_dog == ours.sift.c_dog {
+                s.sift.c_dog = paper.sift.c_dog;
+            }
+            if s.refine.enabled == ours.refine.enabled {
+                s.refine.enabled = paper.refine.enabled;
+            }
+            if s.rectify.cauchy_scale_px == ours.rectify.cauchy_scale_px {
+                s.rectify.cauchy_scale_px = paper.rectify.cauchy_scale_px;
+            }
+        }
+        s
+    }
+
     /// The dense parameters with the pipeline's mode.
     #[must_use]
     pub fn dense_params(&self) -> DenseParams {
@@ -184,7 +206,12 @@ pub fn reconstruct(
     let t_total = Instant::now();
 
     let t = Instant::now();
-    let rect = rectify_pair(left, right, Some(geometry.tilt_axis_deg), &params.sparse)?;
+    let rect = rectify_pair(
+        left,
+        right,
+        Some(geometry.tilt_axis_deg),
+        &params.sparse_params(),
+    )?;
     let sparse_ms = ms(t);
 
     let t = Instant::now();
@@ -367,6 +394,21 @@ fn depth_report(height: &Image, g: &StereoGeometry) -> DepthReport {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn paper_mode_takes_the_papers_sparse_path_unless_configured_otherwise() {
+        let mut p = ReconstructionParams {
+            mode: Mode::Paper,
+            ..ReconstructionParams::default()
+        };
+        assert_eq!(p.sparse_params(), SparseParams::paper());
+        p.sparse.refine.enabled = !SparseParams::default().refine.enabled;
+        let s = p.sparse_params();
+        assert_eq!(s.refine.enabled, p.sparse.refine.enabled, "a set key stays");
+        assert_eq!(s.sift.c_dog, SparseParams::paper().sift.c_dog);
+        let improved = ReconstructionParams::default();
+        assert_eq!(improved.sparse_params(), SparseParams::default());
+    }
 
     #[test]
     fn impossible_geometry_is_refused_before_any_work() {
