@@ -438,8 +438,9 @@ impl RunState {
             w,
             h,
         )?;
-        let info = Entry::json(topics::SEM_FRAME_INFO, t, &info)?;
-        recorder.send_async(image).await?;
+        // One chunk for the frame and its info, cut after the info.
+        let info = Entry::json(topics::SEM_FRAME_INFO, t, &info)?.cutting_chunk(true);
+        recorder.send_async(image.cutting_chunk(false)).await?;
         recorder.send_async(info).await
     }
 }

@@ -289,6 +289,18 @@ fn encode<T: Encode>(topic: &str, message: &T) -> Result<Vec<u8>, RecordError> {
 }
 
 impl Entry {
+    /// Whether a chunk is cut (and flushed) right after this message. Images
+    /// cut one by default; a frame's image and its `/sem/frame_info` go
+    /// together, so the image is written without a cut and the info with one:
+    /// a crash never leaves a frame whose tilt and pixel size are lost.
+    #[must_use]
+    pub fn cutting_chunk(mut self, cut: bool) -> Self {
+        if let EntryKind::Message { cut_chunk, .. } = &mut self.kind {
+            *cut_chunk = cut;
+        }
+        self
+    }
+
     /// A foxglove.RawImage: `mono8`, `mono16` or `32FC1` by the type of `pixels`.
     ///
     /// On [`topics::SEM_FRAME`] the `frame_id` is the [`topics::FrameRole`]

@@ -327,7 +327,7 @@ impl RecorderHandle {
 
     /// Records a SEM frame: the micrograph (`[0, 1]`) as a 16-bit `/sem/frame` RawImage
     /// whose `frame_id` is `info.role`, and `info` on `/sem/frame_info`, both at
-    /// `log_time_ns`. The frame's chunk is flushed before the next message is written.
+    /// `log_time_ns`. The chunk is cut and flushed after the info, so both survive a crash together.
     ///
     /// # Errors
     /// [`RecordError::InvalidMessage`] when `info.width/height` disagree with `image`, and
@@ -358,8 +358,9 @@ impl RecorderHandle {
             w,
             h,
         )?;
-        let info_entry = Entry::json(topics::SEM_FRAME_INFO, log_time_ns, info)?;
-        self.send(image_entry)?;
+        let info_entry =
+            Entry::json(topics::SEM_FRAME_INFO, log_time_ns, info)?.cutting_chunk(true);
+        self.send(image_entry.cutting_chunk(false))?;
         self.send(info_entry)
     }
 

@@ -671,6 +671,58 @@ fn end_micrographs_come_back_with_their_parameters() {
     assert!(h.to_image().unwrap().get(0, 0).is_nan());
 }
 
+/// A record cut anywhere never holds a frame without its `/sem/frame_info`
+/// (replay needs the tilt and pixel size of the end micrographs).
+#[test]
+fn a_cut_record_never_separates_a_frame_from_its_info() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("run.mcap");
+    let recorder = Recorder::create(
+        &path,
+        RecorderOptions {
+            flush_interval: Duration::from_secs(3600),
+            ..fast_options()
+        },
+    )
+    .unwrap();
+    let rec = recorder.handle();
+    rec.frame(T0, &micrograph(1), &frame_info(FrameRole::Left, 0, -3.0))
+        .unwrap();
+    rec.json(
+        topics::STAGE_IO,
+        T0 + 1,
+        &serde_json::json!({"command": "MOV"}),
+    )
+    .unwrap();
+    rec.frame(
+        T0 + 2,
+        &micrograph(2),
+        &frame_info(FrameRole::Right, 1, 3.0),
+    )
+    .unwrap();
+    rec.height(T0 + 3, &Image::filled(8, 6, 1.0)).unwrap();
+    recorder.finish().unwrap();
+    let bytes = std::fs::read(&path).unwrap();
+    let cut = dir.path().join("cut.mcap");
+    let (mut left_seen, mut right_seen) = (false, false);
+    for len in (0..bytes.len()).step_by(7) {
+        std::fs::write(&cut, &bytes[..len]).unwrap();
+        let Ok(ends) = read_end_micrographs(&cut) else {
+            continue;
+        };
+        for m in [ends.left, ends.right].into_iter().flatten() {
+            assert!(
+                m.info.is_some(),
+                "{:?} frame without info at {len} bytes",
+                m.role
+            );
+            left_seen |= m.role == FrameRole::Left;
+            right_seen |= m.role == FrameRole::Right;
+        }
+    }
+    assert!(left_seen && right_seen, "the cuts reached both frames");
+}
+
 /// Logs may be dropped under backpressure, never silently: what was written plus what
 /// was counted as dropped is what was sent, and the count is in the record.
 #[test]
