@@ -101,6 +101,9 @@ pub struct DenseArgs {
     /// Only write the selected cases' micrographs (16-bit TIFF with tilt and pixel size) into DIR.
     #[arg(long, value_name = "DIR")]
     pub write_pairs: Option<PathBuf>,
+    /// Also write each case's maps into DIR as PNGs: left micrograph, true and estimated height, error (disparity px).
+    #[arg(long, value_name = "DIR")]
+    pub dump: Option<PathBuf>,
 }
 
 fn parse_mode(s: &str) -> Result<Mode, String> {
@@ -161,6 +164,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<ExitCode> {
                 set: d.set.clone(),
                 noiseless: d.noiseless,
                 write_pairs: d.write_pairs.clone(),
+                dump: d.dump.clone(),
             },
         )?,
         Which::Potamogeton { mode, set } => eval::potamogeton::run(&opts, *mode, set)?,

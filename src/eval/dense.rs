@@ -341,6 +341,7 @@ pub fn evaluate_case(
     sparse: &SparseParams,
     dense: &DenseParams,
     rectifier: Rectifier,
+    dump: Option<&std::path::Path>,
 ) -> Result<SimFigures, SimEvalError> {
     let RenderedCase {
         left,
@@ -455,6 +456,57 @@ pub fn evaluate_case(
     let over_1px = abs_px.iter().filter(|&&v| v > 1.0).count() as f64 / n;
     // Height scale: estimated = s · true + plane.
     let height_scale = fit(&rows, &est).map_or(f64::NAN, |c| c[3]);
+    if let Some(dir) = dump {
+        let label = format!(
+            "{}_{}_{}x{}",
+            format!("{:?}", dense.mode).to_lowercase(),
+            case.kind.name(),
+            case.width,
+            case.height
+        );
+        // The error map minus a robust plane (fitted to the errors within a
+        // pixel of their median), so that gross errors do not tint the rest.
+        let mut sorted_err = err.clone();
+        sorted_err.sort_by(f64::total_cmp);
+        let med = percentile(&sorted_err, 0.5);
+        let (inl_rows, inl_err): (Vec<_>, Vec<f64>) = plane_rows
+            .iter()
+            .zip(&err)
+            .filter(|(_, e)| ((**e - med) / um_per_px).abs() < 1.0)
+            .map(|(r, e)| (r.clone(), *e))
+            .unzip();
+        let rc = fit(&inl_rows, &inl_err).unwrap_or_else(|| vec![med, 0.0, 0.0]);
+        let mut err_px = vec![f32::NAN; truth.len()];
+        let mut k = 0;
+        for (p, e) in err_px.iter_mut().enumerate() {
+            if visible[p] && truth[p].is_finite() && heights.data()[p].is_finite() {
+                let (x, y) = (rows[k].0, rows[k].1);
+                *e = ((err[k] - (rc[0] + rc[1] * x + rc[2] * y)) / um_per_px) as f32;
+                k += 1;
+            }
+        }
+        let (lo, hi) = (
+            percentile(&sorted_truth, 0.01) as f32,
+            percentile(&sorted_truth, 0.99) as f32,
+        );
+        let plane_at = |p: usize| (c[0] + c[1] * (p % w) as f64 + c[2] * (p / w) as f64) as f32;
+        let est_map: Vec<f32> = (0..truth.len())
+            .map(|p| heights.data()[p] - plane_at(p))
+            .collect();
+        if let Err(e) = dump_maps(
+            dir,
+            &label,
+            (case.width, case.height),
+            &left,
+            &truth,
+            &est_map,
+            &err_px,
+            &visible,
+            (lo, hi),
+        ) {
+            tracing::warn!("cannot write the maps of {label}: {e}");
+        }
+    }
     Ok(SimFigures {
         case: *case,
         mode: dense.mode,
@@ -472,6 +524,65 @@ pub fn evaluate_case(
         canvas_error_px,
         dense: disp.stats,
     })
+}
+
+/// Writes `<label>_left.png`, `_truth.png`, `_height.png` (both scaled to the
+/// true range `lo..hi`; invisible or unknown black) and `_error.png`
+/// (residual in disparity pixels: red positive, blue negative, full at ±1 px;
+/// visible but unknown green).
+#[allow(clippy::too_many_arguments)]
+fn dump_maps(
+    dir: &std::path::Path,
+    label: &str,
+    (w, h): (usize, usize),
+    left: &Image,
+    truth: &[f32],
+    est: &[f32],
+    err_px: &[f32],
+    visible: &[bool],
+    (lo, hi): (f32, f32),
+) -> anyhow::Result<()> {
+    std::fs::create_dir_all(dir)?;
+    #[allow(clippy::cast_possible_truncation)]
+    let (wu, hu) = (w as u32, h as u32);
+    let grey = |v: &[f32]| -> Vec<u8> {
+        v.iter()
+            .zip(visible)
+            .map(|(&x, &vis)| {
+                if vis && x.is_finite() {
+                    (((x - lo) / (hi - lo).max(1e-6)).clamp(0.0, 1.0) * 254.0 + 1.0) as u8
+                } else {
+                    0
+                }
+            })
+            .collect()
+    };
+    let save_grey = |name: &str, px: Vec<u8>| -> anyhow::Result<()> {
+        image::GrayImage::from_raw(wu, hu, px)
+            .ok_or_else(|| anyhow::anyhow!("buffer size"))?
+            .save(dir.join(format!("{label}_{name}.png")))?;
+        Ok(())
+    };
+    save_grey("left", left.to_u8())?;
+    save_grey("truth", grey(truth))?;
+    save_grey("height", grey(est))?;
+    let mut rgb = Vec::with_capacity(3 * w * h);
+    for (&e, &vis) in err_px.iter().zip(visible) {
+        let px = if !vis {
+            [0, 0, 0]
+        } else if !e.is_finite() {
+            [0, 160, 0]
+        } else {
+            let t = e.clamp(-1.0, 1.0);
+            let a = (255.0 * (1.0 - t.abs())) as u8;
+            if t >= 0.0 { [255, a, a] } else { [a, a, 255] }
+        };
+        rgb.extend_from_slice(&px);
+    }
+    image::RgbImage::from_raw(wu, hu, rgb)
+        .ok_or_else(|| anyhow::anyhow!("buffer size"))?
+        .save(dir.join(format!("{label}_error.png")))?;
+    Ok(())
 }
 
 /// The targets for one case.
@@ -602,6 +713,9 @@ pub struct DenseEvalArgs {
     pub noiseless: bool,
     /// Write the selected cases' micrographs there instead of evaluating.
     pub write_pairs: Option<std::path::PathBuf>,
+    /// Write each case's maps there (left micrograph, true and estimated
+    /// height, error in disparity pixels) as PNGs.
+    pub dump: Option<std::path::PathBuf>,
 }
 
 /// Applies `KEY=VALUE` overrides (dotted keys, TOML values) to the dense parameters.
@@ -730,7 +844,7 @@ pub fn run(opts: &super::EvalOptions, args: &DenseEvalArgs) -> anyhow::Result<()
                 },
                 &args.set,
             )?;
-            match evaluate_case(case, &sparse, &dense, rectifier) {
+            match evaluate_case(case, &sparse, &dense, rectifier, args.dump.as_deref()) {
                 Ok(f) => {
                     if !opts.json {
                         println!("{}", format_row(&f));
@@ -848,7 +962,7 @@ mod tests {
                     mode,
                     ..DenseParams::default()
                 };
-                match evaluate_case(&case, &sparse, &dense, Rectifier::Sparse) {
+                match evaluate_case(&case, &sparse, &dense, Rectifier::Sparse, None) {
                     Ok(f) => println!("{}", format_row(&f)),
                     Err(e) => println!(
                         "{mode:<8?} {:?} {}x{}: {e}",

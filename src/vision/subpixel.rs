@@ -245,27 +245,47 @@ const VERTICAL_BANDS: usize = 16;
 /// (replicated border): exact taps up to [`BOX_SIGMA`], a cascade of three
 /// box filters beyond.
 fn blur<const C: usize>(src: &[[f32; C]], w: usize, h: usize, sigma: f32) -> Vec<[f32; C]> {
-    if sigma > BOX_SIGMA {
-        // Two buffers, ping-pong: six passes without six allocations.
-        let widths = box_widths(sigma);
-        let mut a = vec![[0f32; C]; w * h];
-        let mut b = vec![[0f32; C]; w * h];
-        box_pass(src, &mut a, w, h, widths[0], true);
-        box_pass(&a, &mut b, w, h, widths[1], true);
-        box_pass(&b, &mut a, w, h, widths[2], true);
-        box_pass(&a, &mut b, w, h, widths[0], false);
-        box_pass(&b, &mut a, w, h, widths[1], false);
-        box_pass(&a, &mut b, w, h, widths[2], false);
-        return b;
-    }
-    blur_taps(src, w, h, sigma)
+    let mut buf = src.to_vec();
+    let mut scratch = vec![[0f32; C]; w * h];
+    blur_in_place(&mut buf, &mut scratch, w, h, sigma);
+    buf
 }
 
-/// [`blur`] with the sampled Gaussian taps.
-fn blur_taps<const C: usize>(src: &[[f32; C]], w: usize, h: usize, sigma: f32) -> Vec<[f32; C]> {
+/// [`blur`] of `buf` in place, `scratch` (same length) as the other buffer
+/// of the ping-pong. The refinement blurs several full-size multi-channel
+/// buffers per iteration: allocating them afresh each time cost more system
+/// time (the kernel zeroing new pages) than the blur itself.
+fn blur_in_place<const C: usize>(
+    buf: &mut [[f32; C]],
+    scratch: &mut [[f32; C]],
+    w: usize,
+    h: usize,
+    sigma: f32,
+) {
+    if sigma > BOX_SIGMA {
+        let widths = box_widths(sigma);
+        box_pass(buf, scratch, w, h, widths[0], true);
+        box_pass(scratch, buf, w, h, widths[1], true);
+        box_pass(buf, scratch, w, h, widths[2], true);
+        box_pass(scratch, buf, w, h, widths[0], false);
+        box_pass(buf, scratch, w, h, widths[1], false);
+        box_pass(scratch, buf, w, h, widths[2], false);
+        return;
+    }
+    blur_taps(buf, scratch, w, h, sigma);
+}
+
+/// [`blur`] with the sampled Gaussian taps, in place (`tmp`: scratch).
+fn blur_taps<const C: usize>(
+    buf: &mut [[f32; C]],
+    tmp: &mut [[f32; C]],
+    w: usize,
+    h: usize,
+    sigma: f32,
+) {
     let taps = gaussian_taps(sigma);
     let r = (taps.len() / 2) as isize;
-    let mut tmp = vec![[0f32; C]; w * h];
+    let src: &[[f32; C]] = buf;
     tmp.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
         let s = &src[y * w..(y + 1) * w];
         for (x, o) in row.iter_mut().enumerate() {
@@ -279,8 +299,9 @@ fn blur_taps<const C: usize>(src: &[[f32; C]], w: usize, h: usize, sigma: f32) -
             *o = acc;
         }
     });
-    let mut out = vec![[0f32; C]; w * h];
-    out.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+    let tmp: &[[f32; C]] = tmp;
+    buf.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+        row.fill([0f32; C]);
         for (t, &k) in taps.iter().enumerate() {
             let sy = (y as isize + t as isize - r).clamp(0, h as isize - 1) as usize;
             for (o, v) in row.iter_mut().zip(&tmp[sy * w..(sy + 1) * w]) {
@@ -290,7 +311,6 @@ fn blur_taps<const C: usize>(src: &[[f32; C]], w: usize, h: usize, sigma: f32) -
             }
         }
     });
-    out
 }
 
 fn blur_plane(src: &[f32], w: usize, h: usize, sigma: f32) -> Vec<f32> {
@@ -471,6 +491,7 @@ fn refine_level(
     };
     let mut clamped = vec![false; w * h];
     let mut products = vec![[0f32; 6]; w * h];
+    let mut scratch = vec![[0f32; 6]; w * h];
     for _ in 0..params.iterations {
         // Per pixel: the Gauss–Newton products with its own warp.
         products.par_iter_mut().enumerate().for_each(|(p, out)| {
@@ -489,7 +510,8 @@ fn refine_level(
                 [gx * gx, gx * gy, gy * gy, gx * e, gy * e, 1.0]
             };
         });
-        let sums = blur(&products, w, h, params.window_sigma);
+        blur_in_place(&mut products, &mut scratch, w, h, params.window_sigma);
+        let sums = &products;
         u.par_iter_mut()
             .zip(v.par_iter_mut())
             .zip(clamped.par_iter_mut())
@@ -527,21 +549,21 @@ fn refine_level(
             });
     }
     // Quality of the final match: NCC of the normalised images over the window.
-    let corr: Vec<[f32; 4]> = (0..w * h)
-        .into_par_iter()
-        .map(|p| match warped(&u, &v, p) {
+    // In the buffers of the iterations: [aa, bb, ab, 1, 0, 0].
+    products.par_iter_mut().enumerate().for_each(|(p, out)| {
+        *out = match warped(&u, &v, p) {
             Some([bw, _, _]) => {
                 let av = na.data()[p];
-                [av * av, bw * bw, av * bw, 1.0]
+                [av * av, bw * bw, av * bw, 1.0, 0.0, 0.0]
             }
-            None => [0.0; 4],
-        })
-        .collect();
-    let corr = blur(&corr, w, h, params.window_sigma);
-    let ncc = corr
+            None => [0.0; 6],
+        };
+    });
+    blur_in_place(&mut products, &mut scratch, w, h, params.window_sigma);
+    let ncc = products
         .iter()
         .enumerate()
-        .map(|(p, &[saa, sbb, sab, s1])| {
+        .map(|(p, &[saa, sbb, sab, s1, _, _])| {
             if !usable(p) || s1 < 1e-3 || saa <= 0.0 || sbb <= 0.0 {
                 0.0
             } else {
@@ -764,11 +786,10 @@ mod tests {
     }
 
     fn blur_plane_taps(src: &[f32], w: usize, h: usize, sigma: f32) -> Vec<f32> {
-        let packed: Vec<[f32; 1]> = src.iter().map(|&v| [v]).collect();
-        blur_taps(&packed, w, h, sigma)
-            .into_iter()
-            .map(|v| v[0])
-            .collect()
+        let mut packed: Vec<[f32; 1]> = src.iter().map(|&v| [v]).collect();
+        let mut tmp = vec![[0f32; 1]; w * h];
+        blur_taps(&mut packed, &mut tmp, w, h, sigma);
+        packed.into_iter().map(|v| v[0]).collect()
     }
 
     #[test]
