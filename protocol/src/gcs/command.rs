@@ -198,8 +198,7 @@ impl fmt::Display for Command {
         match self {
             Self::Mov(pairs) | Self::Mvr(pairs) => {
                 for (axis, value) in pairs {
-                    // `{}` on f64 is the shortest exact decimal and never uses an exponent.
-                    write!(f, " {axis} {value}")?;
+                    write!(f, " {axis} {}", Real(*value))?;
                 }
             }
             Self::Svo(pairs) => {
@@ -272,6 +271,21 @@ fn parse_pairs<T>(
     Ok(pairs)
 }
 
+/// A position as sent: fixed point with nine decimals (1 pm on a mm axis,
+/// 1e-9° on a tilt axis, far below any controller's resolution), trailing
+/// zeros dropped, never an exponent. Computed targets such as
+/// `-0.08000000000000002` are sent as `-0.08`, so the line a user reads in the
+/// record is the one the controller's resolution sees.
+struct Real(f64);
+
+impl fmt::Display for Real {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let s = format!("{:.9}", self.0);
+        let s = s.trim_end_matches('0').trim_end_matches('.');
+        f.write_str(if s == "-0" { "0" } else { s })
+    }
+}
+
 fn parse_real(token: &str) -> Result<f64, GcsErrorCode> {
     // Rust also accepts "inf" and "NaN", which no controller does.
     let looks_numeric = token
@@ -332,6 +346,19 @@ mod tests {
     fn tiny_and_large_values_are_sent_without_exponent() {
         let line = Command::Mov(vec![(ax("X"), 1e-7), (ax("Y"), 1e7)]).to_string();
         assert_eq!(line, "MOV X 0.0000001 Y 10000000");
+    }
+
+    #[test]
+    fn computed_targets_are_sent_to_nine_decimals() {
+        let line = Command::Mov(vec![
+            (ax("X"), -0.08000000000000002),
+            (ax("Y"), -1e-12),
+            (ax("T"), 2.0 / 3.0),
+        ])
+        .to_string();
+        assert_eq!(line, "MOV X -0.08 Y 0 T 0.666666667");
+        let line = Command::Mvr(vec![(ax("T"), 1.0)]).to_string();
+        assert_eq!(line, "MVR T 1");
     }
 
     #[test]
