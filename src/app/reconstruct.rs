@@ -16,7 +16,7 @@ use crate::export::{self, MeshParams, ply};
 use crate::imaging::file::{Micrograph, load_micrograph};
 use crate::vision::Image;
 use crate::vision::pipeline::{
-    PairGeometry, ReconReport, Reconstruction, ReconstructionParams, reconstruct,
+    PairGeometry, ReconReport, ReconstructError, Reconstruction, ReconstructionParams, reconstruct,
 };
 
 /// Output file names (DESIGN §4).
@@ -206,7 +206,16 @@ pub fn run(
 ) -> anyhow::Result<ReportFile> {
     let t0 = Instant::now();
     let pair = load_pair(left, right, given, default_tilt_axis_deg)?;
-    let recon = reconstruct(&pair.left.image, &pair.right.image, &pair.geometry, params)?;
+    let recon =
+        reconstruct(&pair.left.image, &pair.right.image, &pair.geometry, params).map_err(|e| {
+            match e {
+                // The sparse stage's refusals concern one image or the pair: name them.
+                ReconstructError::Sparse(e) => {
+                    super::rectify::name_files(e, left, right, "sparse stage: ")
+                }
+                e => e.into(),
+            }
+        })?;
     let mut report = ReportFile {
         sdsem_version: env!("CARGO_PKG_VERSION"),
         left: left.to_owned(),
@@ -443,9 +452,13 @@ mod tests {
         assert!(e.contains("--tilt"), "{e}");
         let e = refused(d, &flat, &flat, flags);
         assert!(e.contains("texture"), "{e}");
-        // Two unrelated specimens: no overlap, no epipolar geometry.
+        // Two unrelated specimens: no overlap, no epipolar geometry; both files named.
         let e = refused(d, &a, &other, flags);
         assert!(e.contains("sparse stage"), "{e}");
+        assert!(
+            e.contains(&a.display().to_string()) && e.contains(&other.display().to_string()),
+            "{e}"
+        );
     }
 
     /// A dome seen with a horizontal parallax (φ = −90°): every output is

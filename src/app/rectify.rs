@@ -158,7 +158,7 @@ pub fn run_rectify(
     let l = load_gray(left)?;
     let r = load_gray(right)?;
     let pair =
-        rectify_pair(&l, &r, tilt_axis_deg, params).map_err(|e| name_files(e, left, right))?;
+        rectify_pair(&l, &r, tilt_axis_deg, params).map_err(|e| name_files(e, left, right, ""))?;
     std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
     save_png(&pair.left.filled(0.0), &out.join("rectified_left.png"))?;
     save_png(&pair.right.filled(0.0), &out.join("rectified_right.png"))?;
@@ -175,7 +175,8 @@ pub fn run_rectify(
 }
 
 /// The stage's refusal with the file(s) it concerns: the one image at fault, or the pair.
-fn name_files(e: SparseError, left: &Path, right: &Path) -> anyhow::Error {
+/// `stage` prefixes the cause (for example "sparse stage: " inside a whole reconstruction).
+pub(crate) fn name_files(e: SparseError, left: &Path, right: &Path, stage: &str) -> anyhow::Error {
     let side = match &e {
         SparseError::ImageTooSmall { side, .. } | SparseError::NoTexture { side, .. } => {
             Some(*side)
@@ -183,9 +184,9 @@ fn name_files(e: SparseError, left: &Path, right: &Path) -> anyhow::Error {
         _ => None,
     };
     match side {
-        Some(Side::Left) => anyhow::anyhow!("{}: {e}", left.display()),
-        Some(Side::Right) => anyhow::anyhow!("{}: {e}", right.display()),
-        None => anyhow::anyhow!("{} and {}: {e}", left.display(), right.display()),
+        Some(Side::Left) => anyhow::anyhow!("{}: {stage}{e}", left.display()),
+        Some(Side::Right) => anyhow::anyhow!("{}: {stage}{e}", right.display()),
+        None => anyhow::anyhow!("{} and {}: {stage}{e}", left.display(), right.display()),
     }
 }
 
