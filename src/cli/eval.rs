@@ -31,7 +31,11 @@ pub enum Which {
     /// against ground truth, real-time overhead, the record in the Python reader.
     Acquisition,
     /// SIFT flow on Middlebury RubberWhale against its ground truth (paper Table 3).
-    Flow,
+    Flow {
+        /// Override a dense parameter, KEY=VALUE as in [reconstruction.dense] (repeatable).
+        #[arg(long = "set", value_name = "KEY=VALUE")]
+        set: Vec<String>,
+    },
     /// The daemon as a process through consecutive short jobs with seeded
     /// random stage faults: final states, reasons, records, RSS and fds.
     Soak(SoakArgs),
@@ -130,7 +134,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<ExitCode> {
                 return Ok(ExitCode::FAILURE);
             }
         }
-        Which::Flow => eval::flow::run(&opts)?,
+        Which::Flow { set } => eval::flow::run(&opts, set)?,
         Which::Soak(a) => {
             let report = eval::soak::run_soak(&eval::soak::SoakOptions {
                 jobs: a.jobs.unwrap_or(if opts.quick { 10 } else { 50 }),

@@ -130,18 +130,21 @@ pub fn evaluate_rubberwhale(
     Ok(MiddleburyRun { errors, flow })
 }
 
-/// `sdsem eval flow`: RubberWhale in both modes, beside the paper's Table 3.
+/// `sdsem eval flow`: RubberWhale in both modes, beside the paper's Table 3;
+/// `set` overrides `[reconstruction.dense]` keys as in `eval dense`.
 ///
 /// # Errors
-/// When the Middlebury data are missing or the flow fails.
-pub fn run(opts: &super::EvalOptions) -> anyhow::Result<()> {
+/// When the Middlebury data are missing, an override is invalid or the flow fails.
+pub fn run(opts: &super::EvalOptions, set: &[String]) -> anyhow::Result<()> {
+    use crate::vision::dense::DenseParams;
     use crate::vision::sift_flow::Mode;
     let mut rows = Vec::new();
     for mode in [Mode::Paper, Mode::Improved] {
-        let params = FlowParams {
+        let dense = DenseParams {
             mode,
-            ..FlowParams::default()
+            ..DenseParams::default()
         };
+        let params = super::dense::apply_overrides(&dense, set)?.flow_params();
         let started = std::time::Instant::now();
         let run = evaluate_rubberwhale(&opts.data_dir, &params)?;
         let wall_s = started.elapsed().as_secs_f64();
