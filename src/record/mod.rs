@@ -12,20 +12,27 @@
 //! schemas are in [`messages`].
 //!
 //! ```no_run
-//! use sdsem::record::{self, topics, FrameInfo, FrameRole, Recorder, RunOutcome, RunStatus};
-//! # fn main() -> Result<(), Box<dyn std::error::Error>> {
-//! # let (t, micrograph, info): (u64, sdsem::vision::Image, FrameInfo) = todo!();
-//! let recorder = Recorder::create("run.mcap", Default::default())?;
-//! let rec = recorder.handle(); // clone it into every producer
-//! rec.metadata(topics::METADATA_RUN, [("job".to_owned(), "j1".to_owned())].into())?;
-//! rec.frame(t, &micrograph, &info)?; // /sem/frame + /sem/frame_info, flushed
-//! rec.outcome(&RunOutcome { status: RunStatus::Succeeded, cause: None })?;
-//! let summary = recorder.finish()?; // must be called: writes the summary, returns errors
+//! use sdsem::record::{self, topics, FrameInfo, Recorder, RunOutcome, RunStatus};
+//! use sdsem::vision::Image;
 //!
-//! let inspection = record::read_summary("run.mcap")?; // also on a truncated file
-//! println!("{}", record::format_inspection(&inspection));
-//! let ends = record::read_end_micrographs("run.mcap")?; // for `sdsem replay`
-//! # Ok(()) }
+//! fn record_one(
+//!     t: u64,
+//!     micrograph: &Image,
+//!     info: &FrameInfo,
+//! ) -> Result<(), Box<dyn std::error::Error>> {
+//!     let recorder = Recorder::create("run.mcap", Default::default())?;
+//!     let rec = recorder.handle(); // clone it into every producer
+//!     rec.metadata(topics::METADATA_RUN, [("job".to_owned(), "j1".to_owned())].into())?;
+//!     rec.frame(t, micrograph, info)?; // /sem/frame + /sem/frame_info, flushed
+//!     rec.outcome(&RunOutcome { status: RunStatus::Succeeded, cause: None })?;
+//!     let summary = recorder.finish()?; // must be called: writes the summary, returns errors
+//!
+//!     let inspection = record::read_summary("run.mcap")?; // also on a truncated file
+//!     println!("{}", record::format_inspection(&inspection));
+//!     let ends = record::read_end_micrographs("run.mcap")?; // for `sdsem replay`
+//! #     let _ = (summary, ends);
+//!     Ok(())
+//! }
 //! ```
 //!
 //! `tests/check_mcap.py RUN.mcap` validates a record with the reference Python reader

@@ -294,21 +294,26 @@ fn chunk_ends(bytes: &[u8]) -> Vec<(u64, u64, u64)> {
         .collect()
 }
 
+/// A recorder whose chunks are cut by frames alone (no timed flush in a test's time).
+fn recorder_cut_by_frames_only(path: &Path) -> Recorder {
+    Recorder::create(
+        path,
+        RecorderOptions {
+            flush_interval: Duration::from_secs(3600),
+            ..fast_options()
+        },
+    )
+    .unwrap()
+}
+
 /// The writer only appends, so a run killed at any moment leaves a prefix of the finished
 /// file. Every prefix must yield exactly the frames whose chunk it holds whole.
 #[test]
 fn truncated_record_recovers_every_completed_frame() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("run.mcap");
-    let recorder = Recorder::create(
-        &path,
-        RecorderOptions {
-            // Only frames cut chunks here, so the oracle below is exact.
-            flush_interval: Duration::from_secs(3600),
-            ..fast_options()
-        },
-    )
-    .unwrap();
+    // Only frames cut chunks here, so the oracle below is exact.
+    let recorder = recorder_cut_by_frames_only(&path);
     let rec = recorder.handle();
     let frames = 12u64;
     for i in 0..frames {
@@ -677,14 +682,7 @@ fn end_micrographs_come_back_with_their_parameters() {
 fn a_cut_record_never_separates_a_frame_from_its_info() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("run.mcap");
-    let recorder = Recorder::create(
-        &path,
-        RecorderOptions {
-            flush_interval: Duration::from_secs(3600),
-            ..fast_options()
-        },
-    )
-    .unwrap();
+    let recorder = recorder_cut_by_frames_only(&path);
     let rec = recorder.handle();
     rec.frame(T0, &micrograph(1), &frame_info(FrameRole::Left, 0, -3.0))
         .unwrap();

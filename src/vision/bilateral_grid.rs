@@ -42,7 +42,9 @@ impl Default for BilateralParams {
 const MAX_RANGE_CELLS: usize = 512;
 /// Cells of padding on every side, so the 5-tap blur never meets a border.
 const PAD: usize = 2;
-const KERNEL: [f32; 5] = [1.0 / 16.0, 4.0 / 16.0, 6.0 / 16.0, 4.0 / 16.0, 1.0 / 16.0];
+/// The binomial kernel [1 4 6 4 1]/16 (variance one cell²), also the blur of
+/// the refinement's cross-bilateral grid.
+pub(super) const KERNEL: [f32; 5] = [1.0 / 16.0, 4.0 / 16.0, 6.0 / 16.0, 4.0 / 16.0, 1.0 / 16.0];
 
 /// The shape of the grid used, for the report.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]

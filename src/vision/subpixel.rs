@@ -26,6 +26,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::Image;
+use super::bilateral_grid::KERNEL as XB_KERNEL;
 use super::sift_flow::energy::{DataTerm, LabelSpace};
 
 /// Minimum of the V through `(−1, cm)`, `(0, c0)`, `(1, cp)`; 0 when `c0`
@@ -448,8 +449,6 @@ impl Sampled<'_> {
 const XB_PAD: usize = 2;
 /// Range cells at most; a wider intensity range coarsens the range sampling.
 const XB_MAX_RANGE_CELLS: usize = 96;
-/// The binomial kernel [1 4 6 4 1]/16 (variance one cell²).
-const XB_KERNEL: [f32; 5] = [1.0 / 16.0, 4.0 / 16.0, 6.0 / 16.0, 4.0 / 16.0, 1.0 / 16.0];
 /// Variance, in cells², of the whole grid filter along one axis: trilinear
 /// splat (1/6), binomial blur (1), trilinear slice (1/6).
 const XB_CELL_VARIANCE: f32 = 4.0 / 3.0;
