@@ -30,6 +30,7 @@ pub mod daemon;
 pub mod eval;
 pub mod export;
 pub mod imaging;
+pub mod memory;
 pub mod record;
 pub mod stage;
 pub mod vision;

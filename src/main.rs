@@ -6,6 +6,7 @@ use std::process::ExitCode;
 use clap::Parser;
 
 fn main() -> ExitCode {
+    sdsem::memory::keep_large_buffers();
     let cli = sdsem::cli::Cli::parse();
     match sdsem::cli::run(cli) {
         Ok(code) => code,
