@@ -942,6 +942,26 @@ pub fn refine_flow(
     level: usize,
     params: &RefineParams,
 ) -> RefinedFlow {
+    refine_flow_down_to(a, b, valid_a, valid_b, flow, level, 0, params)
+}
+
+/// [`refine_flow`] refining only down to pyramid level `stop` (≤ `level`),
+/// then upsampled to full resolution without refinement: enough where the
+/// flow only has to be right within a pixel or two (the backward field of
+/// the left–right check). The NCC and clamp flags are upsampled likewise.
+#[must_use]
+#[allow(clippy::too_many_arguments)]
+pub fn refine_flow_down_to(
+    a: &Image,
+    b: &Image,
+    valid_a: Option<&[bool]>,
+    valid_b: Option<&[bool]>,
+    flow: (&[f32], &[f32]),
+    level: usize,
+    stop: usize,
+    params: &RefineParams,
+) -> RefinedFlow {
+    let stop = stop.min(level);
     use super::sift_flow::pyramid::{halve_image, halve_mask};
     // Pyramids of both images and masks, finest first.
     let mut imgs = vec![(a.clone(), b.clone())];
@@ -960,7 +980,7 @@ pub fn refine_flow(
     let mut u = flow.0.to_vec();
     let mut v = flow.1.to_vec();
     let mut result = None;
-    for l in (0..=level).rev() {
+    for l in (stop..=level).rev() {
         let (ia, ib) = &imgs[l];
         let (ma, mb) = &masks[l];
         if let Some(prev) = result.take() {
@@ -983,7 +1003,22 @@ pub fn refine_flow(
             if l > 0 { max_step.max(1.0) } else { max_step },
         ));
     }
-    result.expect("level 0 always runs")
+    let mut r = result.expect("level `stop` always runs");
+    for l in (0..stop).rev() {
+        let (wc, hc) = imgs[l + 1].0.dimensions();
+        let (wf, hf) = imgs[l].0.dimensions();
+        let clamped: Vec<f32> = r.clamped.iter().map(|&c| f32::from(u8::from(c))).collect();
+        r = RefinedFlow {
+            u: upsample_flow(&r.u, wc, hc, wf, hf, 2.0),
+            v: upsample_flow(&r.v, wc, hc, wf, hf, 2.0),
+            ncc: upsample_flow(&r.ncc, wc, hc, wf, hf, 1.0),
+            clamped: upsample_flow(&clamped, wc, hc, wf, hf, 1.0)
+                .into_iter()
+                .map(|c| c > 0.0)
+                .collect(),
+        };
+    }
+    r
 }
 
 #[cfg(test)]

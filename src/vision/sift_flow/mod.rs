@@ -19,7 +19,7 @@ use self::energy::{DataTerm, EnergyWeights, LabelSpace};
 use super::Image;
 use super::dense::DenseError;
 use super::dense_sift::{DenseSiftParams, DescriptorImage, dense_sift};
-use super::subpixel::{RefineParams, RefinedFlow, refine_flow, upsample_flow};
+use super::subpixel::{RefineParams, RefinedFlow, refine_flow_down_to, upsample_flow};
 
 /// Which pipeline to run.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
@@ -48,7 +48,8 @@ pub enum Mode {
 /// | `t` | none | truncation of the data term; none = plain L1 as the reference code |
 /// | `levels` | 4 | pyramid levels (the top is 1/2^(levels−1) of the image) |
 /// | `top_window` | 10 | half search window at the top level, top-level pixels |
-/// | `window` | 2 | half search window around the upsampled flow at lower levels |
+/// | `window` | 2 | half search window around the upsampled flow at the finest BP level |
+/// | `middle_window` | none | half search window at the levels between the top and the finest BP level; none = `window` (paper) or [`IMPROVED_MIDDLE_WINDOW`] (improved) |
 /// | `top_iterations` | none | BP iterations at the top level; none = 60 (paper) or 20 (improved) |
 /// | `iterations` | none | BP iterations at the finest level (falling to 60 % at the coarsest but one); none = 30 (paper) or 8 (improved) |
 /// | `max_strips` | 4 | parallel row strips of the BP sweeps; 1 = strictly sequential BP-S |
@@ -66,6 +67,7 @@ pub struct FlowParams {
     pub levels: usize,
     pub top_window: usize,
     pub window: usize,
+    pub middle_window: Option<usize>,
     pub top_iterations: Option<usize>,
     pub iterations: Option<usize>,
     pub max_strips: usize,
@@ -85,6 +87,7 @@ impl Default for FlowParams {
             levels: 4,
             top_window: 10,
             window: 2,
+            middle_window: None,
             top_iterations: None,
             iterations: None,
             max_strips: 4,
@@ -172,6 +175,15 @@ pub(crate) struct LevelPlan {
     /// Coarser grids of the multigrid BP initialisation.
     pub hierarchy: usize,
 }
+
+/// Half search window of the improved mode between the top and the finest
+/// BP level. The top level cannot place a tall, steep-walled structure
+/// exactly (its descriptors mix the walls, seen on one side in each view),
+/// and a window of 2 cannot catch up level by level: on the simulated grid
+/// of 1024×768 at θ = 11° the bars stayed 7 px low (median error 2.26 px,
+/// RMSE 21 % of the relief); with 4, 0.64 px and 13.5 %, other scenes
+/// unchanged, for a few per cent more matching time (these levels are small).
+pub const IMPROVED_MIDDLE_WINDOW: usize = 4;
 
 /// Multigrid grids below the top level in the improved mode (the upsampled
 /// flow already starts BP near the solution there).
@@ -263,7 +275,10 @@ impl FlowParams {
         if self.cell_size == 0 {
             return bad("cell_size", "must be at least 1 pixel");
         }
-        if self.window > max_w || self.top_window > max_w {
+        if self.window > max_w
+            || self.top_window > max_w
+            || self.middle_window.is_some_and(|m| m > max_w)
+        {
             return bad("window", "half windows are limited to 63 labels");
         }
         let usable = |v: f32| v.is_finite() && v >= 0.0;
@@ -283,6 +298,15 @@ impl FlowParams {
             return bad(name, "out of its range (see the parameter table)");
         }
         Ok(())
+    }
+
+    /// The half search window of the levels between the top and the finest.
+    #[must_use]
+    pub fn middle_window(&self) -> usize {
+        self.middle_window.unwrap_or(match self.mode {
+            Mode::Paper => self.window,
+            Mode::Improved => IMPROVED_MIDDLE_WINDOW.max(self.window),
+        })
     }
 
     /// The finest BP level of this mode.
@@ -305,7 +329,13 @@ impl FlowParams {
         let plan = (0..self.levels)
             .map(|l| {
                 let top = l + 1 == self.levels;
-                let wu = if top { self.top_window } else { self.window };
+                let wu = if top {
+                    self.top_window
+                } else if l > self.finest() {
+                    self.middle_window()
+                } else {
+                    self.window
+                };
                 let wv = match vertical {
                     Some((w_low, w_top)) => {
                         if top {
@@ -709,8 +739,32 @@ pub(crate) fn to_full_resolution(
     finest: usize,
     refine: Option<&RefineParams>,
 ) -> RefinedFlow {
+    to_full_resolution_refined_to(a, b, valid_a, valid_b, run, finest, 0, refine)
+}
+
+/// [`to_full_resolution`] with the refinement stopping at pyramid level `stop`.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn to_full_resolution_refined_to(
+    a: &Image,
+    b: &Image,
+    valid_a: Option<&[bool]>,
+    valid_b: Option<&[bool]>,
+    run: EngineRun,
+    finest: usize,
+    stop: usize,
+    refine: Option<&RefineParams>,
+) -> RefinedFlow {
     if let Some(params) = refine {
-        return refine_flow(a, b, valid_a, valid_b, (&run.u, &run.v), finest, params);
+        return refine_flow_down_to(
+            a,
+            b,
+            valid_a,
+            valid_b,
+            (&run.u, &run.v),
+            finest,
+            stop,
+            params,
+        );
     }
     let (mut u, mut v) = (run.u, run.v);
     let mut size = (run.width, run.height);
