@@ -1357,6 +1357,33 @@ mod tests {
     }
 
     #[test]
+    fn stopping_at_half_resolution_upsamples_the_refined_half_flow() {
+        let (w, h) = (128, 96);
+        let tex = Texture::new(9);
+        let a = Image::from_fn(w, h, |x, y| tex.at(x as f64, y as f64) as f32);
+        let b = Image::from_fn(w, h, |x, y| tex.at(x as f64 - 3.3, y as f64 + 0.4) as f32);
+        let (wc, hc) = (w.div_ceil(2), h.div_ceil(2));
+        let (u0, v0) = (vec![1.5f32; wc * hc], vec![0f32; wc * hc]);
+        let params = RefineParams::default();
+        let r = refine_flow_down_to(&a, &b, None, None, (&u0, &v0), 1, 1, &params);
+        // Full-resolution fields, refined at half resolution only: right
+        // within a small fraction of a pixel, not to the full level's precision.
+        assert_eq!(
+            (r.u.len(), r.ncc.len(), r.clamped.len()),
+            (w * h, w * h, w * h)
+        );
+        let p = 48 * w + 64;
+        assert!((r.u[p] - 3.3).abs() < 0.1, "u {}", r.u[p]);
+        assert!((r.v[p] + 0.4).abs() < 0.1, "v {}", r.v[p]);
+        assert!(r.ncc[p] > 0.8, "ncc {}", r.ncc[p]);
+        // Stopping at level 0 is the whole refinement.
+        let full = refine_flow_down_to(&a, &b, None, None, (&u0, &v0), 1, 0, &params);
+        let whole = refine_flow(&a, &b, None, None, (&u0, &v0), 1, &params);
+        assert_eq!(full.u, whole.u);
+        assert_eq!(full.v, whole.v);
+    }
+
+    #[test]
     fn equiangular_fit_recovers_the_apex_of_a_v() {
         for &apex in &[-0.4f32, -0.1, 0.0, 0.25, 0.49] {
             let v = |x: f32| 3.0 * (x - apex).abs() + 1.0;

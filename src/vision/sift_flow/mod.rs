@@ -834,6 +834,39 @@ pub(crate) fn fill_non_finite(img: &Image) -> Image {
 mod tests {
     use super::*;
 
+    #[test]
+    fn middle_levels_search_wider_in_the_improved_mode_only() {
+        let improved = FlowParams::default();
+        let plan = improved.engine(Some((1, 2))).plan;
+        // Level 0 (below the finest BP level), 1 (the finest), 2, 3 (top).
+        let windows: Vec<usize> = plan.iter().map(|p| p.window[0]).collect();
+        assert_eq!(windows, vec![2, 2, IMPROVED_MIDDLE_WINDOW, 10]);
+        let paper = FlowParams {
+            mode: Mode::Paper,
+            ..FlowParams::default()
+        };
+        let windows: Vec<usize> = paper
+            .engine(None)
+            .plan
+            .iter()
+            .map(|p| p.window[0])
+            .collect();
+        assert_eq!(windows, vec![2, 2, 2, 10]);
+        let set = FlowParams {
+            middle_window: Some(3),
+            ..FlowParams::default()
+        };
+        assert_eq!(set.engine(None).plan[2].window[0], 3);
+        let too_wide = FlowParams {
+            middle_window: Some(64),
+            ..FlowParams::default()
+        };
+        assert!(matches!(
+            too_wide.validate(),
+            Err(DenseError::InvalidParameter { name: "window", .. })
+        ));
+    }
+
     /// Smooth random texture (sum of a few hundred random blobs).
     pub(crate) fn texture(w: usize, h: usize, seed: u64) -> Image {
         let mut s = seed.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1);
