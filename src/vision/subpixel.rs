@@ -1341,15 +1341,21 @@ mod tests {
         assert!(r.ncc[40 * w + 40] > 0.9, "ncc {}", r.ncc[40 * w + 40]);
     }
 
-    #[test]
-    fn coarse_start_is_refined_through_the_pyramid() {
+    /// 128×96 images shifted by (3.3, −0.4) and a half-resolution start of
+    /// 1.5 / 0 (true 1.65 / −0.2).
+    fn shifted_pair_and_half_start() -> (Image, Image, Vec<f32>, Vec<f32>) {
         let (w, h) = (128, 96);
         let tex = Texture::new(9);
         let a = Image::from_fn(w, h, |x, y| tex.at(x as f64, y as f64) as f32);
         let b = Image::from_fn(w, h, |x, y| tex.at(x as f64 - 3.3, y as f64 + 0.4) as f32);
-        // Half-resolution start 1.5 / −0.0 (true 1.65 / −0.2).
-        let (wc, hc) = (w.div_ceil(2), h.div_ceil(2));
-        let (u0, v0) = (vec![1.5f32; wc * hc], vec![0f32; wc * hc]);
+        let n = w.div_ceil(2) * h.div_ceil(2);
+        (a, b, vec![1.5f32; n], vec![0f32; n])
+    }
+
+    #[test]
+    fn coarse_start_is_refined_through_the_pyramid() {
+        let (a, b, u0, v0) = shifted_pair_and_half_start();
+        let w = a.width();
         let r = refine_flow(&a, &b, None, None, (&u0, &v0), 1, &RefineParams::default());
         let p = 48 * w + 64;
         assert!((r.u[p] - 3.3).abs() < 0.03, "u {}", r.u[p]);
@@ -1358,12 +1364,8 @@ mod tests {
 
     #[test]
     fn stopping_at_half_resolution_upsamples_the_refined_half_flow() {
-        let (w, h) = (128, 96);
-        let tex = Texture::new(9);
-        let a = Image::from_fn(w, h, |x, y| tex.at(x as f64, y as f64) as f32);
-        let b = Image::from_fn(w, h, |x, y| tex.at(x as f64 - 3.3, y as f64 + 0.4) as f32);
-        let (wc, hc) = (w.div_ceil(2), h.div_ceil(2));
-        let (u0, v0) = (vec![1.5f32; wc * hc], vec![0f32; wc * hc]);
+        let (a, b, u0, v0) = shifted_pair_and_half_start();
+        let (w, h) = a.dimensions();
         let params = RefineParams::default();
         let r = refine_flow_down_to(&a, &b, None, None, (&u0, &v0), 1, 1, &params);
         // Full-resolution fields, refined at half resolution only: right

@@ -717,7 +717,16 @@ pub fn sift_flow(a: &Image, b: &Image, params: &FlowParams) -> Result<Flow, Dens
     let (run, _) = engine.run(&a, &b, None, None, false);
     let (w, h) = a.dimensions();
     let levels = run.levels.clone();
-    let full = to_full_resolution(&a, &b, None, None, run, engine.finest, params.refinement());
+    let full = to_full_resolution(
+        &a,
+        &b,
+        None,
+        None,
+        run,
+        engine.finest,
+        0,
+        params.refinement(),
+    );
     Ok(Flow {
         u: Image::from_vec(w, h, full.u).expect("flow has the size of image A"),
         v: Image::from_vec(w, h, full.v).expect("flow has the size of image A"),
@@ -727,24 +736,11 @@ pub fn sift_flow(a: &Image, b: &Image, params: &FlowParams) -> Result<Flow, Dens
 }
 
 /// The engine's flow (at level `finest`) carried to the full resolution of
-/// `a`: refined on the intensities through the pyramid when `refine` is
-/// given, else upsampled bilinearly. `ncc` is 1 and nothing is clamped
-/// without a refinement.
-pub(crate) fn to_full_resolution(
-    a: &Image,
-    b: &Image,
-    valid_a: Option<&[bool]>,
-    valid_b: Option<&[bool]>,
-    run: EngineRun,
-    finest: usize,
-    refine: Option<&RefineParams>,
-) -> RefinedFlow {
-    to_full_resolution_refined_to(a, b, valid_a, valid_b, run, finest, 0, refine)
-}
-
-/// [`to_full_resolution`] with the refinement stopping at pyramid level `stop`.
+/// `a`: refined on the intensities through the pyramid down to level `stop`
+/// when `refine` is given, then upsampled bilinearly. `ncc` is 1 and nothing
+/// is clamped without a refinement.
 #[allow(clippy::too_many_arguments)]
-pub(crate) fn to_full_resolution_refined_to(
+pub(crate) fn to_full_resolution(
     a: &Image,
     b: &Image,
     valid_a: Option<&[bool]>,
