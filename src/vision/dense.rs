@@ -418,8 +418,9 @@ fn dense_disparity_impl(
                 // Refined at the finest BP level only, then upsampled: the
                 // backward field serves the check, within `lr_tolerance`
                 // (2 px), and its confidence; on the 16 simulated cases the
-                // figures are the same, for 15 % less CPU time and 90 MB less
-                // at 1280×960.
+                // figures move by ±0.01 px but for grid 1024×768 (coverage
+                // 68.6 → 67.1 %, median 0.64 → 0.60 px), for 15 % less CPU
+                // time and 90 MB less at 1280×960.
                 sift_flow::to_full_resolution(
                     &b,
                     &a,

@@ -961,8 +961,8 @@ pub fn refine_flow_down_to(
     stop: usize,
     params: &RefineParams,
 ) -> RefinedFlow {
-    let stop = stop.min(level);
     use super::sift_flow::pyramid::{halve_image, halve_mask};
+    let stop = stop.min(level);
     // Pyramids of both images and masks, finest first.
     let mut imgs = vec![(a.clone(), b.clone())];
     let mut masks = vec![(valid_a.map(<[bool]>::to_vec), valid_b.map(<[bool]>::to_vec))];
