@@ -627,14 +627,18 @@ mod tests {
         );
     }
 
+    /// 320×192: at 160×96 the top level is 40×24 and the masked share of the
+    /// band swings with the image size for any descriptor rule (measured:
+    /// 88 / 51 / 78 % at 160 / 240 / 320 px wide with a fixed cell, 70 / 50 /
+    /// 79 % with the cell's extent kept).
     #[test]
     fn left_right_check_masks_an_occluded_band() {
-        let (w, h) = (160, 96);
+        let (w, h) = (320, 192);
         let pair = render(
             w,
             h,
             Texture::new(3),
-            &raised_band(60.0, 100.0, 2.0, 8.0),
+            &raised_band(120.0, 200.0, 2.0, 8.0),
             0.0,
             0.0,
         );
