@@ -165,7 +165,7 @@ pub fn run(opts: &super::EvalOptions, mode: Option<Mode>, set: &[String]) -> any
                 let t = &f.report.timings;
                 let d = &f.report.dense.timings;
                 println!(
-                    "{m:<8} {LEFT} + {} (θ {:.0}°) | cover {:>5.1} % | heights {:>6.2} … {:>6.2} µm | inliers {} rect err {:.2} px | sparse {:>5.0} ms dense {:>5.0} ms (BP {:.0}, refine {:.0}, LR {:.0}, filter {:.0}) depth {:>4.0} ms | {:.1} s wall",
+                    "{m:<8} {LEFT} + {} (θ {:.0}°) | cover {:>5.1} % | heights {:>6.2} … {:>6.2} µm | inliers {} rect err {:.2} px | sparse {:>5.0} ms dense {:>5.0} ms (BP {:.0}, re-assign {:.0}, refine {:.0}, LR {:.0}, filter {:.0}) depth {:>4.0} ms | {:.1} s wall",
                     f.right,
                     f.tilt_deg,
                     100.0 * f.coverage,
@@ -176,6 +176,7 @@ pub fn run(opts: &super::EvalOptions, mode: Option<Mode>, set: &[String]) -> any
                     t.sparse_ms,
                     t.dense_ms,
                     d.matching_ms,
+                    d.reassign_ms,
                     d.refine_ms,
                     d.consistency_ms,
                     d.filter_ms,

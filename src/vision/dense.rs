@@ -26,6 +26,7 @@ use serde::{Deserialize, Serialize};
 use super::Image;
 use super::bilateral_grid::{BilateralParams, GridInfo, bilateral_filter};
 use super::consistency::left_right_check;
+use super::reassign::{self, ReassignParams};
 use super::sift_flow::{self, FlowParams, FlowStats, LevelReport, Mode};
 use super::subpixel::{RefineParams, upsample_flow};
 
@@ -89,6 +90,7 @@ pub enum DenseError {
 /// | `bilateral` | σs = σr = 3 | bilateral grid filter of the disparity |
 /// | `max_strips` | 4 | parallel row strips of the BP sweeps (1 = sequential BP-S) |
 /// | `finest_level` | none | finest pyramid level of BP; none = 0 (paper) or 1 (improved: the intensity refinement takes the disparity to full resolution) |
+/// | `reassign` | see [`ReassignParams`] | improved mode: re-assignment of the SIFT flow beside depth discontinuities at the finest BP level (simulated grids 640/1024/1280: RMSE 8.2/5.3/6.3 → 5.2/3.3/4.2 % of the relief, > 1 px 8.4/10.5/8.2 → 3.2/5.7/4.4 %, coverage 88.6/79.0/89.7 → 84.0/79.0/87.3 %; Potamogeton pairwise RMSE 0.83/0.85/0.45 → 0.79/0.77/0.43 µm; other scenes: RMSE within ±0.2 point, coverage at most 0.9 point lower) |
 /// | `refine` | see [`RefineParams`] | improved mode: Lucas–Kanade refinement of the flow on the rectified intensities (`iterations = 0`: none) |
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -113,6 +115,7 @@ pub struct DenseParams {
     pub max_strips: usize,
     pub finest_level: Option<usize>,
     pub refine: RefineParams,
+    pub reassign: ReassignParams,
 }
 
 impl Default for DenseParams {
@@ -139,6 +142,7 @@ impl Default for DenseParams {
             max_strips: f.max_strips,
             finest_level: f.finest_level,
             refine: f.refine,
+            reassign: ReassignParams::default(),
         }
     }
 }
@@ -175,6 +179,8 @@ impl DenseParams {
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Default)]
 pub struct DenseTimings {
     pub matching_ms: f64,
+    /// Re-assignment beside discontinuities (improved mode).
+    pub reassign_ms: f64,
     /// Intensity refinement of both directions (improved mode).
     pub refine_ms: f64,
     pub consistency_ms: f64,
@@ -199,6 +205,10 @@ pub struct DenseStats {
     /// Of those, the fraction the check of the SIFT-flow fields rejected
     /// (improved mode; the rest failed on the refined fields only).
     pub rejected_by_matching_fraction: f64,
+    /// Fraction of valid left pixels whose SIFT flow the re-assignment
+    /// beside discontinuities changed, counted at the finest BP level
+    /// (improved mode; 0 otherwise).
+    pub reassigned_fraction: f64,
     /// Finest pyramid level BP ran on (0 = full resolution).
     pub finest_level: usize,
     /// Pyramid levels used (more than `levels` when a known disparity range
@@ -353,6 +363,12 @@ fn dense_disparity_impl(
             reason: "must be non-negative".to_owned(),
         });
     }
+    if let Some(name) = params.reassign.invalid_field() {
+        return Err(DenseError::InvalidParameter {
+            name,
+            reason: "out of its range (see the parameter table)".to_owned(),
+        });
+    }
     sift_flow::check_size(w, h, params.levels)?;
     let va = validity(left_rect, valid_left)?;
     let vb = validity(right_rect, valid_right)?;
@@ -374,7 +390,6 @@ fn dense_disparity_impl(
     let matching_ms = ms(tm);
 
     // To full resolution: refined on the intensities (improved) or upsampled.
-    let tr = Instant::now();
     let finest = engine.finest;
     let refine = fp.refinement();
     let alpha = params.alpha.max(1e-6);
@@ -391,6 +406,24 @@ fn dense_disparity_impl(
         margin = upsample_flow(&margin, mw, mh, wf, hf, 1.0);
         (mw, mh) = (wf, hf);
     }
+    // Re-assignment beside discontinuities (improved mode), at the level of
+    // the fields: the checks and the refinement below see re-assigned fields.
+    let tra = Instant::now();
+    let mut fwd = fwd;
+    let mut bwd = bwd;
+    let reassigned_fraction = match (bwd.as_mut(), refine) {
+        (Some(bw), Some(_)) if params.reassign.enabled => reassign_fields(
+            (&a, &b),
+            (&va, &vb),
+            (&mut fwd, bw),
+            finest,
+            params.lr_tolerance,
+            &params.reassign,
+        ),
+        _ => 0.0,
+    };
+    let reassign_ms = ms(tra);
+    let tr = Instant::now();
     let fwd_levels = fwd.levels.clone();
     let bwd_levels = bwd.as_ref().map(|b| b.levels.clone());
     // The left–right check of the SIFT-flow fields themselves, at their own
@@ -533,6 +566,7 @@ fn dense_disparity_impl(
         coverage: known as f64 / n_valid as f64,
         rejected_fraction: n_rejected as f64 / n_valid as f64,
         rejected_by_matching_fraction: n_rejected_matching as f64 / n_valid as f64,
+        reassigned_fraction,
         finest_level: finest,
         levels_used: params.levels,
         search_centre_px: top_shift,
@@ -541,6 +575,7 @@ fn dense_disparity_impl(
         grid,
         timings: DenseTimings {
             matching_ms,
+            reassign_ms,
             refine_ms,
             consistency_ms,
             filter_ms,
@@ -555,6 +590,86 @@ fn dense_disparity_impl(
         occluded: rejected,
         stats,
     })
+}
+
+/// [`reassign::reassign`] of both SIFT-flow fields at their own pyramid
+/// level `finest`; the fraction of the valid left pixels of that level whose
+/// flow changed.
+fn reassign_fields(
+    (a, b): (&Image, &Image),
+    (va, vb): (&[bool], &[bool]),
+    (fwd, bwd): (&mut sift_flow::EngineRun, &mut sift_flow::EngineRun),
+    finest: usize,
+    lr_tolerance: f32,
+    q: &ReassignParams,
+) -> f64 {
+    use sift_flow::pyramid::{halve_image, halve_mask};
+    let (mut ia, mut ib) = (a.clone(), b.clone());
+    let (mut ma, mut mb) = (va.to_vec(), vb.to_vec());
+    for _ in 0..finest {
+        ma = halve_mask(&ma, ia.width(), ia.height());
+        mb = halve_mask(&mb, ib.width(), ib.height());
+        ia = halve_image(&ia);
+        ib = halve_image(&ib);
+    }
+    let (w, h) = (fwd.width, fwd.height);
+    if ia.dimensions() != (w, h) || bwd.width != w || bwd.height != h {
+        return 0.0;
+    }
+    let img = |d: &[f32]| Image::from_vec(w, h, d.to_vec()).expect("level size");
+    let (fu, fv, bu, bv) = (img(&fwd.u), img(&fwd.v), img(&bwd.u), img(&bwd.v));
+    let tol = lr_tolerance / (1u32 << finest) as f32;
+    let cf = left_right_check(&fu, &fv, &bu, &bv, tol);
+    let cb = left_right_check(&bu, &bv, &fu, &fv, tol);
+    let source_f: Vec<bool> = ma
+        .iter()
+        .zip(&cf.rejected)
+        .map(|(v, r)| *v && !*r)
+        .collect();
+    let source_b: Vec<bool> = mb
+        .iter()
+        .zip(&cb.rejected)
+        .map(|(v, r)| *v && !*r)
+        .collect();
+    let eligible = |field: &[f32], source: &[bool], valid: &[bool]| -> Vec<bool> {
+        reassign::near_discontinuity(field, source, w, h, q.band, q.band_radius)
+            .iter()
+            .zip(valid)
+            .map(|(e, v)| *e && *v)
+            .collect()
+    };
+    let (ef, eb) = (
+        eligible(&fwd.u, &source_f, &ma),
+        eligible(&bwd.u, &source_b, &mb),
+    );
+    let (ka, kb) = (
+        super::subpixel::range_key(ia.data(), w, h),
+        super::subpixel::range_key(ib.data(), w, h),
+    );
+    let (rf, rb) = rayon::join(
+        || {
+            let views = reassign::Views {
+                key: &ka,
+                a: &ia,
+                b: &ib,
+                valid_b: &mb,
+            };
+            reassign::reassign(&views, &fwd.u, &fwd.v, &ef, &source_f, q)
+        },
+        || {
+            let views = reassign::Views {
+                key: &kb,
+                a: &ib,
+                b: &ia,
+                valid_b: &ma,
+            };
+            reassign::reassign(&views, &bwd.u, &bwd.v, &eb, &source_b, q)
+        },
+    );
+    let changed = rf.changed.iter().filter(|&&c| c).count();
+    tracing::debug!(examined = rf.examined, changed, "re-assignment");
+    (fwd.u, fwd.v, bwd.u, bwd.v) = (rf.u, rf.v, rb.u, rb.v);
+    changed as f64 / ma.iter().filter(|&&v| v).count().max(1) as f64
 }
 
 #[cfg(test)]
@@ -673,6 +788,73 @@ mod tests {
             vis_masked * 100 <= 5 * vis,
             "{vis_masked} of {vis} visible pixels masked"
         );
+    }
+
+    /// The occluded band's pair with and without the re-assignment beside
+    /// discontinuities: it is reported, switched off by `enabled = false`,
+    /// and stays within bounds of the fields it starts from.
+    #[test]
+    fn reassignment_beside_a_step_is_reported_and_can_be_switched_off() {
+        let (w, h) = (320, 192);
+        let pair = render(
+            w,
+            h,
+            Texture::new(3),
+            &raised_band(120.0, 200.0, 2.0, 8.0),
+            0.0,
+            0.0,
+        );
+        let run = |enabled: bool| {
+            let mut params = small_params(Mode::Improved);
+            params.reassign.enabled = enabled;
+            dense_disparity(&pair.left, &pair.right, None, None, &params).unwrap()
+        };
+        let (on, off) = (run(true), run(false));
+        assert!(on.stats.reassigned_fraction > 0.0);
+        assert!(on.stats.reassigned_fraction < 0.2);
+        assert_eq!(off.stats.reassigned_fraction, 0.0);
+        let masked = |d: &Disparity| {
+            (0..w * h)
+                .filter(|&p| pair.visible[p] && d.occluded[p])
+                .count()
+        };
+        let truth = &pair.disparity;
+        let (e_on, _) = errors(&on.disparity, truth, &pair.visible);
+        let (e_off, _) = errors(&off.disparity, truth, &pair.visible);
+        let mean = |e: &[f32]| e.iter().sum::<f32>() / e.len() as f32;
+        let over = |e: &[f32]| e.iter().filter(|&&x| x > 1.0).count();
+        // Measured: 1834 / 1665 visible pixels masked, mean error 0.113 /
+        // 0.106 px, 1746 / 1759 pixels off by more than 1 px. This pair's
+        // step is a clean 6 px, which BP already gets nearly right; the
+        // bounds keep the re-assignment from doing harm where it has little
+        // to correct (the simulated grids and Potamogeton are in its doc).
+        assert!(
+            masked(&on) * 10 <= masked(&off) * 12,
+            "{} vs {}",
+            masked(&on),
+            masked(&off)
+        );
+        assert!(
+            mean(&e_on) <= mean(&e_off) * 1.1,
+            "{} vs {}",
+            mean(&e_on),
+            mean(&e_off)
+        );
+        assert!(
+            over(&e_on) <= over(&e_off),
+            "{} vs {}",
+            over(&e_on),
+            over(&e_off)
+        );
+        // Out-of-range parameters are refused by name.
+        let mut bad = small_params(Mode::Improved);
+        bad.reassign.window_step = 0;
+        match dense_disparity(&pair.left, &pair.right, None, None, &bad) {
+            Err(DenseError::InvalidParameter { name, .. }) => {
+                assert_eq!(name, "reassign.window_step");
+            }
+            other => panic!("{other:?}"),
+        }
     }
 
     #[test]

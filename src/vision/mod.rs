@@ -19,5 +19,6 @@ pub mod consistency;
 pub mod dense;
 pub mod dense_sift;
 pub mod depth;
+pub mod reassign;
 pub mod sift_flow;
 pub mod subpixel;

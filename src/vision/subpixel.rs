@@ -672,7 +672,7 @@ impl CrossGrid {
 /// The key of the cross-bilateral aggregation: the first image lightly
 /// smoothed, in units of its standard deviation (sequential sums: the same
 /// figure whatever the thread count).
-fn range_key(img: &[f32], w: usize, h: usize) -> Vec<f32> {
+pub(crate) fn range_key(img: &[f32], w: usize, h: usize) -> Vec<f32> {
     let finite: Vec<f32> = img
         .iter()
         .map(|&v| if v.is_finite() { v } else { 0.0 })
