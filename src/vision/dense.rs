@@ -742,6 +742,19 @@ mod tests {
         );
     }
 
+    /// A band raised from disparity 2 to 8 between x = 120 and 200: the
+    /// right image does not see a strip beside it.
+    fn occluded_band_pair(w: usize, h: usize) -> crate::eval::synthetic::SyntheticPair {
+        render(
+            w,
+            h,
+            Texture::new(3),
+            &raised_band(120.0, 200.0, 2.0, 8.0),
+            0.0,
+            0.0,
+        )
+    }
+
     /// 320×192: at 160×96 the top level is 40×24 and the masked share of the
     /// band swings with the image size for any descriptor rule (measured:
     /// 88 / 51 / 78 % at 160 / 240 / 320 px wide with a fixed cell, 70 / 50 /
@@ -749,14 +762,7 @@ mod tests {
     #[test]
     fn left_right_check_masks_an_occluded_band() {
         let (w, h) = (320, 192);
-        let pair = render(
-            w,
-            h,
-            Texture::new(3),
-            &raised_band(120.0, 200.0, 2.0, 8.0),
-            0.0,
-            0.0,
-        );
+        let pair = occluded_band_pair(w, h);
         let out = dense_disparity(
             &pair.left,
             &pair.right,
@@ -796,14 +802,7 @@ mod tests {
     #[test]
     fn reassignment_beside_a_step_is_reported_and_can_be_switched_off() {
         let (w, h) = (320, 192);
-        let pair = render(
-            w,
-            h,
-            Texture::new(3),
-            &raised_band(120.0, 200.0, 2.0, 8.0),
-            0.0,
-            0.0,
-        );
+        let pair = occluded_band_pair(w, h);
         let run = |enabled: bool| {
             let mut params = small_params(Mode::Improved);
             params.reassign.enabled = enabled;
