@@ -386,7 +386,7 @@ fn dense_disparity_impl(
     // Matching: both directions at once in the improved mode (two cores, two
     // sequential sweeps: the backward field is almost free in wall time).
     let tm = Instant::now();
-    let (fwd, bwd) = engine.run(&a, &b, Some(&va), Some(&vb), improved);
+    let (mut fwd, mut bwd) = engine.run(&a, &b, Some(&va), Some(&vb), improved);
     let matching_ms = ms(tm);
 
     // To full resolution: refined on the intensities (improved) or upsampled.
@@ -409,8 +409,6 @@ fn dense_disparity_impl(
     // Re-assignment beside discontinuities (improved mode), at the level of
     // the fields: the checks and the refinement below see re-assigned fields.
     let tra = Instant::now();
-    let mut fwd = fwd;
-    let mut bwd = bwd;
     let reassigned_fraction = match (bwd.as_mut(), refine) {
         (Some(bw), Some(_)) if params.reassign.enabled => reassign_fields(
             (&a, &b),

@@ -291,7 +291,7 @@ pub fn reassign(
         .zip(score.par_chunks_mut(w))
         .enumerate()
         .map(|(y, (((ur, vr), cr), sr))| {
-            // (tap x, tap y, weight), heaviest first.
+            // (tap x, tap y, weight) of the window's taps.
             let mut weights: Vec<(isize, isize, f32)> = Vec::with_capacity(taps.len());
             let mut cands: Vec<(f32, f32)> = Vec::with_capacity(1 + 8 * distances.len());
             let mut n = 0usize;
@@ -346,7 +346,6 @@ pub fn reassign(
                         weights.push((tx, ty, wt));
                     }
                 }
-                weights.sort_unstable_by(|a, b| b.2.total_cmp(&a.2));
                 let mut best = (f32::INFINITY, 0usize);
                 let mut own_cost = f32::INFINITY;
                 for (ci, &(cu, cv)) in cands.iter().enumerate() {
