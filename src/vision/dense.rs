@@ -409,8 +409,8 @@ fn dense_disparity_impl(
     // Re-assignment beside discontinuities (improved mode), at the level of
     // the fields: the checks and the refinement below see re-assigned fields.
     let tra = Instant::now();
-    let reassigned_fraction = match (bwd.as_mut(), refine) {
-        (Some(bw), Some(_)) if params.reassign.enabled => reassign_fields(
+    let reassigned_fraction = match bwd.as_mut() {
+        Some(bw) if params.reassign.enabled => reassign_fields(
             (&a, &b),
             (&va, &vb),
             (&mut fwd, bw),
@@ -810,6 +810,12 @@ mod tests {
         assert!(on.stats.reassigned_fraction > 0.0);
         assert!(on.stats.reassigned_fraction < 0.2);
         assert_eq!(off.stats.reassigned_fraction, 0.0);
+        // It works on the SIFT-flow fields, so it does not depend on the
+        // intensity refinement being on.
+        let mut unrefined = small_params(Mode::Improved);
+        unrefined.refine.iterations = 0;
+        let plain = dense_disparity(&pair.left, &pair.right, None, None, &unrefined).unwrap();
+        assert!(plain.stats.reassigned_fraction > 0.0);
         let masked = |d: &Disparity| {
             (0..w * h)
                 .filter(|&p| pair.visible[p] && d.occluded[p])
