@@ -497,7 +497,24 @@ struct CrossGrid {
 impl CrossGrid {
     /// The grid of `key` (one value per pixel, `w × h`) for a window of
     /// `sigma_s` pixels and a range σ of `sigma_r` key units.
+    #[cfg(test)]
     fn new(key: &[f32], w: usize, h: usize, sigma_s: f32, sigma_r: f32) -> Self {
+        let mut ones = vec![[1f32; 1]; w * h];
+        Self::with_sums(key, w, h, sigma_s, sigma_r, &mut ones)
+    }
+
+    /// The grid of [`CrossGrid::new`], and in `values` their un-normalised
+    /// sums through it: the last channel must hold ones, whose sums become
+    /// the normaliser, so one pass of the filter serves both (channels do not
+    /// mix: each one's sums are those of a pass of its own).
+    fn with_sums<const C: usize>(
+        key: &[f32],
+        w: usize,
+        h: usize,
+        sigma_s: f32,
+        sigma_r: f32,
+        values: &mut [[f32; C]],
+    ) -> Self {
         let scale = XB_CELL_VARIANCE.sqrt();
         let cell = (sigma_s / scale).max(0.5);
         let (lo, hi) = key
@@ -525,10 +542,9 @@ impl CrossGrid {
             fz,
             norm: Vec::new(),
         };
-        let mut ones = vec![[1f32; 1]; w * h];
         let (mut ga, mut gb) = (Vec::new(), Vec::new());
-        g.sums(&mut ones, &mut ga, &mut gb);
-        g.norm = ones.into_iter().map(|[v]| v).collect();
+        g.sums(values, &mut ga, &mut gb);
+        g.norm = values.iter().map(|v| v[C - 1]).collect();
         g
     }
 
@@ -743,33 +759,37 @@ fn refine_level(
     // Start from the flow smoothed over the window: every update below is a
     // ratio of window sums, hence smooth, so pixel-scale noise of the start
     // (the equiangular offsets, label steps) would otherwise stay for good.
-    let xb = (params.range_sigma > 0.0).then(|| {
-        CrossGrid::new(
+    // With edge-aware windows the smoothing runs in the pass that builds the
+    // grid: finite samples only, weighted by their own count (a pixel with no
+    // flow stays without one and spreads nothing), ones last for the grid's
+    // normaliser.
+    let (xb, start_sums) = if params.range_sigma > 0.0 {
+        let mut sums: Vec<[f32; 4]> = u0
+            .iter()
+            .zip(v0)
+            .map(|(&a, &b)| {
+                if a.is_finite() && b.is_finite() {
+                    [a, b, 1.0, 1.0]
+                } else {
+                    [0.0, 0.0, 0.0, 1.0]
+                }
+            })
+            .collect();
+        let g = CrossGrid::with_sums(
             &range_key(a.data(), w, h),
             w,
             h,
             params.window_sigma,
             params.range_sigma,
-        )
-    });
-    let (u0, v0) = match &xb {
-        Some(g) => {
-            // Finite samples only, weighted by their own count: a pixel with
-            // no flow stays without one and spreads nothing.
-            let mut uv: Vec<[f32; 3]> = u0
-                .iter()
-                .zip(v0)
-                .map(|(&a, &b)| {
-                    if a.is_finite() && b.is_finite() {
-                        [a, b, 1.0]
-                    } else {
-                        [0.0; 3]
-                    }
-                })
-                .collect();
-            let (mut ga, mut gb) = (Vec::new(), Vec::new());
-            g.sums(&mut uv, &mut ga, &mut gb);
-            let mean = |s: &[f32; 3], o: f32, c: usize| {
+            &mut sums,
+        );
+        (Some(g), Some(sums))
+    } else {
+        (None, None)
+    };
+    let (u0, v0) = match &start_sums {
+        Some(sums) => {
+            let mean = |s: &[f32; 4], o: f32, c: usize| {
                 if o.is_finite() && s[2] > 1e-12 {
                     s[c] / s[2]
                 } else {
@@ -777,15 +797,16 @@ fn refine_level(
                 }
             };
             (
-                uv.iter().zip(u0).map(|(s, &o)| mean(s, o, 0)).collect(),
-                uv.iter().zip(v0).map(|(s, &o)| mean(s, o, 1)).collect(),
+                sums.iter().zip(u0).map(|(s, &o)| mean(s, o, 0)).collect(),
+                sums.iter().zip(v0).map(|(s, &o)| mean(s, o, 1)).collect(),
             )
         }
-        _ => {
+        None => {
             let smooth_start = |f: &[f32]| blur_plane(f, w, h, params.window_sigma);
             (smooth_start(u0), smooth_start(v0))
         }
     };
+    drop(start_sums);
     let (u0, v0) = (&u0, &v0);
     let mut u = u0.clone();
     let mut v = v0.clone();
@@ -1238,6 +1259,30 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// Sums taken while the grid is built are those of a separate pass, to
+    /// the bit, and the ones channel gives the same normaliser.
+    #[test]
+    fn sums_taken_with_the_grid_equal_a_separate_pass() {
+        let (w, h) = (23, 17);
+        let key: Vec<f32> = (0..w * h).map(|p| ((p * 13) % 7) as f32 * 0.3).collect();
+        let vals: Vec<f32> = (0..w * h).map(|p| ((p * 37) % 17) as f32 - 8.0).collect();
+        let g = CrossGrid::new(&key, w, h, 3.0, 0.5);
+        let mut separate: Vec<[f32; 1]> = vals.iter().map(|&v| [v]).collect();
+        let (mut ga, mut gb) = (Vec::new(), Vec::new());
+        g.sums(&mut separate, &mut ga, &mut gb);
+        let mut joint: Vec<[f32; 2]> = vals.iter().map(|&v| [v, 1.0]).collect();
+        let gj = CrossGrid::with_sums(&key, w, h, 3.0, 0.5, &mut joint);
+        assert_eq!(gj.norm, g.norm);
+        for (j, s) in joint.iter().zip(&separate) {
+            assert_eq!(j[0].to_bits(), s[0].to_bits());
+        }
+        let moved = joint
+            .iter()
+            .zip(&vals)
+            .filter(|(j, v)| (j[0] / j[1] - **v).abs() > 0.1);
+        assert!(moved.count() > w * h / 2, "the sums smooth");
     }
 
     /// A bright textured region moving 2 px more than its textured
