@@ -629,10 +629,31 @@ impl<'a> DualLayerBp<'a> {
 
     /// Runs `iterations` iterations, recording the energy after each.
     pub fn run(&mut self, iterations: usize) -> BpOutcome {
+        self.run_until_stable(iterations, None)
+    }
+
+    /// [`DualLayerBp::run`], stopping early once the labels of both layers
+    /// have stayed the same for `patience` consecutive iterations (`None`:
+    /// never). For levels whose only output is the labels: the messages go
+    /// on changing, so margins and sub-pixel offsets would not be the same.
+    pub fn run_until_stable(&mut self, iterations: usize, patience: Option<usize>) -> BpOutcome {
         let mut energies = Vec::with_capacity(iterations);
+        let mut previous = patience.map(|_| self.labels.clone());
+        let mut stable = 0;
         for count in 0..iterations {
             self.iterate(count);
             energies.push(energy(self.data, self.space, &self.labels, &self.weights));
+            if let (Some(p), Some(prev)) = (patience, previous.as_mut()) {
+                if *prev == self.labels {
+                    stable += 1;
+                    if stable >= p {
+                        break;
+                    }
+                } else {
+                    stable = 0;
+                    prev.clone_from(&self.labels);
+                }
+            }
         }
         BpOutcome {
             labels: self.labels.clone(),
@@ -777,5 +798,31 @@ mod tests {
                 "{max_strips} strips: {wrong} wrong labels"
             );
         }
+    }
+
+    #[test]
+    fn settled_labels_end_the_run_early_with_the_same_labels() {
+        let (space, data) = problem(24, 70);
+        let weights = EnergyWeights {
+            alpha: 20.0,
+            d: 200.0,
+            gamma: 1.0,
+        };
+        let full = DualLayerBp::new(&space, &data, weights, 16, 1).run(40);
+        let mut bp = DualLayerBp::new(&space, &data, weights, 16, 1);
+        let early = bp.run_until_stable(40, Some(3));
+        assert!(
+            early.energy.len() < 40,
+            "ran all {} iterations",
+            early.energy.len()
+        );
+        assert_eq!(early.labels, full.labels);
+        // The last `patience` iterations left the labels, hence the energy, alone.
+        let n = early.energy.len();
+        assert!(early.energy[n - 4..].windows(2).all(|e| e[0] == e[1]));
+        assert_eq!(early.energy[..], full.energy[..n]);
+        // No patience: every iteration runs.
+        let mut bp = DualLayerBp::new(&space, &data, weights, 16, 1);
+        assert_eq!(bp.run_until_stable(40, None).energy.len(), 40);
     }
 }

@@ -221,6 +221,14 @@ pub fn level_cell_size(cell_size: usize, l: usize, finest: usize, keep_cell_exte
 /// flow already starts BP near the solution there).
 const IMPROVED_LOWER_HIERARCHY: usize = 3;
 
+/// Improved mode: BP at a coarser level stops once the labels of both layers
+/// have not changed for this many iterations (such a level hands on only its
+/// labels). On the 16 simulated cases, RubberWhale and the Potamogeton pairs
+/// every figure stays the same to the last digit (on the simulated cases with
+/// 2 as well), for 27 % fewer BP iterations over the 16 cases (528 → 386); at
+/// the top level of the 1280×960 pair 20 → 10 iterations, 188 → 114 ms.
+const SETTLED_ITERATIONS: usize = 3;
+
 /// BP iterations on each coarser grid of the multigrid initialisation in the
 /// improved mode (half the reference's: RubberWhale's EPE does not change).
 const IMPROVED_HIERARCHY_ITERATIONS: usize = 10;
@@ -686,7 +694,11 @@ impl Engine {
             Mode::Improved => IMPROVED_HIERARCHY_ITERATIONS,
         };
         bp.warm_start(plan.hierarchy, warm_iterations);
-        let outcome = bp.run(plan.iterations);
+        // Improved mode, coarser levels (which hand on their labels only):
+        // no more iterations once the labels have settled.
+        let patience =
+            (self.mode == Mode::Improved && l > self.finest).then_some(SETTLED_ITERATIONS);
+        let outcome = bp.run_until_stable(plan.iterations, patience);
         let bp_ms = ms(tbp);
         let flow = if l == self.finest && self.mode == Mode::Improved {
             super::subpixel::refine(&data, &space, &outcome.labels)
@@ -713,7 +725,7 @@ impl Engine {
                 window_u: plan.window[0],
                 window_v: plan.window[1],
                 cell_size: plan.cell_size,
-                iterations: plan.iterations,
+                iterations: outcome.energy.len(),
                 energy: outcome.energy,
                 descriptor_ms,
                 data_term_ms,
