@@ -772,14 +772,19 @@ mod tests {
         )
     }
 
-    #[test]
-    fn bp_lowers_the_energy_and_recovers_the_labels() {
-        let (space, data) = problem(24, 70);
-        let weights = EnergyWeights {
+    /// The weights of the BP tests on [`problem`].
+    fn two_region_weights() -> EnergyWeights {
+        EnergyWeights {
             alpha: 20.0,
             d: 200.0,
             gamma: 1.0,
-        };
+        }
+    }
+
+    #[test]
+    fn bp_lowers_the_energy_and_recovers_the_labels() {
+        let (space, data) = problem(24, 70);
+        let weights = two_region_weights();
         let zero = [vec![3u16; 24 * 70], vec![1u16; 24 * 70]];
         let e0 = energy(&data, &space, &zero, &weights);
         for max_strips in [1, 3] {
@@ -803,11 +808,7 @@ mod tests {
     #[test]
     fn settled_labels_end_the_run_early_with_the_same_labels() {
         let (space, data) = problem(24, 70);
-        let weights = EnergyWeights {
-            alpha: 20.0,
-            d: 200.0,
-            gamma: 1.0,
-        };
+        let weights = two_region_weights();
         let full = DualLayerBp::new(&space, &data, weights, 16, 1).run(40);
         let mut bp = DualLayerBp::new(&space, &data, weights, 16, 1);
         let early = bp.run_until_stable(40, Some(3));
