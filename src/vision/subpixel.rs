@@ -354,12 +354,12 @@ pub fn normalise_contrast(img: &Image, presmooth: f32, sigma: f32) -> Image {
     let hp: Vec<f32> = base.par_iter().zip(&mean).map(|(a, m)| a - m).collect();
     let sq: Vec<f32> = hp.par_iter().map(|v| v * v).collect();
     let var = blur_plane(&sq, w, h, sigma);
-    let sd: Vec<f64> = var
-        .par_iter()
-        .map(|v| f64::from(v.max(0.0)).sqrt())
-        .collect();
     // Sequential sum: the same figure whatever the thread count.
-    let mean_sd = sd.iter().sum::<f64>() / var.len().max(1) as f64;
+    let mean_sd = var
+        .iter()
+        .map(|v| f64::from(v.max(0.0)).sqrt())
+        .sum::<f64>()
+        / var.len().max(1) as f64;
     let eps2 = (0.1 * mean_sd as f32).powi(2).max(1e-12);
     let data = hp
         .par_iter()
