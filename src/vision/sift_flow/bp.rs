@@ -44,6 +44,10 @@ pub struct DualLayerBp<'a> {
     msgs: [Vec<f32>; 2],
     /// Per layer: the argmin of every pixel's belief, kept current by the sweeps.
     labels: [Vec<u16>; 2],
+    /// Whether `labels` are those of the current messages: the
+    /// initialisations change messages without recomputing them, and a run
+    /// recomputes them once before it starts (for the test of settled labels).
+    labels_current: bool,
     strips: Vec<(usize, usize)>,
     min_strip_rows: usize,
     max_strips: usize,
@@ -377,18 +381,25 @@ impl<'a> DualLayerBp<'a> {
             vec![0f32; area * SLOTS * space.states(0)],
             vec![0f32; area * SLOTS * space.states(1)],
         ];
-        let mut bp = Self {
+        Self {
             space,
             data,
             weights,
             msgs,
-            labels: [Vec::new(), Vec::new()],
+            labels: [vec![0; area], vec![0; area]],
+            labels_current: false,
             strips: strips_for(space.height, min_strip_rows, max_strips),
             min_strip_rows,
             max_strips,
-        };
-        bp.labels = bp.all_labels();
-        bp
+        }
+    }
+
+    /// Recomputes the labels if the messages changed since they were taken.
+    fn refresh_labels(&mut self) {
+        if !self.labels_current {
+            self.labels = self.all_labels();
+            self.labels_current = true;
+        }
     }
 
     /// Multigrid initialisation (the reference code's "hierarchy"): solves
@@ -441,7 +452,7 @@ impl<'a> DualLayerBp<'a> {
                     }
                 });
         }
-        self.labels = self.all_labels();
+        self.labels_current = false;
     }
 
     /// Starts both layers' inter-layer messages from the data term (the
@@ -482,7 +493,7 @@ impl<'a> DualLayerBp<'a> {
                 },
             );
         }
-        self.labels = self.all_labels();
+        self.labels_current = false;
     }
 
     /// One iteration `count` of the BP-S schedule.
@@ -490,6 +501,9 @@ impl<'a> DualLayerBp<'a> {
         let k = count % 2;
         let forward = count % 4 < 2;
         let dual = count % 8 < 4;
+        // The sweep rewrites every label of layer k, and of the other layer
+        // when it sends the inter-layer messages.
+        self.labels_current |= dual;
         let w = self.space.width;
         let n = [self.space.states(0), self.space.states(1)];
         let sweep = Sweep {
@@ -595,7 +609,8 @@ impl<'a> DualLayerBp<'a> {
 
     /// The current labels (argmin of the beliefs), per layer.
     #[must_use]
-    pub fn labels(&self) -> &[Vec<u16>; 2] {
+    pub fn labels(&mut self) -> &[Vec<u16>; 2] {
+        self.refresh_labels();
         &self.labels
     }
 
@@ -603,7 +618,8 @@ impl<'a> DualLayerBp<'a> {
     /// current one or next to it, minus the belief of the current label (0
     /// when the window has no such label). Large means unambiguous.
     #[must_use]
-    pub fn margins(&self, k: usize) -> Vec<f32> {
+    pub fn margins(&mut self, k: usize) -> Vec<f32> {
+        self.refresh_labels();
         let n = self.space.states(k);
         let labels = &self.labels[k];
         (0..labels.len())
@@ -637,6 +653,7 @@ impl<'a> DualLayerBp<'a> {
     /// never). For levels whose only output is the labels: the messages go
     /// on changing, so margins and sub-pixel offsets would not be the same.
     pub fn run_until_stable(&mut self, iterations: usize, patience: Option<usize>) -> BpOutcome {
+        self.refresh_labels();
         let mut energies = Vec::with_capacity(iterations);
         let mut previous = patience.map(|_| self.labels.clone());
         let mut stable = 0;
