@@ -14,6 +14,7 @@
 use std::io::Write;
 use std::path::Path;
 
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::ExportError;
@@ -151,14 +152,52 @@ pub fn build_mesh(
     mesh
 }
 
-fn write_vertex(w: &mut impl Write, p: &CloudPoint, with_intensity: bool) -> std::io::Result<()> {
-    w.write_all(&p.x.to_le_bytes())?;
-    w.write_all(&p.y.to_le_bytes())?;
-    w.write_all(&p.z.to_le_bytes())?;
-    if with_intensity {
-        w.write_all(&p.intensity.to_le_bytes())?;
+/// Records per block of [`write_records`]: 1–2 MB of output at a time.
+const RECORDS_PER_BLOCK: usize = 1 << 16;
+
+/// Writes `items` as fixed-size binary records of `size` bytes, `encode`
+/// filling one record: a block of records is encoded in parallel into a
+/// reused buffer, then written in one call (a `write_all` per 4-byte field
+/// made the 50 MB mesh of a 1280×960 map take 170 ms). The bytes are those
+/// of encoding the items one after the other.
+fn write_records<T: Sync>(
+    w: &mut impl Write,
+    items: &[T],
+    size: usize,
+    encode: impl Fn(&T, &mut [u8]) + Sync,
+) -> std::io::Result<()> {
+    let mut buf = Vec::new();
+    for block in items.chunks(RECORDS_PER_BLOCK) {
+        buf.clear();
+        buf.resize(block.len() * size, 0);
+        buf.par_chunks_mut(size)
+            .zip(block)
+            .for_each(|(out, item)| encode(item, out));
+        w.write_all(&buf)?;
     }
     Ok(())
+}
+
+/// The bytes of one vertex: `x y z [intensity]`, float32 little-endian.
+fn encode_vertex(p: &CloudPoint, with_intensity: bool, out: &mut [u8]) {
+    let fields: &[f32] = if with_intensity {
+        &[p.x, p.y, p.z, p.intensity]
+    } else {
+        &[p.x, p.y, p.z]
+    };
+    for (o, v) in out.chunks_exact_mut(4).zip(fields) {
+        o.copy_from_slice(&v.to_le_bytes());
+    }
+}
+
+/// The bytes of one face: the count 3 as `uchar`, then three `int` indices.
+fn encode_face(t: &[u32; 3], out: &mut [u8]) {
+    out[0] = 3;
+    for (o, &i) in out[1..].chunks_exact_mut(4).zip(t) {
+        // Indices come from a Vec index and PLY stores int32.
+        #[allow(clippy::cast_possible_wrap)]
+        o.copy_from_slice(&(i as i32).to_le_bytes());
+    }
 }
 
 /// Writes `pointcloud.ply` atomically: `x y z intensity`, float32, µm.
@@ -174,9 +213,7 @@ pub fn write_point_cloud_ply(path: &Path, points: &[CloudPoint]) -> Result<(), E
              property float intensity\nend_header\n",
             points.len()
         )?;
-        for p in points {
-            write_vertex(w, p, true)?;
-        }
+        write_records(w, points, 16, |p, out| encode_vertex(p, true, out))?;
         Ok(())
     })
 }
@@ -201,17 +238,11 @@ pub fn write_mesh_ply(path: &Path, mesh: &Mesh, with_intensity: bool) -> Result<
             },
             mesh.triangles.len()
         )?;
-        for p in &mesh.vertices {
-            write_vertex(w, p, with_intensity)?;
-        }
-        for t in &mesh.triangles {
-            w.write_all(&[3])?;
-            for &i in t {
-                // Indices come from a Vec index and PLY stores int32.
-                w.write_all(&(i as i32).to_le_bytes())?;
-            }
-        }
-        Ok(())
+        let vertex_size = if with_intensity { 16 } else { 12 };
+        write_records(w, &mesh.vertices, vertex_size, |p, out| {
+            encode_vertex(p, with_intensity, out);
+        })?;
+        write_records(w, &mesh.triangles, 13, encode_face)
     })
 }
 
@@ -428,6 +459,47 @@ mod tests {
         let back = read_ply(&path).unwrap();
         assert_eq!(back.vertex_properties, ["x", "y", "z"]);
         assert_eq!(back.faces.len(), 4);
+    }
+
+    #[test]
+    fn block_encoding_gives_the_bytes_of_field_by_field_writes() {
+        // More than two blocks, the last one partial.
+        let n = 2 * RECORDS_PER_BLOCK + 5;
+        let points: Vec<CloudPoint> = (0..n)
+            .map(|i| CloudPoint {
+                x: i as f32,
+                y: -(i as f32) * 0.5,
+                z: (i % 7) as f32 - 3.25,
+                intensity: (i % 11) as f32 / 10.0,
+            })
+            .collect();
+        let faces: Vec<[u32; 3]> = (0..n as u32)
+            .map(|i| [i, i ^ 1, i.wrapping_mul(7)])
+            .collect();
+        let mut want = Vec::new();
+        for p in &points {
+            for v in [p.x, p.y, p.z, p.intensity] {
+                want.extend_from_slice(&v.to_le_bytes());
+            }
+        }
+        for t in &faces {
+            want.push(3);
+            for &i in t {
+                want.extend_from_slice(&(i as i32).to_le_bytes());
+            }
+        }
+        let mut got = Vec::new();
+        write_records(&mut got, &points, 16, |p, out| encode_vertex(p, true, out)).unwrap();
+        write_records(&mut got, &faces, 13, encode_face).unwrap();
+        assert_eq!(got, want);
+        // Without intensity: x y z only.
+        let mut got = Vec::new();
+        write_records(&mut got, &points[..2], 12, |p, out| {
+            encode_vertex(p, false, out)
+        })
+        .unwrap();
+        assert_eq!(got[12..16], 1f32.to_le_bytes());
+        assert_eq!(got.len(), 24);
     }
 
     #[test]
