@@ -308,34 +308,55 @@ pub fn write_outputs(
     report.triangle_count = mesh.triangles.len();
     report.triangles_cut_at_discontinuities = mesh.cut_triangles;
 
-    let mut written: Vec<PathBuf> = Vec::new();
+    // The four files are independent: written at the same time (the mesh,
+    // the largest, beside the rest). The report goes last: its presence says
+    // the set is complete. On any failure every file written is removed.
+    let paths = [
+        files::HEIGHT_TIFF,
+        files::HEIGHT_GSF,
+        files::POINT_CLOUD,
+        files::MESH,
+    ]
+    .map(|name| out.join(name));
+    let [tiff, gsf, cloud_path, mesh_path] = &paths;
+    let (mesh_written, (cloud_written, (tiff_written, gsf_written))) = rayon::join(
+        || ply::write_mesh_ply(mesh_path, &mesh, true),
+        || {
+            rayon::join(
+                || ply::write_point_cloud_ply(cloud_path, &cloud),
+                || {
+                    rayon::join(
+                        || export::height_tiff::write_height_tiff(tiff, &recon.height_um, Some(p)),
+                        || export::gsf::write_gsf(gsf, &recon.height_um, p, "sdsem height map"),
+                    )
+                },
+            )
+        },
+    );
+    let results = [tiff_written, gsf_written, cloud_written, mesh_written];
+    let written: Vec<&PathBuf> = paths
+        .iter()
+        .zip(&results)
+        .filter(|(_, r)| r.is_ok())
+        .map(|(p, _)| p)
+        .collect();
     let result = (|| -> anyhow::Result<()> {
-        let path = out.join(files::HEIGHT_TIFF);
-        export::height_tiff::write_height_tiff(&path, &recon.height_um, Some(p))?;
-        written.push(path);
-        let path = out.join(files::HEIGHT_GSF);
-        export::gsf::write_gsf(&path, &recon.height_um, p, "sdsem height map")?;
-        written.push(path);
-        let path = out.join(files::POINT_CLOUD);
-        ply::write_point_cloud_ply(&path, &cloud)?;
-        written.push(path);
-        let path = out.join(files::MESH);
-        ply::write_mesh_ply(&path, &mesh, true)?;
-        written.push(path);
-        report.outputs = written
+        for r in results {
+            r?;
+        }
+        report.outputs = paths
             .iter()
             .filter_map(|p| p.file_name().map(|n| n.to_string_lossy().into_owned()))
             .chain(std::iter::once(files::REPORT.to_owned()))
             .collect();
         report.wall_s = started.elapsed().as_secs_f64();
         report.peak_rss_mib = peak_rss_mib();
-        // The report goes last: its presence says the set is complete.
         let path = out.join(files::REPORT);
         export::report::write_json_atomic(&path, report)?;
         Ok(())
     })();
     if result.is_err() {
-        for path in &written {
+        for path in written {
             let _ = std::fs::remove_file(path);
         }
     }
@@ -464,8 +485,9 @@ mod tests {
     /// A dome seen with a horizontal parallax (φ = −90°): every output is
     /// written, the GSF obeys DESIGN §7, the relief comes out raised, and the
     /// report carries the energies of every level and the flow statistics.
-    #[test]
-    fn a_pair_gives_every_output_with_the_relief_raised() {
+    /// Reconstructs the 192×144 dome pair of the tests below (written into
+    /// `dir`) into `out`.
+    fn reconstruct_dome(dir: &Path, out: &Path) -> anyhow::Result<ReportFile> {
         let (w, h) = (192, 144);
         let pair = render(
             w,
@@ -475,11 +497,9 @@ mod tests {
             0.0,
             0.005,
         );
-        let dir = tempfile::tempdir().unwrap();
-        let (l, r) = (dir.path().join("l.png"), dir.path().join("r.png"));
+        let (l, r) = (dir.join("l.png"), dir.join("r.png"));
         save_png(&l, &pair.left);
         save_png(&r, &pair.right);
-        let out = dir.path().join("out");
         let params = ReconstructionParams {
             dense: crate::vision::dense::DenseParams {
                 levels: 3,
@@ -487,10 +507,10 @@ mod tests {
             },
             ..ReconstructionParams::default()
         };
-        let report = run(
+        run(
             &l,
             &r,
-            &out,
+            out,
             GeometryOverrides {
                 tilt_deg: Some(6.0),
                 pixel_size_um: Some(0.05),
@@ -500,7 +520,14 @@ mod tests {
             &params,
             &MeshParams::default(),
         )
-        .unwrap();
+    }
+
+    #[test]
+    fn a_pair_gives_every_output_with_the_relief_raised() {
+        let (w, h) = (192, 144);
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().join("out");
+        let report = reconstruct_dome(dir.path(), &out).unwrap();
         for name in [
             files::HEIGHT_TIFF,
             files::HEIGHT_GSF,
@@ -556,6 +583,23 @@ mod tests {
         assert!(table4["rmse_after_px"].as_f64().unwrap() < 0.5);
         assert!(json["peak_rss_mib"].as_f64().unwrap() > 0.0);
         assert_eq!(report.outputs.len(), 5);
+    }
+
+    /// One output that cannot be written (a directory stands at its path):
+    /// the error names it, and none of the files written beside it, nor the
+    /// report, nor a temporary file is left behind.
+    #[test]
+    fn a_failed_output_takes_the_others_with_it() {
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().join("out");
+        std::fs::create_dir_all(out.join(files::MESH).join("occupied")).unwrap();
+        let err = reconstruct_dome(dir.path(), &out).expect_err("mesh.ply cannot be written");
+        assert!(format!("{err:#}").contains(files::MESH), "{err:#}");
+        let left: Vec<String> = std::fs::read_dir(&out)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        assert_eq!(left, [files::MESH], "left behind: {left:?}");
     }
 
     /// µm of height per pixel of disparity of the test above (θ = 6°, 0.05 µm).
