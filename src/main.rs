@@ -5,6 +5,9 @@ use std::process::ExitCode;
 
 use clap::Parser;
 
+#[global_allocator]
+static ALLOCATOR: sdsem::memory::PrefaultZeroed = sdsem::memory::PrefaultZeroed;
+
 fn main() -> ExitCode {
     sdsem::memory::keep_large_buffers();
     let cli = sdsem::cli::Cli::parse();
