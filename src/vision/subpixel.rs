@@ -881,24 +881,29 @@ fn refine_level(
                 *cl = hu || hv;
             });
     }
-    // Quality of the final match: NCC of the normalised images over the window.
-    // In the buffers of the iterations: [aa, bb, ab, 1, 0, 0].
-    products.par_iter_mut().enumerate().for_each(|(p, out)| {
-        *out = match warped(&u, &v, p) {
+    // Quality of the final match: NCC of the normalised images over the window,
+    // from the sums of [aa, bb, ab, 1] (the iterations' buffers are freed
+    // first, so these take their memory).
+    drop((products, scratch, grid_a, grid_b));
+    let mut sums: Vec<[f32; 4]> = (0..w * h)
+        .into_par_iter()
+        .map(|p| match warped(&u, &v, p) {
             Some([bw, _, _]) => {
                 let av = na.data()[p];
-                [av * av, bw * bw, av * bw, 1.0, 0.0, 0.0]
+                [av * av, bw * bw, av * bw, 1.0]
             }
-            None => [0.0; 6],
-        };
-    });
+            None => [0.0; 4],
+        })
+        .collect();
+    let mut scratch = vec![[0f32; 4]; w * h];
     // The Gaussian window here even with `range_sigma`: as good a confidence
     // (simulated scenes) for less time.
-    blur_in_place(&mut products, &mut scratch, w, h, params.window_sigma);
-    let ncc = products
-        .iter()
+    blur_in_place(&mut sums, &mut scratch, w, h, params.window_sigma);
+    drop(scratch);
+    let ncc = sums
+        .par_iter()
         .enumerate()
-        .map(|(p, &[saa, sbb, sab, s1, _, _])| {
+        .map(|(p, &[saa, sbb, sab, s1])| {
             if !usable(p) || s1 < 1e-3 || saa <= 0.0 || sbb <= 0.0 {
                 0.0
             } else {
