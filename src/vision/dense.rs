@@ -88,6 +88,7 @@ pub enum DenseError {
 /// | `vertical_top_window` / `vertical_window` | 2 / 1 | half search window of the vertical flow (improved mode; the paper searches v as widely as u) |
 /// | `top_iterations` / `iterations` | none | BP iterations at the top / finest level; none = 60 / 30 (paper) or 20 / 8 (improved) |
 /// | `lr_tolerance` | 2.0 | left–right disagreement (pixels) above which a pixel is masked as occluded (1.0 rejected 6–13 % of the visible pixels of simulated scenes at 1024×768, θ = 11°; 2.0 keeps coverage ≥ 98 % there with the same RMSE on the dome) |
+/// | `lr_tolerance_smooth` | 4.0 | improved mode: the tolerance of the left–right check away from depth discontinuities (farther than `reassign.band_radius` pixels of the finest BP level from a flow gradient above `reassign.band`), pixels; values up to `lr_tolerance` change nothing. An occlusion as wide as the tolerance lies within that band, so the wider tolerance keeps weakly textured surface whose two fields disagree by a few pixels without admitting occlusions (see the table in `config/sdsem.toml`) |
 /// | `bilateral` | σs = σr = 3 | bilateral grid filter of the disparity |
 /// | `max_strips` | 4 | parallel row strips of the BP sweeps (1 = sequential BP-S) |
 /// | `finest_level` | none | finest pyramid level of BP; none = 0 (paper) or 1 (improved: the intensity refinement takes the disparity to full resolution) |
@@ -113,6 +114,7 @@ pub struct DenseParams {
     pub top_iterations: Option<usize>,
     pub iterations: Option<usize>,
     pub lr_tolerance: f32,
+    pub lr_tolerance_smooth: f32,
     pub bilateral: BilateralParams,
     pub max_strips: usize,
     pub finest_level: Option<usize>,
@@ -141,6 +143,7 @@ impl Default for DenseParams {
             top_iterations: f.top_iterations,
             iterations: f.iterations,
             lr_tolerance: 2.0,
+            lr_tolerance_smooth: 4.0,
             bilateral: BilateralParams::default(),
             max_strips: f.max_strips,
             finest_level: f.finest_level,
@@ -367,6 +370,12 @@ fn dense_disparity_impl(
             reason: "must be non-negative".to_owned(),
         });
     }
+    if params.lr_tolerance_smooth.is_nan() || params.lr_tolerance_smooth < 0.0 {
+        return Err(DenseError::InvalidParameter {
+            name: "lr_tolerance_smooth",
+            reason: "must be non-negative".to_owned(),
+        });
+    }
     if let Some(name) = params.reassign.invalid_field() {
         return Err(DenseError::InvalidParameter {
             name,
@@ -431,10 +440,36 @@ fn dense_disparity_impl(
     // The left–right check of the SIFT-flow fields themselves, at their own
     // level: the intensity refinement smooths the flow over its window, which
     // would let a narrow occlusion pass the check on the refined fields alone.
+    let scale = (1u32 << finest) as f32;
+    let f = 1usize << finest;
+    let (cw, ch) = (fwd.width, fwd.height);
+    let to_canvas = |level: &[bool]| -> Vec<bool> {
+        (0..w * h)
+            .map(|p| {
+                let (x, y) = (((p % w) / f).min(cw - 1), ((p / w) / f).min(ch - 1));
+                level[y * cw + x]
+            })
+            .collect()
+    };
+    // Away from depth discontinuities the wider tolerance applies (see
+    // `lr_tolerance_smooth`), judged on the forward field at its level.
+    let smooth: Option<Vec<bool>> =
+        (bwd.is_some() && params.lr_tolerance_smooth > params.lr_tolerance).then(|| {
+            reassign::near_discontinuity(
+                &fwd.u,
+                &vec![true; cw * ch],
+                cw,
+                ch,
+                params.reassign.band,
+                params.reassign.band_radius,
+            )
+            .into_iter()
+            .map(|near| !near)
+            .collect()
+        });
+    let tolerances = (params.lr_tolerance, params.lr_tolerance_smooth);
     let matching_rejected: Option<Vec<bool>> = bwd.as_ref().map(|bw| {
-        let (cw, ch) = (fwd.width, fwd.height);
         let img = |d: &[f32]| Image::from_vec(cw, ch, d.to_vec()).expect("level size");
-        let scale = (1u32 << finest) as f32;
         let c = left_right_check(
             &img(&fwd.u),
             &img(&fwd.v),
@@ -442,14 +477,14 @@ fn dense_disparity_impl(
             &img(&bw.v),
             params.lr_tolerance / scale,
         );
-        let f = 1usize << finest;
-        (0..w * h)
-            .map(|p| {
-                let (x, y) = (((p % w) / f).min(cw - 1), ((p / w) / f).min(ch - 1));
-                c.rejected[y * cw + x]
-            })
-            .collect()
+        let level = reject_beyond(
+            &c.residual,
+            (tolerances.0 / scale, tolerances.1 / scale),
+            smooth.as_deref(),
+        );
+        to_canvas(&level)
     });
+    let smooth = smooth.map(|s| to_canvas(&s));
     let (fwd_full, bwd_full) = rayon::join(
         || sift_flow::to_full_resolution(&a, &b, Some(&va), Some(&vb), fwd, finest, 0, refine),
         || {
@@ -508,9 +543,10 @@ fn dense_disparity_impl(
                     }
                 })
                 .collect();
+            let refined = reject_beyond(&c.residual, tolerances, smooth.as_deref());
             let rejected = match &matching_rejected {
-                Some(m) => c.rejected.iter().zip(m).map(|(a, b)| *a || *b).collect(),
-                None => c.rejected,
+                Some(m) => refined.iter().zip(m).map(|(a, b)| *a || *b).collect(),
+                None => refined,
             };
             (rejected, agreement)
         }
@@ -597,6 +633,24 @@ fn dense_disparity_impl(
 /// [`reassign::reassign`] of both SIFT-flow fields at their own pyramid
 /// level `finest`; the fraction of the valid left pixels of that level whose
 /// flow changed.
+/// Per pixel of `residual`: whether it fails a left–right check with
+/// tolerance `tolerances.0`, or `tolerances.1` where `smooth` is set
+/// (`NaN`: the match left the other image, always a failure).
+fn reject_beyond(residual: &Image, tolerances: (f32, f32), smooth: Option<&[bool]>) -> Vec<bool> {
+    residual
+        .data()
+        .iter()
+        .enumerate()
+        .map(|(p, &r)| {
+            let tol = match smooth {
+                Some(s) if s[p] => tolerances.0.max(tolerances.1),
+                _ => tolerances.0,
+            };
+            r.is_nan() || r > tol
+        })
+        .collect()
+}
+
 fn reassign_fields(
     (a, b): (&Image, &Image),
     (va, vb): (&[bool], &[bool]),
@@ -798,6 +852,53 @@ mod tests {
         );
     }
 
+    /// The wider tolerance away from discontinuities does not let the
+    /// occluded band through, however wide: an occlusion lies beside the
+    /// depth step that causes it.
+    #[test]
+    fn wide_tolerance_away_from_steps_keeps_the_occlusion_masked() {
+        let (w, h) = (320, 192);
+        let pair = occluded_band_pair(w, h);
+        let params = DenseParams {
+            lr_tolerance_smooth: 100.0,
+            ..small_params(Mode::Improved)
+        };
+        let out = dense_disparity(&pair.left, &pair.right, None, None, &params).unwrap();
+        let interior = |p: usize| {
+            let (x, y) = (p % w, p / w);
+            (8..w - 16).contains(&x) && (8..h - 8).contains(&y)
+        };
+        let occluded: Vec<usize> = (0..w * h)
+            .filter(|&p| interior(p) && !pair.visible[p])
+            .collect();
+        let masked = occluded.iter().filter(|&&p| out.occluded[p]).count();
+        assert!(!occluded.is_empty());
+        assert!(
+            masked * 100 >= 70 * occluded.len(),
+            "{masked} of {} occluded pixels masked",
+            occluded.len()
+        );
+    }
+
+    #[test]
+    fn the_wider_tolerance_applies_only_where_the_flow_is_smooth() {
+        let residual = Image::from_vec(4, 1, vec![3.0, 3.0, 1.0, f32::NAN]).unwrap();
+        let smooth = [true, false, false, true];
+        assert_eq!(
+            reject_beyond(&residual, (2.0, 4.0), Some(&smooth)),
+            [false, true, false, true]
+        );
+        assert_eq!(
+            reject_beyond(&residual, (2.0, 4.0), None),
+            [true, true, false, true]
+        );
+        // A "wider" tolerance below the base one changes nothing.
+        assert_eq!(
+            reject_beyond(&residual, (2.0, 1.0), Some(&smooth)),
+            [true, true, false, true]
+        );
+    }
+
     /// The occluded band's pair with and without the re-assignment beside
     /// discontinuities: it is reported, switched off by `enabled = false`,
     /// and stays within bounds of the fields it starts from.
@@ -808,6 +909,9 @@ mod tests {
         let run = |enabled: bool| {
             let mut params = small_params(Mode::Improved);
             params.reassign.enabled = enabled;
+            // The check's own tolerance alone, so that only the
+            // re-assignment differs.
+            params.lr_tolerance_smooth = params.lr_tolerance;
             dense_disparity(&pair.left, &pair.right, None, None, &params).unwrap()
         };
         let (on, off) = (run(true), run(false));
