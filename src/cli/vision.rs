@@ -18,10 +18,11 @@ pub struct ReconstructArgs {
     #[arg(long, short)]
     pub out: PathBuf,
     /// Tilt difference θ between the micrographs, degrees (default: from their metadata).
-    #[arg(long, value_name = "DEG")]
+    // Negative values are taken, so that the refusal names the allowed range.
+    #[arg(long, value_name = "DEG", allow_hyphen_values = true)]
     pub tilt: Option<f64>,
     /// Pixel size, µm (default: from the metadata).
-    #[arg(long, value_name = "UM")]
+    #[arg(long, value_name = "UM", allow_hyphen_values = true)]
     pub pixel_size: Option<f64>,
     /// Direction of the tilt axis in the image, degrees from +x towards +y
     /// (default: metadata, then reconstruction.tilt_axis_deg).
@@ -132,4 +133,38 @@ pub fn run_flow(args: &FlowArgs) -> anyhow::Result<ExitCode> {
     crate::app::flow::run(&args.a, &args.b, &args.out, &params)?;
     println!("{}", args.out.display());
     Ok(ExitCode::SUCCESS)
+}
+
+#[cfg(test)]
+mod tests {
+    use clap::Parser;
+
+    use crate::cli::{Cli, Command};
+
+    /// A negative tilt or pixel size reaches the checks that explain the
+    /// allowed range, instead of being taken for an unknown flag.
+    #[test]
+    fn negative_tilt_and_pixel_size_are_values_not_flags() {
+        let cli = Cli::try_parse_from([
+            "sdsem",
+            "reconstruct",
+            "a.tif",
+            "b.tif",
+            "-o",
+            "out",
+            "--tilt",
+            "-3",
+            "--pixel-size",
+            "-0.1",
+            "--tilt-axis",
+            "-90",
+        ])
+        .unwrap();
+        let Command::Reconstruct(args) = cli.command else {
+            panic!("not reconstruct");
+        };
+        assert_eq!(args.tilt, Some(-3.0));
+        assert_eq!(args.pixel_size, Some(-0.1));
+        assert_eq!(args.tilt_axis, Some(-90.0));
+    }
 }
