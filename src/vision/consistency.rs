@@ -49,12 +49,31 @@ pub fn left_right_check(
                 }
             }
         });
-    let rejected = residual
+    let rejected = reject_beyond(&residual, (tolerance, tolerance), None);
+    Consistency { residual, rejected }
+}
+
+/// Per pixel of a [`Consistency::residual`]: whether it fails a left–right
+/// check with tolerance `tolerances.0`, or `tolerances.1` where `smooth` is
+/// set (`NaN`: the match left the other image, always a failure).
+#[must_use]
+pub fn reject_beyond(
+    residual: &Image,
+    tolerances: (f32, f32),
+    smooth: Option<&[bool]>,
+) -> Vec<bool> {
+    residual
         .data()
         .iter()
-        .map(|&r| r.is_nan() || r > tolerance)
-        .collect();
-    Consistency { residual, rejected }
+        .enumerate()
+        .map(|(p, &r)| {
+            let tol = match smooth {
+                Some(s) if s[p] => tolerances.0.max(tolerances.1),
+                _ => tolerances.0,
+            };
+            r.is_nan() || r > tol
+        })
+        .collect()
 }
 
 #[cfg(test)]
@@ -74,5 +93,24 @@ mod tests {
         // Matches leaving the right image are rejected.
         assert!(c.rejected[9]);
         assert!(c.residual.get(9, 0).is_nan());
+    }
+
+    #[test]
+    fn the_wider_tolerance_applies_only_where_the_flow_is_smooth() {
+        let residual = Image::from_vec(4, 1, vec![3.0, 3.0, 1.0, f32::NAN]).unwrap();
+        let smooth = [true, false, false, true];
+        assert_eq!(
+            reject_beyond(&residual, (2.0, 4.0), Some(&smooth)),
+            [false, true, false, true]
+        );
+        assert_eq!(
+            reject_beyond(&residual, (2.0, 4.0), None),
+            [true, true, false, true]
+        );
+        // A "wider" tolerance below the base one changes nothing.
+        assert_eq!(
+            reject_beyond(&residual, (2.0, 1.0), Some(&smooth)),
+            [true, true, false, true]
+        );
     }
 }

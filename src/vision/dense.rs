@@ -25,7 +25,7 @@ use serde::{Deserialize, Serialize};
 
 use super::Image;
 use super::bilateral_grid::{BilateralParams, GridInfo, bilateral_filter};
-use super::consistency::left_right_check;
+use super::consistency::{left_right_check, reject_beyond};
 use super::reassign::{self, ReassignParams};
 use super::sift_flow::{self, FlowParams, FlowStats, LevelReport, Mode};
 use super::subpixel::{RefineParams, upsample_flow};
@@ -633,24 +633,6 @@ fn dense_disparity_impl(
 /// [`reassign::reassign`] of both SIFT-flow fields at their own pyramid
 /// level `finest`; the fraction of the valid left pixels of that level whose
 /// flow changed.
-/// Per pixel of `residual`: whether it fails a left–right check with
-/// tolerance `tolerances.0`, or `tolerances.1` where `smooth` is set
-/// (`NaN`: the match left the other image, always a failure).
-fn reject_beyond(residual: &Image, tolerances: (f32, f32), smooth: Option<&[bool]>) -> Vec<bool> {
-    residual
-        .data()
-        .iter()
-        .enumerate()
-        .map(|(p, &r)| {
-            let tol = match smooth {
-                Some(s) if s[p] => tolerances.0.max(tolerances.1),
-                _ => tolerances.0,
-            };
-            r.is_nan() || r > tol
-        })
-        .collect()
-}
-
 fn reassign_fields(
     (a, b): (&Image, &Image),
     (va, vb): (&[bool], &[bool]),
@@ -877,25 +859,6 @@ mod tests {
             masked * 100 >= 70 * occluded.len(),
             "{masked} of {} occluded pixels masked",
             occluded.len()
-        );
-    }
-
-    #[test]
-    fn the_wider_tolerance_applies_only_where_the_flow_is_smooth() {
-        let residual = Image::from_vec(4, 1, vec![3.0, 3.0, 1.0, f32::NAN]).unwrap();
-        let smooth = [true, false, false, true];
-        assert_eq!(
-            reject_beyond(&residual, (2.0, 4.0), Some(&smooth)),
-            [false, true, false, true]
-        );
-        assert_eq!(
-            reject_beyond(&residual, (2.0, 4.0), None),
-            [true, true, false, true]
-        );
-        // A "wider" tolerance below the base one changes nothing.
-        assert_eq!(
-            reject_beyond(&residual, (2.0, 1.0), Some(&smooth)),
-            [true, true, false, true]
         );
     }
 
