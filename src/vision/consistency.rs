@@ -31,6 +31,16 @@ pub fn left_right_check(
     vr: &Image,
     tolerance: f32,
 ) -> Consistency {
+    let residual = left_right_residual(u, v, ur, vr);
+    let rejected = reject_beyond(&residual, (tolerance, tolerance), None);
+    Consistency { residual, rejected }
+}
+
+/// The [`Consistency::residual`] of the left-to-right field `(u, v)` against
+/// the right-to-left field `(ur, vr)`, for callers that apply their own
+/// tolerances with [`reject_beyond`].
+#[must_use]
+pub fn left_right_residual(u: &Image, v: &Image, ur: &Image, vr: &Image) -> Image {
     let (w, h) = u.dimensions();
     let mut residual = Image::filled(w, h, f32::NAN);
     residual
@@ -49,8 +59,7 @@ pub fn left_right_check(
                 }
             }
         });
-    let rejected = reject_beyond(&residual, (tolerance, tolerance), None);
-    Consistency { residual, rejected }
+    residual
 }
 
 /// Per pixel of a [`Consistency::residual`]: whether it fails a left–right

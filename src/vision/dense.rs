@@ -25,7 +25,7 @@ use serde::{Deserialize, Serialize};
 
 use super::Image;
 use super::bilateral_grid::{BilateralParams, GridInfo, bilateral_filter};
-use super::consistency::{left_right_check, reject_beyond};
+use super::consistency::{left_right_check, left_right_residual, reject_beyond};
 use super::reassign::{self, ReassignParams};
 use super::sift_flow::{self, FlowParams, FlowStats, LevelReport, Mode};
 use super::subpixel::{RefineParams, upsample_flow};
@@ -470,15 +470,9 @@ fn dense_disparity_impl(
     let tolerances = (params.lr_tolerance, params.lr_tolerance_smooth);
     let matching_rejected: Option<Vec<bool>> = bwd.as_ref().map(|bw| {
         let img = |d: &[f32]| Image::from_vec(cw, ch, d.to_vec()).expect("level size");
-        let c = left_right_check(
-            &img(&fwd.u),
-            &img(&fwd.v),
-            &img(&bw.u),
-            &img(&bw.v),
-            params.lr_tolerance / scale,
-        );
+        let residual = left_right_residual(&img(&fwd.u), &img(&fwd.v), &img(&bw.u), &img(&bw.v));
         let level = reject_beyond(
-            &c.residual,
+            &residual,
             (tolerances.0 / scale, tolerances.1 / scale),
             smooth.as_deref(),
         );
@@ -529,7 +523,7 @@ fn dense_disparity_impl(
         Some(bw) => {
             let ur = Image::from_vec(w, h, bw.u.clone()).expect("flow has the canvas size");
             let vr = Image::from_vec(w, h, bw.v.clone()).expect("flow has the canvas size");
-            let c = left_right_check(&u, &v, &ur, &vr, params.lr_tolerance);
+            let residual = left_right_residual(&u, &v, &ur, &vr);
             // The agreement's scale is the strict tolerance everywhere, also
             // where `lr_tolerance_smooth` accepts a larger residual: the
             // residual is evidence against the match wherever it lies. Scaling
@@ -538,8 +532,7 @@ fn dense_disparity_impl(
             // 640×480 cases (grid > 1 px 5.3 → 5.5 %, particles RMSE 5.13 →
             // 5.16 % of the relief, dome unchanged).
             let tol = params.lr_tolerance.max(1e-3);
-            let agreement: Vec<f32> = c
-                .residual
+            let agreement: Vec<f32> = residual
                 .data()
                 .iter()
                 .map(|&r| {
@@ -550,7 +543,7 @@ fn dense_disparity_impl(
                     }
                 })
                 .collect();
-            let refined = reject_beyond(&c.residual, tolerances, smooth.as_deref());
+            let refined = reject_beyond(&residual, tolerances, smooth.as_deref());
             let rejected = match &matching_rejected {
                 Some(m) => refined.iter().zip(m).map(|(a, b)| *a || *b).collect(),
                 None => refined,
