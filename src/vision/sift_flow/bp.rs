@@ -49,6 +49,9 @@ pub struct DualLayerBp<'a> {
     /// recomputes them once before it starts (for the test of settled labels).
     labels_current: bool,
     strips: Vec<(usize, usize)>,
+    /// Per row, the columns the sweeps visit (all by default, see
+    /// [`DualLayerBp::restrict`]).
+    spans: Vec<(usize, usize)>,
     min_strip_rows: usize,
     max_strips: usize,
 }
@@ -83,6 +86,49 @@ fn strips_for(height: usize, min_rows: usize, max_strips: usize) -> Vec<(usize, 
     (0..n)
         .map(|i| (i * height / n, (i + 1) * height / n))
         .filter(|(a, b)| b > a)
+        .collect()
+}
+
+/// Per row, the columns `x0..x1` of the nodes within `margin` pixels
+/// (Chebyshev distance) of an active one; `(0, 0)` for a row with none.
+/// Rows of an image rotated onto the rectified canvas hold one interval of
+/// real pixels each, so the bounding interval loses little.
+#[must_use]
+pub fn active_spans(active: &[bool], w: usize, h: usize, margin: usize) -> Vec<(usize, usize)> {
+    assert_eq!(active.len(), w * h, "mask size");
+    let own: Vec<Option<(usize, usize)>> = active
+        .chunks_exact(w)
+        .map(|row| {
+            let first = row.iter().position(|&a| a)?;
+            let last = row.iter().rposition(|&a| a)?;
+            Some((first, last + 1))
+        })
+        .collect();
+    (0..h)
+        .map(|y| {
+            let rows = &own[y.saturating_sub(margin)..(y + margin + 1).min(h)];
+            let x0 = rows.iter().flatten().map(|s| s.0).min();
+            let x1 = rows.iter().flatten().map(|s| s.1).max();
+            match (x0, x1) {
+                (Some(x0), Some(x1)) => (x0.saturating_sub(margin), (x1 + margin).min(w)),
+                _ => (0, 0),
+            }
+        })
+        .collect()
+}
+
+/// The spans of [`active_spans`] on the grid of 2 × 2 nodes (width `cw`).
+fn coarsen_spans(spans: &[(usize, usize)], cw: usize, ch: usize) -> Vec<(usize, usize)> {
+    (0..ch)
+        .map(|cy| {
+            let rows = &spans[2 * cy..(2 * cy + 2).min(spans.len())];
+            let x0 = rows.iter().filter(|s| s.1 > s.0).map(|s| s.0).min();
+            let x1 = rows.iter().filter(|s| s.1 > s.0).map(|s| s.1).max();
+            match (x0, x1) {
+                (Some(x0), Some(x1)) => (x0 / 2, x1.div_ceil(2).min(cw)),
+                _ => (0, 0),
+            }
+        })
         .collect()
 }
 
@@ -189,6 +235,8 @@ struct Sweep<'c> {
     k: usize,
     forward: bool,
     dual: bool,
+    /// Per row, the columns that are swept.
+    spans: &'c [(usize, usize)],
 }
 
 /// The mutable rows of one strip.
@@ -252,8 +300,9 @@ impl Sweep<'_> {
 
         for r in 0..y1 - y0 {
             let y = if self.forward { y0 + r } else { y1 - 1 - r };
-            for i in 0..w {
-                let x = if self.forward { i } else { w - 1 - i };
+            let (xa, xb) = self.spans[y];
+            for i in 0..xb.saturating_sub(xa) {
+                let x = if self.forward { xa + i } else { xb - 1 - i };
                 let p = y * w + x;
                 let pl = (y - y0) * w + x;
                 let node = &mk[pl * stride..pl * stride + stride];
@@ -389,9 +438,28 @@ impl<'a> DualLayerBp<'a> {
             labels: [vec![0; area], vec![0; area]],
             labels_current: false,
             strips: strips_for(space.height, min_strip_rows, max_strips),
+            spans: vec![(0, space.width); space.height],
             min_strip_rows,
             max_strips,
         }
+    }
+
+    /// Sweeps only the columns `spans[y]` of every row `y` (for instance the
+    /// [`active_spans`] of the pixels that carry a data term): the nodes
+    /// outside are left out of the graph — they send no message, and their
+    /// labels are not a solution — and the nodes inside read the messages
+    /// they last received from them (none, or the warm start's). On a canvas
+    /// that an oblique tilt axis rotates, about half the nodes lie outside.
+    ///
+    /// # Panics
+    /// When `spans` does not have one interval within the width per row.
+    pub fn restrict(&mut self, spans: Vec<(usize, usize)>) {
+        assert_eq!(spans.len(), self.space.height, "one span per row");
+        assert!(
+            spans.iter().all(|&(a, b)| a <= b && b <= self.space.width),
+            "spans within the width"
+        );
+        self.spans = spans;
     }
 
     /// Recomputes the labels if the messages changed since they were taken.
@@ -424,6 +492,7 @@ impl<'a> DualLayerBp<'a> {
             self.min_strip_rows,
             self.max_strips,
         );
+        coarse.restrict(coarsen_spans(&self.spans, cspace.width, cspace.height));
         coarse.warm_start(hierarchy - 1, iterations);
         for count in 0..iterations {
             coarse.iterate(count);
@@ -513,6 +582,7 @@ impl<'a> DualLayerBp<'a> {
             k,
             forward,
             dual,
+            spans: &self.spans,
         };
         let [m0, m1] = &mut self.msgs;
         let [l0, l1] = &mut self.labels;
@@ -549,18 +619,20 @@ impl<'a> DualLayerBp<'a> {
         let mut refreshed = Vec::new();
         for (i, outbox) in outboxes.iter().enumerate() {
             let (y0, y1) = strips[i];
-            let (row, slot) = if forward {
+            let (row, slot, from) = if forward {
                 if i + 1 == strips.len() {
                     continue;
                 }
-                (y1, FROM_UP)
+                (y1, FROM_UP, y1 - 1)
             } else {
                 if i == 0 {
                     continue;
                 }
-                (y0 - 1, FROM_DOWN)
+                (y0 - 1, FROM_DOWN, y0)
             };
-            for x in 0..w {
+            // Only the swept nodes of the sending row sent a message.
+            let (xa, xb) = self.spans[from];
+            for x in xa..xb {
                 let dst = ((row * w + x) * SLOTS + slot) * nk;
                 mk[dst..dst + nk].copy_from_slice(&outbox[x * nk..(x + 1) * nk]);
             }
@@ -819,6 +891,99 @@ mod tests {
                 wrong <= 24 * 70 / 100,
                 "{max_strips} strips: {wrong} wrong labels"
             );
+        }
+    }
+
+    #[test]
+    fn active_spans_match_a_dilated_mask() {
+        let (w, h) = (23, 17);
+        let mut seed = 7u32;
+        let mut active = vec![false; w * h];
+        for (p, a) in active.iter_mut().enumerate() {
+            seed = seed.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+            // A rotated band of real pixels plus scattered ones, a few empty rows.
+            let (x, y) = ((p % w) as i32, (p / w) as i32);
+            *a = ((3..12).contains(&y) && (x - y).abs() < 6) || (y < 14 && (seed >> 24) < 4);
+        }
+        for margin in [0usize, 1, 3] {
+            let spans = active_spans(&active, w, h, margin);
+            for (y, &span) in spans.iter().enumerate() {
+                // Naive: every node within `margin` (Chebyshev) of an active one.
+                let near: Vec<usize> = (0..w)
+                    .filter(|&x| {
+                        (0..h).any(|yy| {
+                            (0..w).any(|xx| {
+                                active[yy * w + xx]
+                                    && yy.abs_diff(y) <= margin
+                                    && xx.abs_diff(x) <= margin
+                            })
+                        })
+                    })
+                    .collect();
+                let expected = match (near.first(), near.last()) {
+                    (Some(&a), Some(&b)) => (a, b + 1),
+                    _ => (0, 0),
+                };
+                assert_eq!(span, expected, "row {y}, margin {margin}");
+            }
+        }
+    }
+
+    #[test]
+    fn nodes_outside_the_spans_send_nothing() {
+        let (w, h) = (24, 70);
+        let (space, plain) = problem(w, h);
+        // A triangle of nodes (a rotated image's empty corner) whose data
+        // pulls towards a third flow.
+        let outside = |p: usize| (p % w) + (p / w) / 4 < 8;
+        let mut misleading = plain.clone();
+        let (nu, nv) = (7, 3);
+        for p in (0..w * h).filter(|&p| outside(p)) {
+            for lv in 0..nv {
+                for lu in 0..nu {
+                    let du = (lu as i32 - 6).unsigned_abs();
+                    misleading.cost[(p * nv + lv) * nu + lu] = (80 * du) as u16;
+                }
+            }
+        }
+        let active: Vec<bool> = (0..w * h).map(|p| !outside(p)).collect();
+        let spans = active_spans(&active, w, h, 0);
+        let weights = two_region_weights();
+        let solve = |data: &DataTerm, max_strips: usize, hierarchy: usize| {
+            let mut bp = DualLayerBp::new(&space, data, weights, 16, max_strips);
+            bp.restrict(spans.clone());
+            bp.warm_start(hierarchy, 4);
+            bp.run(16).labels
+        };
+        let inside = |labels: &[Vec<u16>; 2]| -> Vec<[u16; 2]> {
+            (0..w * h)
+                .filter(|&p| !outside(p))
+                .map(|p| [labels[0][p], labels[1][p]])
+                .collect()
+        };
+        for max_strips in [1, 3] {
+            // Without the warm start (whose 2 × 2 nodes mix both sides), the
+            // nodes inside cannot tell what the nodes outside were given.
+            assert_eq!(
+                inside(&solve(&plain, max_strips, 0)),
+                inside(&solve(&misleading, max_strips, 0)),
+                "{max_strips} strips"
+            );
+            for hierarchy in [0, 2] {
+                let labels = solve(&misleading, max_strips, hierarchy);
+                let wrong = (0..w * h)
+                    .filter(|&p| !outside(p))
+                    .filter(|&p| {
+                        let truth = if p % w < w / 2 { 2 } else { -1 };
+                        space.flow(0, p, usize::from(labels[0][p])) != truth
+                            || space.flow(1, p, usize::from(labels[1][p])) != 0
+                    })
+                    .count();
+                assert!(
+                    wrong <= w * h / 100,
+                    "{max_strips} strips, hierarchy {hierarchy}: {wrong} wrong labels inside"
+                );
+            }
         }
     }
 

@@ -496,8 +496,10 @@ impl Engine {
     /// Runs coarse to fine from `a` to `b` and, when `both` is set, from `b`
     /// to `a` as well (for the left–right check). `valid_a`/`valid_b` mark
     /// usable pixels (row-major); an invalid pixel of the source image has no
-    /// data term (its flow comes from its neighbours), one of the target cannot
-    /// be matched.
+    /// data term (its flow comes from its neighbours; beyond
+    /// [`ACTIVE_MARGIN`] of a valid one BP leaves it out and it takes the flow
+    /// of the nearest swept pixel of its row), one of the target cannot be
+    /// matched.
     ///
     /// Level by level, the descriptors of both images are computed once and
     /// serve both directions, which then run at the same time (two sequential
@@ -701,6 +703,10 @@ impl Engine {
         };
         let tbp = Instant::now();
         let mut bp = DualLayerBp::new(&space, &data, weights, MIN_STRIP_ROWS, self.max_strips);
+        let spans = mask_a.map(|m| bp::active_spans(m, w, h, ACTIVE_MARGIN));
+        if let Some(spans) = &spans {
+            bp.restrict(spans.clone());
+        }
         if self.mode == Mode::Improved {
             bp.init_dual_from_data();
         }
@@ -723,6 +729,10 @@ impl Engine {
                     .map(|p| space.flow(k, p, usize::from(outcome.labels[k][p])) as f32)
                     .collect()
             })
+        };
+        let flow = match &spans {
+            Some(spans) => flow.map(|f| extend_rows(f, w, spans)),
+            None => flow,
         };
         let margin = if l == self.finest {
             bp.margins(0)
@@ -748,6 +758,50 @@ impl Engine {
             }],
         }
     }
+}
+
+/// Pixels (of the level) around the valid source pixels that BP sweeps with
+/// them; farther ones take the flow of the nearest swept pixel of their row
+/// ([`extend_rows`]). Beyond the reach of the finest level's windows (the
+/// refinement's start smoothing, σ 6 full-resolution pixels, reaches 9
+/// pixels of the half-resolution level at 3σ), so the flow of valid pixels
+/// does not see the cut.
+const ACTIVE_MARGIN: usize = 12;
+
+/// `field` (row-major, width `w`) with every pixel outside its row's span
+/// set to the nearest one inside; a row without a span copies the nearest
+/// row that has one (the field unchanged when none has).
+fn extend_rows(mut field: Vec<f32>, w: usize, spans: &[(usize, usize)]) -> Vec<f32> {
+    for (row, &(a, b)) in field.chunks_exact_mut(w).zip(spans) {
+        if b > a {
+            let (first, last) = (row[a], row[b - 1]);
+            row[..a].fill(first);
+            row[b..].fill(last);
+        }
+    }
+    let filled: Vec<usize> = (0..spans.len())
+        .filter(|&y| spans[y].1 > spans[y].0)
+        .collect();
+    if filled.is_empty() {
+        return field;
+    }
+    for y in 0..spans.len() {
+        if spans[y].1 > spans[y].0 {
+            continue;
+        }
+        let src = filled[filled.partition_point(|&f| f < y).min(filled.len() - 1)];
+        let src = if src > y {
+            // The nearest filled row may lie above as well.
+            match filled.iter().rev().find(|&&f| f < y) {
+                Some(&up) if y - up <= src - y => up,
+                _ => src,
+            }
+        } else {
+            src
+        };
+        field.copy_within(src * w..(src + 1) * w, y * w);
+    }
+    field
 }
 
 /// The newer level's direction state, keeping the reports of the older ones.
@@ -898,6 +952,25 @@ pub(crate) fn fill_non_finite(img: &Image) -> Image {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn fields_extend_from_the_nearest_swept_pixel() {
+        let w = 5;
+        let spans = [(0, 0), (1, 3), (0, 0), (0, 0), (2, 5), (0, 0)];
+        let field: Vec<f32> = (0..w * spans.len()).map(|p| p as f32).collect();
+        let out = extend_rows(field, w, &spans);
+        let row = |y: usize| &out[y * w..(y + 1) * w];
+        assert_eq!(row(1), &[6.0, 6.0, 7.0, 7.0, 7.0]);
+        assert_eq!(row(4), &[22.0, 22.0, 22.0, 23.0, 24.0]);
+        // Empty rows copy the nearest row with a span (the upper one on a tie).
+        assert_eq!(row(0), row(1));
+        assert_eq!(row(2), row(1));
+        assert_eq!(row(3), row(4));
+        assert_eq!(row(5), row(4));
+        // No span at all: unchanged.
+        let field = vec![1.0, 2.0, 3.0, 4.0];
+        assert_eq!(extend_rows(field.clone(), 2, &[(0, 0), (0, 0)]), field);
+    }
 
     #[test]
     fn middle_levels_search_wider_in_the_improved_mode_only() {
