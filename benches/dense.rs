@@ -40,9 +40,9 @@ fn kernels(c: &mut Criterion) {
             offset: [vec![1; W * H], vec![0; W * H]],
         };
         c.bench_function(&format!("data term 320x240 {name}"), |bn| {
-            bn.iter(|| DataTerm::compute(black_box(&da), &db, &space, None, None))
+            bn.iter(|| DataTerm::compute(black_box(&da), &db, &space, None, None, None))
         });
-        let data = DataTerm::compute(&da, &db, &space, None, None);
+        let data = DataTerm::compute(&da, &db, &space, None, None, None);
         let weights = EnergyWeights {
             alpha: 510.0,
             d: 10200.0,

@@ -261,7 +261,27 @@ fn quantise(v: &[f32; DESCRIPTOR_LEN], out: &mut [u8]) {
 /// the cells plus 128 per pixel for the descriptor assembly.
 #[must_use]
 pub fn dense_sift(img: &Image, params: &DenseSiftParams) -> DescriptorImage {
+    dense_sift_where(img, params, None)
+}
+
+/// [`dense_sift`], assembled only at the pixels `wanted` marks (row-major;
+/// `None`: all); the others hold zero descriptors. The cells are those of
+/// the whole image, so a wanted pixel's descriptor is the same as
+/// [`dense_sift`]'s. The dense stage wants its real pixels only: the fill
+/// around an image rotated onto the rectified canvas is never matched.
+///
+/// # Panics
+/// When `wanted` does not have one entry per pixel.
+#[must_use]
+pub fn dense_sift_where(
+    img: &Image,
+    params: &DenseSiftParams,
+    wanted: Option<&[bool]>,
+) -> DescriptorImage {
     let (w, h) = img.dimensions();
+    if let Some(m) = wanted {
+        assert_eq!(m.len(), w * h, "one mask entry per pixel");
+    }
     let cell_size = params.cell_size.max(1);
     let layout = CellLayout::new(cell_size);
     if w == 0 || h == 0 {
@@ -319,6 +339,9 @@ pub fn dense_sift(img: &Image, params: &DenseSiftParams) -> DescriptorImage {
         .for_each(|(y, row)| {
             let mut v = [0f32; DESCRIPTOR_LEN];
             for (x, desc) in row.chunks_exact_mut(DESCRIPTOR_LEN).enumerate() {
+                if wanted.is_some_and(|m| !m[y * w + x]) {
+                    continue;
+                }
                 let mut i = 0;
                 for &oy in &layout.cell_offsets {
                     let cy = (y as isize + oy).clamp(0, h as isize - 1) as usize;
@@ -420,6 +443,23 @@ mod tests {
                 .unwrap();
             // Rounding of f32 sums in a different order: off by one at most.
             assert!(worst <= 1, "cell size {cs}: worst byte difference {worst}");
+        }
+    }
+
+    #[test]
+    fn masked_descriptors_are_the_full_ones_where_wanted() {
+        let img = texture(29, 23);
+        let params = DenseSiftParams { cell_size: 2 };
+        let full = dense_sift(&img, &params);
+        let wanted: Vec<bool> = (0..29 * 23).map(|p| (p % 29) + (p / 29) > 12).collect();
+        let masked = dense_sift_where(&img, &params, Some(&wanted));
+        for (p, &keep) in wanted.iter().enumerate() {
+            let (x, y) = (p % 29, p / 29);
+            if keep {
+                assert_eq!(masked.at(x, y), full.at(x, y), "pixel ({x}, {y})");
+            } else {
+                assert!(masked.at(x, y).iter().all(|&b| b == 0), "pixel ({x}, {y})");
+            }
         }
     }
 

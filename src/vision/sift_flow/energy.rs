@@ -73,14 +73,17 @@ const OUTSIDE: u16 = u16::MAX;
 impl DataTerm {
     /// Computes the data term of every label of `space`.
     ///
-    /// `valid2` (row-major over `s2`) marks pixels of the second image that may
-    /// be matched; `truncation` is `t` of eq. (10) (`None`: not truncated, as
-    /// the reference code runs).
+    /// `valid1` (row-major over `s1`) marks the pixels that have a data term:
+    /// the others are not matched and cost 0 for every label (`None`: all
+    /// have one). `valid2` (row-major over `s2`) marks pixels of the second
+    /// image that may be matched; `truncation` is `t` of eq. (10) (`None`:
+    /// not truncated, as the reference code runs).
     #[must_use]
     pub fn compute(
         s1: &DescriptorImage,
         s2: &DescriptorImage,
         space: &LabelSpace,
+        valid1: Option<&[bool]>,
         valid2: Option<&[bool]>,
         truncation: Option<f32>,
     ) -> Self {
@@ -94,8 +97,13 @@ impl DataTerm {
             .for_each(|(y, row)| {
                 for x in 0..w {
                     let p = y * w + x;
-                    let a = s1.at(x, y);
                     let out = &mut row[x * per_pixel..(x + 1) * per_pixel];
+                    if valid1.is_some_and(|m| !m[p]) {
+                        // Left out of the median below; zero at the end.
+                        out.fill(OUTSIDE);
+                        continue;
+                    }
+                    let a = s1.at(x, y);
                     for lv in 0..nv {
                         let y2 = y as i64 + i64::from(space.flow(1, p, lv));
                         for lu in 0..nu {
@@ -134,6 +142,12 @@ impl DataTerm {
                 (*c).min(cap)
             };
         });
+        if let Some(m) = valid1 {
+            cost.par_chunks_mut(per_pixel)
+                .zip(m.par_iter())
+                .filter(|(_, v)| !**v)
+                .for_each(|(c, _)| c.fill(0));
+        }
         Self {
             cost,
             scale: 1.0,
@@ -394,5 +408,78 @@ mod tests {
         }
         let got = energy(&data, &space, &labels, &wts);
         assert!((got - want).abs() < 1e-3, "{got} vs {want}");
+    }
+    #[test]
+    fn pixels_without_a_data_term_cost_nothing_and_stay_out_of_the_median() {
+        use crate::vision::Image;
+        use crate::vision::dense_sift::{DenseSiftParams, dense_sift};
+        let (w, h) = (20, 12);
+        let img = Image::from_vec(
+            w,
+            h,
+            // Flat (zero descriptors, matches among them cost 0) where the
+            // mask below leaves the data term out.
+            (0..w * h)
+                .map(|p| {
+                    if p % w < 8 {
+                        0.5
+                    } else {
+                        ((p * 7919 % 97) as f32 / 97.0).sin().abs()
+                    }
+                })
+                .collect(),
+        )
+        .unwrap();
+        let d = dense_sift(&img, &DenseSiftParams { cell_size: 1 });
+        let space = LabelSpace {
+            width: w,
+            height: h,
+            window: [3, 1],
+            offset: [vec![0; w * h], vec![0; w * h]],
+        };
+        let valid1: Vec<bool> = (0..w * h).map(|p| p % w >= 6).collect();
+        let all = DataTerm::compute(&d, &d, &space, None, None, None);
+        let some = DataTerm::compute(&d, &d, &space, Some(&valid1), None, None);
+        let per = space.states(0) * space.states(1);
+        // The median of the matches inside, from the valid pixels only.
+        let mut inside: Vec<u16> = Vec::new();
+        for p in (0..w * h).filter(|&p| valid1[p]) {
+            for lv in 0..space.states(1) {
+                for lu in 0..space.states(0) {
+                    let (x, y) = (
+                        (p % w) as i64 + lu as i64 - 3,
+                        (p / w) as i64 + lv as i64 - 1,
+                    );
+                    if x >= 0 && y >= 0 && x < w as i64 && y < h as i64 {
+                        inside.push(all.cost[p * per + lv * space.states(0) + lu]);
+                    }
+                }
+            }
+        }
+        inside.sort_unstable();
+        let median = inside[inside.len() / 2];
+        assert!(
+            some.outside_cost.abs_diff(median) <= 1,
+            "{} vs {median}",
+            some.outside_cost
+        );
+        assert!(
+            all.outside_cost + 1 < median,
+            "the test's flat band must pull the median"
+        );
+        for (p, &valid) in valid1.iter().enumerate() {
+            let c = &some.cost[p * per..(p + 1) * per];
+            if valid {
+                // Inside matches as without the mask; outside ones at the median.
+                for (l, (&a, &b)) in c.iter().zip(&all.cost[p * per..(p + 1) * per]).enumerate() {
+                    assert!(
+                        a == b || a == some.outside_cost,
+                        "pixel {p} label {l}: {a} vs {b}"
+                    );
+                }
+            } else {
+                assert!(c.iter().all(|&x| x == 0), "pixel {p} has a data term");
+            }
+        }
     }
 }

@@ -18,7 +18,7 @@ use self::bp::{DualLayerBp, MAX_STATES};
 use self::energy::{DataTerm, EnergyWeights, LabelSpace};
 use super::Image;
 use super::dense::DenseError;
-use super::dense_sift::{DenseSiftParams, DescriptorImage, dense_sift};
+use super::dense_sift::{DenseSiftParams, DescriptorImage, dense_sift, dense_sift_where};
 use super::subpixel::{RefineParams, RefinedFlow, refine_flow_down_to, upsample_flow};
 
 /// Which pipeline to run.
@@ -565,7 +565,13 @@ impl Engine {
                 let sift = DenseSiftParams {
                     cell_size: self.plan[l].cell_size,
                 };
-                computed = rayon::join(|| dense_sift(ia, &sift), || dense_sift(ib, &sift));
+                // Each image's descriptors serve its real pixels only: as
+                // the source they have the data term, as the target the
+                // others are never matched.
+                computed = rayon::join(
+                    || dense_sift_where(ia, &sift, masks_a[l].as_deref()),
+                    || dense_sift_where(ib, &sift, masks_b[l].as_deref()),
+                );
                 (&computed.0, &computed.1)
             };
             let descriptor_ms = ms(td) + if l + 1 == levels { pyramid_ms } else { 0.0 };
@@ -682,13 +688,7 @@ impl Engine {
             offset,
         };
         let tdata = Instant::now();
-        let mut data = DataTerm::compute(da, db, &space, mask_b, self.t);
-        if let Some(ma) = mask_a {
-            let per = space.states(0) * space.states(1);
-            for (p, _) in ma.iter().enumerate().filter(|(_, v)| !**v) {
-                data.cost[p * per..(p + 1) * per].fill(0);
-            }
-        }
+        let data = DataTerm::compute(da, db, &space, mask_a, mask_b, self.t);
         let data_term_ms = ms(tdata);
         // Improved mode: a stronger smoothness at the finest BP level only.
         let alpha = if l == self.finest && self.mode == Mode::Improved {
