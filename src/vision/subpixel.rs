@@ -594,6 +594,11 @@ impl CrossGrid {
                 for x in 0..w {
                     let p = y * w + x;
                     let v = &src[p];
+                    if v.iter().all(|&b| b == 0.0) {
+                        // Adds nothing (the refinement's products are zero
+                        // at unusable pixels: the fill of a rotated canvas).
+                        continue;
+                    }
                     let fx = x as f32 / cell + pad;
                     let fz = self.fz[p];
                     let (x0, z0) = (fx as usize, fz as usize); // positive: truncation is the floor
