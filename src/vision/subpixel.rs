@@ -543,20 +543,22 @@ impl CrossGrid {
             norm: Vec::new(),
         };
         let (mut ga, mut gb) = (Vec::new(), Vec::new());
-        g.sums(values, &mut ga, &mut gb);
+        g.sums(values, &mut ga, &mut gb, None);
         g.norm = values.iter().map(|v| v[C - 1]).collect();
         g
     }
 
-    /// Replaces every pixel of `buf` by its normalised weighted sum; `grid`
-    /// and `scratch` are reused buffers (resized as needed).
+    /// Replaces every pixel of `buf` by its normalised weighted sum (only
+    /// those `wanted` marks, the others by zeros; `None`: all); `grid` and
+    /// `scratch` are reused buffers (resized as needed).
     fn aggregate<const C: usize>(
         &self,
         buf: &mut [[f32; C]],
         grid: &mut Vec<[f32; C]>,
         scratch: &mut Vec<[f32; C]>,
+        wanted: Option<&[bool]>,
     ) {
-        self.sums(buf, grid, scratch);
+        self.sums(buf, grid, scratch, wanted);
         buf.par_iter_mut().zip(&self.norm).for_each(|(v, &n)| {
             let inv = if n > 1e-12 { 1.0 / n } else { 0.0 };
             for c in v.iter_mut() {
@@ -565,12 +567,14 @@ impl CrossGrid {
         });
     }
 
-    /// Un-normalised sums: splat, blur, slice.
+    /// Un-normalised sums: splat, blur, slice (at the pixels `wanted` marks,
+    /// zeros elsewhere; `None`: all).
     fn sums<const C: usize>(
         &self,
         buf: &mut [[f32; C]],
         grid: &mut Vec<[f32; C]>,
         scratch: &mut Vec<[f32; C]>,
+        wanted: Option<&[bool]>,
     ) {
         let (w, h, nx, ny, nz) = (self.w, self.h, self.nx, self.ny, self.nz);
         let slab = nx * nz;
@@ -679,6 +683,10 @@ impl CrossGrid {
             let ty = fy - y0 as f32;
             for (x, o) in row.iter_mut().enumerate() {
                 let p = y * w + x;
+                if wanted.is_some_and(|m| !m[p]) {
+                    *o = [0f32; C];
+                    continue;
+                }
                 let fx = x as f32 / cell + pad;
                 let fz = self.fz[p];
                 let (x0, z0) = (fx as usize, fz as usize); // positive: truncation is the floor
@@ -824,6 +832,8 @@ fn refine_level(
         sb.at(x + u[p], y + v[p])
     };
     let mut clamped = vec![false; w * h];
+    // The steps below read the sums of usable pixels only.
+    let usable_mask: Vec<bool> = (0..w * h).into_par_iter().map(usable).collect();
     let mut products = vec![[0f32; 6]; w * h];
     let mut scratch = vec![[0f32; 6]; w * h];
     let (mut grid_a, mut grid_b) = (Vec::new(), Vec::new());
@@ -846,7 +856,7 @@ fn refine_level(
             };
         });
         match &xb {
-            Some(g) => g.aggregate(&mut products, &mut grid_a, &mut grid_b),
+            Some(g) => g.aggregate(&mut products, &mut grid_a, &mut grid_b, Some(&usable_mask)),
             None => blur_in_place(&mut products, &mut scratch, w, h, params.window_sigma),
         }
         let sums = &products;
@@ -1258,7 +1268,7 @@ mod tests {
             let g = CrossGrid::new(&key, w, h, sigma_s, sigma_r);
             let mut fast = values.clone();
             let (mut ga, mut gb) = (Vec::new(), Vec::new());
-            g.aggregate(&mut fast, &mut ga, &mut gb);
+            g.aggregate(&mut fast, &mut ga, &mut gb, None);
             let slow = naive_cross(&values, &key, w, &g);
             for (a, b) in fast.iter().zip(&slow) {
                 for c in 0..2 {
@@ -1266,6 +1276,17 @@ mod tests {
                         (a[c] - b[c]).abs() < 1e-3 * (1.0 + b[c].abs()),
                         "σs {sigma_s} σr {sigma_r}: {a:?} vs {b:?}"
                     );
+                }
+            }
+            // Only the wanted pixels: the same sums there, zeros elsewhere.
+            let wanted: Vec<bool> = (0..w * h).map(|p| p % 3 != 0).collect();
+            let mut some = values.clone();
+            g.aggregate(&mut some, &mut ga, &mut gb, Some(&wanted));
+            for ((a, b), &keep) in some.iter().zip(&fast).zip(&wanted) {
+                if keep {
+                    assert_eq!(a, b);
+                } else {
+                    assert_eq!(a, &[0.0; 2]);
                 }
             }
         }
@@ -1281,7 +1302,7 @@ mod tests {
         let g = CrossGrid::new(&key, w, h, 3.0, 0.5);
         let mut separate: Vec<[f32; 1]> = vals.iter().map(|&v| [v]).collect();
         let (mut ga, mut gb) = (Vec::new(), Vec::new());
-        g.sums(&mut separate, &mut ga, &mut gb);
+        g.sums(&mut separate, &mut ga, &mut gb, None);
         let mut joint: Vec<[f32; 2]> = vals.iter().map(|&v| [v, 1.0]).collect();
         let gj = CrossGrid::with_sums(&key, w, h, 3.0, 0.5, &mut joint);
         assert_eq!(gj.norm, g.norm);
