@@ -823,17 +823,19 @@ fn refine_level(
     let (u0, v0) = (&u0, &v0);
     let mut u = u0.clone();
     let mut v = v0.clone();
-    let usable = |p: usize| valid_a.is_none_or(|m| m[p]) && u0[p].is_finite() && v0[p].is_finite();
+    // The pixels that take part: valid, with a starting flow.
+    let usable: Vec<bool> = (0..w * h)
+        .into_par_iter()
+        .map(|p| valid_a.is_none_or(|m| m[p]) && u0[p].is_finite() && v0[p].is_finite())
+        .collect();
     let warped = |u: &[f32], v: &[f32], p: usize| -> Option<[f32; 3]> {
-        if !usable(p) {
+        if !usable[p] {
             return None;
         }
         let (x, y) = ((p % w) as f32, (p / w) as f32);
         sb.at(x + u[p], y + v[p])
     };
     let mut clamped = vec![false; w * h];
-    // The steps below read the sums of usable pixels only.
-    let usable_mask: Vec<bool> = (0..w * h).into_par_iter().map(usable).collect();
     let mut products = vec![[0f32; 6]; w * h];
     let mut scratch = vec![[0f32; 6]; w * h];
     let (mut grid_a, mut grid_b) = (Vec::new(), Vec::new());
@@ -856,7 +858,8 @@ fn refine_level(
             };
         });
         match &xb {
-            Some(g) => g.aggregate(&mut products, &mut grid_a, &mut grid_b, Some(&usable_mask)),
+            // The steps below read the sums of usable pixels only.
+            Some(g) => g.aggregate(&mut products, &mut grid_a, &mut grid_b, Some(&usable)),
             None => blur_in_place(&mut products, &mut scratch, w, h, params.window_sigma),
         }
         let sums = &products;
@@ -866,7 +869,7 @@ fn refine_level(
             .enumerate()
             .for_each(|(p, ((up, vp), cl))| {
                 let [sxx, sxy, syy, sxe, sye, s1] = sums[p];
-                if !usable(p) || s1 < 1e-3 {
+                if !usable[p] || s1 < 1e-3 {
                     return;
                 }
                 let lam = TIKHONOV * s1;
@@ -919,7 +922,7 @@ fn refine_level(
         .par_iter()
         .enumerate()
         .map(|(p, &[saa, sbb, sab, s1])| {
-            if !usable(p) || s1 < 1e-3 || saa <= 0.0 || sbb <= 0.0 {
+            if !usable[p] || s1 < 1e-3 || saa <= 0.0 || sbb <= 0.0 {
                 0.0
             } else {
                 (sab / (saa * sbb).sqrt()).clamp(0.0, 1.0)

@@ -96,38 +96,38 @@ fn strips_for(height: usize, min_rows: usize, max_strips: usize) -> Vec<(usize, 
 #[must_use]
 pub fn active_spans(active: &[bool], w: usize, h: usize, margin: usize) -> Vec<(usize, usize)> {
     assert_eq!(active.len(), w * h, "mask size");
-    let own: Vec<Option<(usize, usize)>> = active
+    let own: Vec<(usize, usize)> = active
         .chunks_exact(w)
-        .map(|row| {
-            let first = row.iter().position(|&a| a)?;
-            let last = row.iter().rposition(|&a| a)?;
-            Some((first, last + 1))
-        })
+        .map(
+            |row| match (row.iter().position(|&a| a), row.iter().rposition(|&a| a)) {
+                (Some(first), Some(last)) => (first, last + 1),
+                _ => (0, 0),
+            },
+        )
         .collect();
     (0..h)
         .map(|y| {
-            let rows = &own[y.saturating_sub(margin)..(y + margin + 1).min(h)];
-            let x0 = rows.iter().flatten().map(|s| s.0).min();
-            let x1 = rows.iter().flatten().map(|s| s.1).max();
-            match (x0, x1) {
-                (Some(x0), Some(x1)) => (x0.saturating_sub(margin), (x1 + margin).min(w)),
-                _ => (0, 0),
-            }
+            bounding(&own[y.saturating_sub(margin)..(y + margin + 1).min(h)])
+                .map_or((0, 0), |(a, b)| {
+                    (a.saturating_sub(margin), (b + margin).min(w))
+                })
         })
         .collect()
+}
+
+/// The interval that holds every non-empty one of `spans` (`None`: all empty).
+fn bounding(spans: &[(usize, usize)]) -> Option<(usize, usize)> {
+    let mut filled = spans.iter().filter(|s| s.1 > s.0);
+    let first = *filled.next()?;
+    Some(filled.fold(first, |(a, b), s| (a.min(s.0), b.max(s.1))))
 }
 
 /// The spans of [`active_spans`] on the grid of 2 × 2 nodes (width `cw`).
 fn coarsen_spans(spans: &[(usize, usize)], cw: usize, ch: usize) -> Vec<(usize, usize)> {
     (0..ch)
         .map(|cy| {
-            let rows = &spans[2 * cy..(2 * cy + 2).min(spans.len())];
-            let x0 = rows.iter().filter(|s| s.1 > s.0).map(|s| s.0).min();
-            let x1 = rows.iter().filter(|s| s.1 > s.0).map(|s| s.1).max();
-            match (x0, x1) {
-                (Some(x0), Some(x1)) => (x0 / 2, x1.div_ceil(2).min(cw)),
-                _ => (0, 0),
-            }
+            bounding(&spans[2 * cy..(2 * cy + 2).min(spans.len())])
+                .map_or((0, 0), |(a, b)| (a / 2, b.div_ceil(2).min(cw)))
         })
         .collect()
 }

@@ -135,19 +135,21 @@ impl DataTerm {
             let c = t.clamp(0.0, f32::from(u16::MAX - 1)) as u16;
             c
         });
-        cost.par_iter_mut().for_each(|c| {
-            *c = if *c == OUTSIDE {
-                outside_cost.min(cap)
-            } else {
-                (*c).min(cap)
-            };
-        });
-        if let Some(m) = valid1 {
-            cost.par_chunks_mut(per_pixel)
-                .zip(m.par_iter())
-                .filter(|(_, v)| !**v)
-                .for_each(|(c, _)| c.fill(0));
-        }
+        cost.par_chunks_mut(per_pixel)
+            .enumerate()
+            .for_each(|(p, costs)| {
+                if valid1.is_some_and(|m| !m[p]) {
+                    costs.fill(0);
+                    return;
+                }
+                for c in costs {
+                    *c = if *c == OUTSIDE {
+                        outside_cost.min(cap)
+                    } else {
+                        (*c).min(cap)
+                    };
+                }
+            });
         Self {
             cost,
             scale: 1.0,
@@ -409,6 +411,7 @@ mod tests {
         let got = energy(&data, &space, &labels, &wts);
         assert!((got - want).abs() < 1e-3, "{got} vs {want}");
     }
+
     #[test]
     fn pixels_without_a_data_term_cost_nothing_and_stay_out_of_the_median() {
         use crate::vision::Image;

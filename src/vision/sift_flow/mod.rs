@@ -785,22 +785,14 @@ fn extend_rows(mut field: Vec<f32>, w: usize, spans: &[(usize, usize)]) -> Vec<f
     let filled: Vec<usize> = (0..spans.len())
         .filter(|&y| spans[y].1 > spans[y].0)
         .collect();
-    if filled.is_empty() {
-        return field;
-    }
-    for y in 0..spans.len() {
-        if spans[y].1 > spans[y].0 {
-            continue;
-        }
-        let src = filled[filled.partition_point(|&f| f < y).min(filled.len() - 1)];
-        let src = if src > y {
-            // The nearest filled row may lie above as well.
-            match filled.iter().rev().find(|&&f| f < y) {
-                Some(&up) if y - up <= src - y => up,
-                _ => src,
-            }
-        } else {
-            src
+    for y in (0..spans.len()).filter(|&y| spans[y].1 <= spans[y].0) {
+        // The nearest filled rows above and below; the upper one on a tie.
+        let i = filled.partition_point(|&f| f < y);
+        let src = match (i.checked_sub(1).map(|j| filled[j]), filled.get(i)) {
+            (Some(up), Some(&down)) if down - y < y - up => down,
+            (Some(up), _) => up,
+            (None, Some(&down)) => down,
+            (None, None) => continue,
         };
         field.copy_within(src * w..(src + 1) * w, y * w);
     }
