@@ -582,6 +582,15 @@ mod tests {
         }
         assert!(table4["rmse_after_px"].as_f64().unwrap() < 0.5);
         assert!(json["peak_rss_mib"].as_f64().unwrap() > 0.0);
+        // The noise floor: present, in pixels and µm by eq. (19).
+        let precision = &json["reconstruction"]["precision"];
+        let px = precision["disparity_px"].as_f64().unwrap();
+        let um = precision["height_um"].as_f64().unwrap();
+        assert!(px > 0.0 && px < 1.0, "{precision}");
+        assert!(
+            (um / px / params_um_per_px() - 1.0).abs() < 1e-9,
+            "{precision}"
+        );
         assert_eq!(report.outputs.len(), 5);
     }
 

@@ -99,6 +99,9 @@ fn summarise(report: &reconstruct::ReportFile, out: &Path) {
         r.depth.height_p01_um,
         r.depth.height_p99_um
     );
+    if let Some(line) = precision_line(r) {
+        eprintln!("{line}");
+    }
     eprintln!(
         "time: sparse {:.2} s, dense {:.2} s, depth {:.2} s, total {:.2} s (with I/O {:.2} s); peak memory {}",
         t.sparse_ms / 1e3,
@@ -111,6 +114,32 @@ fn summarise(report: &reconstruct::ReportFile, out: &Path) {
             .map_or_else(|| "unknown".to_owned(), |m| format!("{m:.0} MiB"))
     );
     println!("{}", out.display());
+}
+
+/// Share of the relief (1st–99th percentile) above which the summary
+/// advises a longer dwell or a larger tilt.
+const NOISY_SHARE: f64 = 0.05;
+
+/// The predicted precision in one line, with advice when the noise floor
+/// is a noticeable share of the relief.
+fn precision_line(r: &crate::vision::pipeline::ReconReport) -> Option<String> {
+    let p = r.precision.as_ref()?;
+    let mut line = format!(
+        "noise floor: height ±{:.3} µm ({:.3} disparity px) at the matcher's window (σ {:.1} px); image noise {:.0} % / {:.0} % of the signal",
+        p.height_um,
+        p.disparity_px,
+        p.window_sigma_px,
+        100.0 * p.noise_to_signal[0],
+        100.0 * p.noise_to_signal[1]
+    );
+    let relief = r.depth.height_p99_um - r.depth.height_p01_um;
+    if relief > 0.0 && p.height_um > NOISY_SHARE * relief {
+        line.push_str(&format!(
+            " — {:.0} % of the relief: a longer dwell or a larger tilt would resolve finer detail",
+            100.0 * p.height_um / relief
+        ));
+    }
+    Some(line)
 }
 
 pub fn run_rectify(args: &RectifyArgs) -> anyhow::Result<ExitCode> {

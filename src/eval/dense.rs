@@ -69,6 +69,10 @@ pub struct SimFigures {
     pub rmse_um: f64,
     /// `rmse_um / height_range_um`.
     pub rmse_relative: f64,
+    /// The height noise floor the micrographs allow at the matcher's
+    /// window ([`crate::vision::precision`]) over `height_range_um`: an RMSE
+    /// target below it cannot be met at that window.
+    pub noise_floor_relative: Option<f64>,
     /// Median |residual| in disparity pixels (eq. 19 backwards).
     pub median_px: f64,
     /// Fraction of pixels whose |residual| exceeds one disparity pixel.
@@ -410,6 +414,13 @@ pub fn evaluate_case(
         case.height,
     )?;
     let depth_ms = t.elapsed().as_secs_f64() * 1e3;
+    let precision = crate::vision::precision::predict(
+        &left,
+        &right,
+        case.tilt_axis_deg,
+        crate::vision::pipeline::matcher_window_sigma(dense),
+        geometry.um_per_px(),
+    );
     let canvas_error_px = canvas_errors(&corr, &visible, case.width, &rect, &disp);
 
     // Score.
@@ -515,6 +526,7 @@ pub fn evaluate_case(
         height_range_um,
         rmse_um,
         rmse_relative: rmse_um / height_range_um,
+        noise_floor_relative: precision.map(|p| p.height_um / height_range_um),
         median_px,
         over_1px,
         height_scale,
@@ -632,7 +644,7 @@ pub fn format_row(f: &SimFigures) -> String {
         }
     }
     format!(
-        "{:<8} {:<9} {:>4}x{:<4} θ {:>4.1}° φ {:>5.1}° | cover {:>5.1} % | range {:>6.2} µm RMSE {:>5.3} µm ({:>4.1} %) | median {:.3} px >1px {:>4.1} % | scale {:.3} | canvas raw {:.3} filtered {:.3} (bias {:+.3}) v {:.3} px | rect {:>5.0} ms dense {:>5.0} ms | {}",
+        "{:<8} {:<9} {:>4}x{:<4} θ {:>4.1}° φ {:>5.1}° | cover {:>5.1} % | range {:>6.2} µm RMSE {:>5.3} µm ({:>4.1} %, floor {}) | median {:.3} px >1px {:>4.1} % | scale {:.3} | canvas raw {:.3} filtered {:.3} (bias {:+.3}) v {:.3} px | rect {:>5.0} ms dense {:>5.0} ms | {}",
         format!("{:?}", f.mode).to_lowercase(),
         f.case.kind.name(),
         f.case.width,
@@ -643,6 +655,8 @@ pub fn format_row(f: &SimFigures) -> String {
         f.height_range_um,
         f.rmse_um,
         100.0 * f.rmse_relative,
+        f.noise_floor_relative
+            .map_or_else(|| "—".to_owned(), |r| format!("{:.1} %", 100.0 * r)),
         f.median_px,
         100.0 * f.over_1px,
         f.height_scale,

@@ -7,6 +7,7 @@ pub mod image;
 pub mod matching;
 pub mod orsa;
 pub mod pipeline;
+pub mod precision;
 pub mod rectify;
 pub mod registration;
 pub mod sift;

@@ -19,6 +19,7 @@ use serde::{Deserialize, Serialize};
 use super::Image;
 use super::dense::{DenseError, DenseParams, DenseStats, dense_disparity_in_range};
 use super::depth::{StereoGeometry, height_on_left_grid};
+use super::precision::{self, Precision};
 use super::sift_flow::Mode;
 use super::sparse::{SparseError, SparseParams, rectify_pair};
 
@@ -177,6 +178,9 @@ pub struct ReconReport {
     /// Table 4 of the paper.
     pub rectification: RectificationFigures,
     pub depth: DepthReport,
+    /// The precision the micrographs' noise and texture allow at the
+    /// matcher's window ([`precision`]); `None` when it cannot be measured.
+    pub precision: Option<Precision>,
     pub timings: StageTimings,
 }
 
@@ -241,6 +245,13 @@ pub fn reconstruct(
         return Err(ReconstructError::NoOverlap);
     }
     let depth_ms = ms(t);
+    let precision = precision::predict(
+        left,
+        right,
+        geometry.tilt_axis_deg,
+        matcher_window_sigma(&params.dense_params()),
+        depth.um_per_disparity_px,
+    );
 
     let s = &rect.sparse;
     let map = |hm: &Matrix3<f64>, p: [f64; 2]| {
@@ -285,6 +296,7 @@ pub fn reconstruct(
         dense: disp.stats,
         rectification,
         depth,
+        precision,
         timings: StageTimings {
             sparse_ms,
             dense_ms,
@@ -297,6 +309,19 @@ pub fn reconstruct(
         confidence,
         report,
     })
+}
+
+/// The Gaussian window (σ, pixels) whose precision bounds the disparity:
+/// the intensity refinement's window in the improved mode; in the paper
+/// mode the descriptor's `4 · cell_size` square, as the Gaussian of the same
+/// effective area (`4πσ² = (4 · cell_size)²`).
+#[must_use]
+pub fn matcher_window_sigma(dense: &DenseParams) -> f64 {
+    let flow = dense.flow_params();
+    flow.refinement().map_or_else(
+        || 4.0 * flow.cell_size as f64 / (4.0 * std::f64::consts::PI).sqrt(),
+        |r| f64::from(r.window_sigma),
+    )
 }
 
 /// The 1st and 99th percentile of the rectified horizontal disparity of the

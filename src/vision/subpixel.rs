@@ -330,7 +330,7 @@ fn blur_taps<const C: usize>(
     });
 }
 
-fn blur_plane(src: &[f32], w: usize, h: usize, sigma: f32) -> Vec<f32> {
+pub(crate) fn blur_plane(src: &[f32], w: usize, h: usize, sigma: f32) -> Vec<f32> {
     let packed: Vec<[f32; 1]> = src.par_iter().map(|&v| [v]).collect();
     blur(&packed, w, h, sigma)
         .into_par_iter()

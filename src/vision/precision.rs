@@ -1,0 +1,313 @@
+//! The precision the micrographs allow, predicted from the images alone.
+//!
+//! A window matcher estimates the disparity from the intensity gradients
+//! along the parallax inside its window; scan noise in both images limits how
+//! well. For a translation `d` between two images with white noise of
+//! standard deviation `σ` and a Gaussian window of weights `w` (Σw = 1), the
+//! Cramér–Rao bound of the least-squares estimate is
+//!
+//! `var(d) ≥ 2σ² · Σ w² g² / (Σ w g²)² ≈ 2σ² / (N · ḡ²)`,
+//!
+//! with `g` the noise-free gradient along the parallax, `ḡ²` its weighted
+//! mean and `N = (Σw)² / Σw² = 4πσ_w²` the window's effective number of
+//! pixels. No estimator working at that spatial resolution does better on
+//! average, so this bound tells how much of the relief a pair can resolve
+//! before a single parameter is tuned: it falls with the dwell time (less
+//! noise), the tilt (more disparity per µm of height) and the window (less
+//! detail).
+//!
+//! The noise is Immerkær's Laplacian-difference estimate (CVIU 64, 1996)
+//! made robust with the median of the absolute responses (edges and fine
+//! structure then enter as outliers, not as noise).
+
+use rayon::prelude::*;
+use serde::Serialize;
+
+use super::Image;
+use super::subpixel::blur_plane;
+
+/// The sum of squares of Immerkær's kernel `[1 −2 1; −2 4 −2; 1 −2 1]`:
+/// its response to white noise of variance σ² has variance 36σ².
+const KERNEL_NORM: f64 = 6.0;
+/// The median of |x| for x ~ N(0, 1) is 1/1.4826 of its σ.
+const MAD_TO_SIGMA: f64 = 1.4826;
+
+/// Standard deviation of the white noise of `img` (its intensity units),
+/// over the 3×3 neighbourhoods whose pixels are all `valid` (`None`: all
+/// finite); `None` with fewer than 64 such neighbourhoods.
+#[must_use]
+pub fn noise_sigma(img: &Image, valid: Option<&[bool]>) -> Option<f64> {
+    let (w, h) = img.dimensions();
+    if w < 3 || h < 3 {
+        return None;
+    }
+    let d = img.data();
+    let ok = |q: usize| valid.is_none_or(|m| m[q]) && d[q].is_finite();
+    let mut responses: Vec<f32> = (1..h - 1)
+        .into_par_iter()
+        .flat_map_iter(|y| {
+            (1..w - 1).filter_map(move |x| {
+                let q = y * w + x;
+                let around = [
+                    q - w - 1,
+                    q - w,
+                    q - w + 1,
+                    q - 1,
+                    q,
+                    q + 1,
+                    q + w - 1,
+                    q + w,
+                    q + w + 1,
+                ];
+                if !around.iter().all(|&r| ok(r)) {
+                    return None;
+                }
+                let [a, b, c, e, f, g, i, j, k] = around.map(|r| d[r]);
+                Some((a + c + i + k - 2.0 * (b + e + g + j) + 4.0 * f).abs())
+            })
+        })
+        .collect();
+    if responses.len() < 64 {
+        return None;
+    }
+    let mid = responses.len() / 2;
+    let (_, median, _) = responses.select_nth_unstable_by(mid, f32::total_cmp);
+    Some(MAD_TO_SIGMA * f64::from(*median) / KERNEL_NORM)
+}
+
+/// The predicted precision of a pair, for report.json.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct Precision {
+    /// Noise of the left and right micrographs, as a fraction of the left
+    /// one's intensity standard deviation (1 = as strong as the signal).
+    pub noise_to_signal: [f64; 2],
+    /// The Gaussian window the bound is taken for, σ in pixels.
+    pub window_sigma_px: f64,
+    /// Median over the valid pixels of the bound on the disparity's
+    /// standard deviation, pixels (infinite where the window sees no
+    /// texture along the parallax, which the median passes over).
+    pub disparity_px: f64,
+    /// The same as a height, µm: `disparity_px · p / (2 sin(θ/2))`.
+    pub height_um: f64,
+}
+
+/// The median over the `valid` pixels of `left` of the Cramér–Rao bound on
+/// the disparity's standard deviation (pixels) for a Gaussian window of
+/// `window_sigma` pixels, the parallax along the unit vector `parallax`
+/// (image x, y), `noise` the standard deviations of the two images' noise.
+/// `None` when no pixel has texture along the parallax.
+#[must_use]
+pub fn disparity_bound(
+    left: &Image,
+    valid: Option<&[bool]>,
+    noise: [f64; 2],
+    parallax: [f64; 2],
+    window_sigma: f64,
+) -> Option<f64> {
+    let (w, h) = left.dimensions();
+    let d = left.data();
+    let ok = |q: usize| valid.is_none_or(|m| m[q]) && d[q].is_finite();
+    // A central difference of white noise has variance σ²/2 along either
+    // axis, and so along any unit direction; the mean of the two images'
+    // noise is what the symmetric gradient sees.
+    let noise_var = 0.5 * (noise[0] * noise[0] + noise[1] * noise[1]);
+    let grad_noise = (0.5 * noise_var) as f32;
+    let (nx, ny) = (parallax[0] as f32, parallax[1] as f32);
+    let (g2, weight): (Vec<f32>, Vec<f32>) = (0..w * h)
+        .into_par_iter()
+        .map(|q| {
+            let (x, y) = (q % w, q / w);
+            if x == 0 || y == 0 || x + 1 == w || y + 1 == h {
+                return (0.0, 0.0);
+            }
+            if !(ok(q) && ok(q - 1) && ok(q + 1) && ok(q - w) && ok(q + w)) {
+                return (0.0, 0.0);
+            }
+            let gx = 0.5 * (d[q + 1] - d[q - 1]);
+            let gy = 0.5 * (d[q + w] - d[q - w]);
+            let g = nx * gx + ny * gy;
+            ((g * g - grad_noise).max(0.0), 1.0)
+        })
+        .unzip();
+    let sigma = window_sigma as f32;
+    let (sg, sw) = rayon::join(
+        || blur_plane(&g2, w, h, sigma),
+        || blur_plane(&weight, w, h, sigma),
+    );
+    let n_eff = 4.0 * std::f64::consts::PI * window_sigma * window_sigma;
+    let mut bounds: Vec<f64> = (0..w * h)
+        .filter(|&q| weight[q] > 0.0 && sw[q] > 1e-3)
+        .map(|q| {
+            let mean = f64::from(sg[q] / sw[q]);
+            if mean > 0.0 {
+                (2.0 * noise_var / (n_eff * mean)).sqrt()
+            } else {
+                f64::INFINITY
+            }
+        })
+        .collect();
+    if bounds.is_empty() {
+        return None;
+    }
+    let mid = bounds.len() / 2;
+    let (_, median, _) = bounds.select_nth_unstable_by(mid, f64::total_cmp);
+    median.is_finite().then_some(*median)
+}
+
+/// Standard deviation of the finite `valid` samples of `img`.
+fn signal_sigma(img: &Image, valid: Option<&[bool]>) -> Option<f64> {
+    let (mut n, mut s, mut s2) = (0f64, 0f64, 0f64);
+    for (q, &v) in img.data().iter().enumerate() {
+        if v.is_finite() && valid.is_none_or(|m| m[q]) {
+            let v = f64::from(v);
+            n += 1.0;
+            s += v;
+            s2 += v * v;
+        }
+    }
+    (n > 1.0).then(|| ((s2 - s * s / n) / (n - 1.0)).max(0.0).sqrt())
+}
+
+/// The predicted precision of the pair `(left, right)` (micrograph grids)
+/// for a tilt axis at `tilt_axis_deg` (DESIGN §3's φ; the parallax runs
+/// along its normal), a window of `window_sigma` pixels and `um_per_px` µm
+/// of height per disparity pixel. `None` when the noise or the texture
+/// cannot be measured (tiny or flat images).
+#[must_use]
+pub fn predict(
+    left: &Image,
+    right: &Image,
+    tilt_axis_deg: f64,
+    window_sigma: f64,
+    um_per_px: f64,
+) -> Option<Precision> {
+    let noise = [noise_sigma(left, None)?, noise_sigma(right, None)?];
+    let signal = signal_sigma(left, None).filter(|&s| s > 0.0)?;
+    let phi = tilt_axis_deg.to_radians();
+    let parallax = [-phi.sin(), phi.cos()];
+    let disparity_px = disparity_bound(left, None, noise, parallax, window_sigma)?;
+    Some(Precision {
+        noise_to_signal: [noise[0] / signal, noise[1] / signal],
+        window_sigma_px: window_sigma,
+        disparity_px,
+        height_um: disparity_px * um_per_px,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A deterministic uniform generator (xorshift) and Gaussian samples by
+    /// the sum of twelve uniforms (variance 1).
+    struct Rng(u64);
+    impl Rng {
+        fn uniform(&mut self) -> f64 {
+            self.0 ^= self.0 << 13;
+            self.0 ^= self.0 >> 7;
+            self.0 ^= self.0 << 17;
+            (self.0 >> 11) as f64 / (1u64 << 53) as f64
+        }
+        fn gauss(&mut self) -> f64 {
+            (0..12).map(|_| self.uniform()).sum::<f64>() - 6.0
+        }
+    }
+
+    /// A smooth texture: a sum of sines of a few pixels' period.
+    fn texture(x: f64, y: f64) -> f64 {
+        0.5 + 0.2 * (0.9 * x + 0.3 * y).sin() + 0.15 * (0.4 * x - 1.1 * y).sin()
+    }
+
+    fn noisy(w: usize, h: usize, sigma: f64, seed: u64) -> Image {
+        let mut rng = Rng(seed);
+        Image::from_fn(w, h, |x, y| {
+            (texture(x as f64, y as f64) + sigma * rng.gauss()) as f32
+        })
+    }
+
+    #[test]
+    fn noise_of_a_textured_image_is_recovered() {
+        for sigma in [0.01, 0.03, 0.1] {
+            let est = noise_sigma(&noisy(256, 192, sigma, 7), None).unwrap();
+            assert!(
+                (est / sigma - 1.0).abs() < 0.12,
+                "σ {sigma}: estimated {est}"
+            );
+        }
+        // Noise-free: the texture alone reads as (almost) no noise.
+        let clean = noise_sigma(&noisy(256, 192, 0.0, 7), None).unwrap();
+        assert!(clean < 0.004, "{clean}");
+        // Invalid neighbourhoods are left out; too few leave no estimate.
+        let img = noisy(64, 48, 0.03, 3);
+        let mut valid = vec![false; 64 * 48];
+        valid[..64 * 4].iter_mut().for_each(|v| *v = true);
+        assert!(noise_sigma(&img, Some(&valid)).is_some());
+        valid[64 * 3..].iter_mut().for_each(|v| *v = false);
+        assert!(noise_sigma(&img, Some(&valid)).is_none());
+    }
+
+    /// The bound against the empirical spread of the least-squares shift of
+    /// many noisy windows, computed directly.
+    #[test]
+    fn bound_matches_the_spread_of_window_estimates() {
+        let (w, h, sigma, ws) = (96usize, 96usize, 0.05, 4.0);
+        let grad = |x: f64, y: f64| {
+            let e = 1e-4;
+            (texture(x + e, y) - texture(x - e, y)) / (2.0 * e)
+        };
+        // Estimates of a zero shift at the centre window of independent
+        // noisy pairs, linearised: d = Σ w g (b − a) / Σ w g².
+        let mut rng = Rng(11);
+        let (cx, cy) = (48.0, 48.0);
+        let taps: Vec<(f64, f64, f64)> = (0..w * h)
+            .map(|q| {
+                let (x, y) = ((q % w) as f64, (q / w) as f64);
+                let r2 = (x - cx).powi(2) + (y - cy).powi(2);
+                ((-r2 / (2.0 * ws * ws)).exp(), grad(x, y), 0.0)
+            })
+            .collect();
+        let estimates: Vec<f64> = (0..400)
+            .map(|_| {
+                let (mut num, mut den) = (0.0, 0.0);
+                for &(wt, g, _) in &taps {
+                    let diff = sigma * (rng.gauss() - rng.gauss());
+                    num += wt * g * diff;
+                    den += wt * g * g;
+                }
+                num / den
+            })
+            .collect();
+        let mean = estimates.iter().sum::<f64>() / estimates.len() as f64;
+        let spread = (estimates.iter().map(|e| (e - mean).powi(2)).sum::<f64>()
+            / (estimates.len() - 1) as f64)
+            .sqrt();
+        let img = noisy(w, h, sigma, 5);
+        let bound = disparity_bound(&img, None, [sigma, sigma], [1.0, 0.0], ws).unwrap();
+        assert!(
+            (bound / spread - 1.0).abs() < 0.25,
+            "bound {bound} px, spread of the estimates {spread} px"
+        );
+        // A window twice as wide, half the bound.
+        let bw = disparity_bound(&img, None, [sigma, sigma], [1.0, 0.0], 2.0 * ws).unwrap();
+        assert!((bw / bound - 0.5).abs() < 0.05, "{bw} vs {bound}");
+        // Twice the noise, twice the bound: the noise's share of the
+        // gradient energy is taken out.
+        let img2 = noisy(w, h, 2.0 * sigma, 5);
+        let b2 = disparity_bound(&img2, None, [2.0 * sigma, 2.0 * sigma], [1.0, 0.0], ws).unwrap();
+        assert!((b2 / bound - 2.0).abs() < 0.1, "{b2} vs {bound}");
+    }
+
+    #[test]
+    fn texture_only_across_the_parallax_gives_no_bound() {
+        // Stripes that vary along y only: nothing to match along x.
+        let img = Image::from_fn(64, 64, |_, y| (0.5 + 0.3 * (0.8 * y as f64).sin()) as f32);
+        assert_eq!(
+            disparity_bound(&img, None, [0.01, 0.01], [1.0, 0.0], 3.0),
+            None
+        );
+        assert!(disparity_bound(&img, None, [0.01, 0.01], [0.0, 1.0], 3.0).is_some());
+        // A flat image has no measurable noise nor texture.
+        let flat = Image::filled(64, 64, 0.5);
+        assert_eq!(predict(&flat, &flat, 0.0, 3.0, 1.0), None);
+    }
+}
