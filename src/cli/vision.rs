@@ -123,7 +123,12 @@ const NOISY_SHARE: f64 = 0.05;
 /// The predicted precision in one line, with advice when the noise floor
 /// is a noticeable share of the relief.
 fn precision_line(r: &crate::vision::pipeline::ReconReport) -> Option<String> {
-    let p = r.precision.as_ref()?;
+    let relief = r.depth.height_p99_um - r.depth.height_p01_um;
+    r.precision.as_ref().map(|p| describe_precision(p, relief))
+}
+
+/// [`precision_line`] for a floor `p` and a relief of `relief` µm.
+fn describe_precision(p: &crate::vision::precision::Precision, relief: f64) -> String {
     let mut line = format!(
         "noise floor: height ±{:.3} µm ({:.3} disparity px) at the matcher's window (σ {:.1} px); image noise {:.0} % / {:.0} % of the signal",
         p.height_um,
@@ -132,14 +137,13 @@ fn precision_line(r: &crate::vision::pipeline::ReconReport) -> Option<String> {
         100.0 * p.noise_to_signal[0],
         100.0 * p.noise_to_signal[1]
     );
-    let relief = r.depth.height_p99_um - r.depth.height_p01_um;
     if relief > 0.0 && p.height_um > NOISY_SHARE * relief {
         line.push_str(&format!(
             " — {:.0} % of the relief: a longer dwell or a larger tilt would resolve finer detail",
             100.0 * p.height_um / relief
         ));
     }
-    Some(line)
+    line
 }
 
 pub fn run_rectify(args: &RectifyArgs) -> anyhow::Result<ExitCode> {
@@ -169,6 +173,31 @@ mod tests {
     use clap::Parser;
 
     use crate::cli::{Cli, Command};
+
+    /// The summary advises a longer dwell or a larger tilt only when the
+    /// noise floor exceeds 5 % of the relief.
+    #[test]
+    fn noise_floor_advice_only_above_five_percent_of_the_relief() {
+        let p = crate::vision::precision::Precision {
+            noise_to_signal: [0.4, 0.41],
+            window_sigma_px: 6.0,
+            disparity_px: 0.1,
+            height_um: 0.06,
+        };
+        let quiet = super::describe_precision(&p, 2.0);
+        assert!(
+            quiet.contains("±0.060 µm") && quiet.contains("40 % / 41 %"),
+            "{quiet}"
+        );
+        assert!(!quiet.contains("dwell"), "{quiet}");
+        let noisy = super::describe_precision(&p, 1.0);
+        assert!(
+            noisy.contains("6 % of the relief") && noisy.contains("dwell"),
+            "{noisy}"
+        );
+        // No relief measured: no share to judge.
+        assert!(!super::describe_precision(&p, 0.0).contains("dwell"));
+    }
 
     /// A negative tilt or pixel size reaches the checks that explain the
     /// allowed range, instead of being taken for an unknown flag.
