@@ -102,6 +102,9 @@ pub struct DenseArgs {
     /// Render the micrographs without scan noise (the noise floor apart).
     #[arg(long)]
     pub noiseless: bool,
+    /// Pixel dwell time of the rendered micrographs, µs (default 10): the scan noise falls as its square root.
+    #[arg(long, value_name = "US", value_parser = positive_dwell, allow_hyphen_values = true)]
+    pub dwell_us: Option<f64>,
     /// Only write the selected cases' micrographs (16-bit TIFF with tilt and pixel size) into DIR.
     #[arg(long, value_name = "DIR")]
     pub write_pairs: Option<PathBuf>,
@@ -167,6 +170,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<ExitCode> {
                 only: d.only.clone(),
                 set: d.set.clone(),
                 noiseless: d.noiseless,
+                dwell_us: d.dwell_us,
                 write_pairs: d.write_pairs.clone(),
                 dump: d.dump.clone(),
             },
@@ -175,4 +179,37 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<ExitCode> {
         Which::Sparse => eval::sparse::run(&opts)?,
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// A dwell time: finite, positive and at most one second per pixel.
+fn positive_dwell(s: &str) -> Result<f64, String> {
+    let v: f64 = s
+        .parse()
+        .map_err(|_| format!("`{s}` is not a number of microseconds"))?;
+    if v.is_finite() && v > 0.0 && v <= 1e6 {
+        Ok(v)
+    } else {
+        Err(format!("the dwell time must be in (0, 1e6] µs, not {s}"))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use clap::Parser;
+
+    use crate::cli::Cli;
+
+    /// The dwell time is checked where it is parsed, with its range named.
+    #[test]
+    fn dwell_time_must_be_positive() {
+        let parse = |v: &str| Cli::try_parse_from(["sdsem", "eval", "dense", "--dwell-us", v]);
+        assert!(parse("40").is_ok());
+        for bad in ["0", "-5", "nan", "fast"] {
+            let e = parse(bad).expect_err(bad).to_string();
+            assert!(
+                e.contains("dwell") || e.contains("microseconds"),
+                "{bad}: {e}"
+            );
+        }
+    }
 }

@@ -53,6 +53,9 @@ pub struct SimCase {
     pub seed: u64,
     /// Render without scan noise (separates the noise floor from the rest).
     pub noiseless: bool,
+    /// Pixel dwell time of both micrographs, µs: the scan noise falls as its
+    /// square root.
+    pub dwell_us: f64,
 }
 
 /// The figures of one case.
@@ -287,8 +290,22 @@ pub fn render_case(case: &SimCase) -> Result<RenderedCase, SimEvalError> {
     } else {
         NoiseParams::default()
     };
-    let left_px = render_noisy(&scene, &lv, &shading, &noise, DWELL_US, case.seed * 2 + 1);
-    let right_px = render_noisy(&scene, &rv, &shading, &noise, DWELL_US, case.seed * 2 + 2);
+    let left_px = render_noisy(
+        &scene,
+        &lv,
+        &shading,
+        &noise,
+        case.dwell_us,
+        case.seed * 2 + 1,
+    );
+    let right_px = render_noisy(
+        &scene,
+        &rv,
+        &shading,
+        &noise,
+        case.dwell_us,
+        case.seed * 2 + 2,
+    );
     let left = Image::from_vec(case.width, case.height, left_px)
         .expect("rendered frame has the view size");
     let right = Image::from_vec(case.width, case.height, right_px)
@@ -695,6 +712,7 @@ pub fn standard_cases() -> Vec<SimCase> {
                 tilt_axis_deg,
                 seed: (10 * i + j + 1) as u64,
                 noiseless: false,
+                dwell_us: DWELL_US,
             });
         }
     }
@@ -725,6 +743,8 @@ pub struct DenseEvalArgs {
     pub set: Vec<String>,
     /// Render without scan noise.
     pub noiseless: bool,
+    /// Pixel dwell time of the micrographs, µs (default: the standard cases').
+    pub dwell_us: Option<f64>,
     /// Write the selected cases' micrographs there instead of evaluating.
     pub write_pairs: Option<std::path::PathBuf>,
     /// Write each case's maps there (left micrograph, true and estimated
@@ -823,6 +843,7 @@ pub fn run(opts: &super::EvalOptions, args: &DenseEvalArgs) -> anyhow::Result<()
     })
     .map(|c| SimCase {
         noiseless: args.noiseless,
+        dwell_us: args.dwell_us.unwrap_or(DWELL_US),
         ..c
     })
     .collect();
