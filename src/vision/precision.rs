@@ -91,7 +91,7 @@ pub struct Precision {
     pub height_um: f64,
 }
 
-/// The median over the `valid` pixels of `left` of the Cramér–Rao bound on
+/// The median over the pixels of `left` of the Cramér–Rao bound on
 /// the disparity's standard deviation (pixels) for a Gaussian window of
 /// `window_sigma` pixels, the parallax along the unit vector `parallax`
 /// (image x, y), `noise` the standard deviations of the two images' noise.
@@ -99,14 +99,13 @@ pub struct Precision {
 #[must_use]
 pub fn disparity_bound(
     left: &Image,
-    valid: Option<&[bool]>,
     noise: [f64; 2],
     parallax: [f64; 2],
     window_sigma: f64,
 ) -> Option<f64> {
     let (w, h) = left.dimensions();
     let d = left.data();
-    let ok = |q: usize| valid.is_none_or(|m| m[q]) && d[q].is_finite();
+    let ok = |q: usize| d[q].is_finite();
     // A central difference of white noise has variance σ²/2 along either
     // axis, and so along any unit direction; the mean of the two images'
     // noise is what the symmetric gradient sees.
@@ -154,11 +153,11 @@ pub fn disparity_bound(
     median.is_finite().then_some(*median)
 }
 
-/// Standard deviation of the finite `valid` samples of `img`.
-fn signal_sigma(img: &Image, valid: Option<&[bool]>) -> Option<f64> {
+/// Standard deviation of the finite samples of `img`.
+fn signal_sigma(img: &Image) -> Option<f64> {
     let (mut n, mut s, mut s2) = (0f64, 0f64, 0f64);
-    for (q, &v) in img.data().iter().enumerate() {
-        if v.is_finite() && valid.is_none_or(|m| m[q]) {
+    for &v in img.data() {
+        if v.is_finite() {
             let v = f64::from(v);
             n += 1.0;
             s += v;
@@ -182,10 +181,10 @@ pub fn predict(
     um_per_px: f64,
 ) -> Option<Precision> {
     let noise = [noise_sigma(left, None)?, noise_sigma(right, None)?];
-    let signal = signal_sigma(left, None).filter(|&s| s > 0.0)?;
+    let signal = signal_sigma(left).filter(|&s| s > 0.0)?;
     let phi = tilt_axis_deg.to_radians();
     let parallax = [-phi.sin(), phi.cos()];
-    let disparity_px = disparity_bound(left, None, noise, parallax, window_sigma)?;
+    let disparity_px = disparity_bound(left, noise, parallax, window_sigma)?;
     Some(Precision {
         noise_to_signal: [noise[0] / signal, noise[1] / signal],
         window_sigma_px: window_sigma,
@@ -198,18 +197,24 @@ pub fn predict(
 mod tests {
     use super::*;
 
-    /// A deterministic uniform generator (xorshift) and Gaussian samples by
-    /// the sum of twelve uniforms (variance 1).
-    struct Rng(u64);
+    use sdsem_sim::scene::noise::{gaussian, mix64};
+
+    /// Standard normal deviates, one stream per seed (the simulator's
+    /// hash-based generator).
+    struct Rng {
+        seed: u64,
+        n: u64,
+    }
     impl Rng {
-        fn uniform(&mut self) -> f64 {
-            self.0 ^= self.0 << 13;
-            self.0 ^= self.0 >> 7;
-            self.0 ^= self.0 << 17;
-            (self.0 >> 11) as f64 / (1u64 << 53) as f64
+        fn new(seed: u64) -> Self {
+            Self {
+                seed: mix64(seed),
+                n: 0,
+            }
         }
         fn gauss(&mut self) -> f64 {
-            (0..12).map(|_| self.uniform()).sum::<f64>() - 6.0
+            self.n += 1;
+            gaussian(mix64(self.seed ^ self.n))
         }
     }
 
@@ -219,7 +224,7 @@ mod tests {
     }
 
     fn noisy(w: usize, h: usize, sigma: f64, seed: u64) -> Image {
-        let mut rng = Rng(seed);
+        let mut rng = Rng::new(seed);
         Image::from_fn(w, h, |x, y| {
             (texture(x as f64, y as f64) + sigma * rng.gauss()) as f32
         })
@@ -257,19 +262,19 @@ mod tests {
         };
         // Estimates of a zero shift at the centre window of independent
         // noisy pairs, linearised: d = Σ w g (b − a) / Σ w g².
-        let mut rng = Rng(11);
+        let mut rng = Rng::new(11);
         let (cx, cy) = (48.0, 48.0);
-        let taps: Vec<(f64, f64, f64)> = (0..w * h)
+        let taps: Vec<(f64, f64)> = (0..w * h)
             .map(|q| {
                 let (x, y) = ((q % w) as f64, (q / w) as f64);
                 let r2 = (x - cx).powi(2) + (y - cy).powi(2);
-                ((-r2 / (2.0 * ws * ws)).exp(), grad(x, y), 0.0)
+                ((-r2 / (2.0 * ws * ws)).exp(), grad(x, y))
             })
             .collect();
         let estimates: Vec<f64> = (0..400)
             .map(|_| {
                 let (mut num, mut den) = (0.0, 0.0);
-                for &(wt, g, _) in &taps {
+                for &(wt, g) in &taps {
                     let diff = sigma * (rng.gauss() - rng.gauss());
                     num += wt * g * diff;
                     den += wt * g * g;
@@ -282,18 +287,18 @@ mod tests {
             / (estimates.len() - 1) as f64)
             .sqrt();
         let img = noisy(w, h, sigma, 5);
-        let bound = disparity_bound(&img, None, [sigma, sigma], [1.0, 0.0], ws).unwrap();
+        let bound = disparity_bound(&img, [sigma, sigma], [1.0, 0.0], ws).unwrap();
         assert!(
             (bound / spread - 1.0).abs() < 0.25,
             "bound {bound} px, spread of the estimates {spread} px"
         );
         // A window twice as wide, half the bound.
-        let bw = disparity_bound(&img, None, [sigma, sigma], [1.0, 0.0], 2.0 * ws).unwrap();
+        let bw = disparity_bound(&img, [sigma, sigma], [1.0, 0.0], 2.0 * ws).unwrap();
         assert!((bw / bound - 0.5).abs() < 0.05, "{bw} vs {bound}");
         // Twice the noise, twice the bound: the noise's share of the
         // gradient energy is taken out.
         let img2 = noisy(w, h, 2.0 * sigma, 5);
-        let b2 = disparity_bound(&img2, None, [2.0 * sigma, 2.0 * sigma], [1.0, 0.0], ws).unwrap();
+        let b2 = disparity_bound(&img2, [2.0 * sigma, 2.0 * sigma], [1.0, 0.0], ws).unwrap();
         assert!((b2 / bound - 2.0).abs() < 0.1, "{b2} vs {bound}");
     }
 
@@ -301,11 +306,8 @@ mod tests {
     fn texture_only_across_the_parallax_gives_no_bound() {
         // Stripes that vary along y only: nothing to match along x.
         let img = Image::from_fn(64, 64, |_, y| (0.5 + 0.3 * (0.8 * y as f64).sin()) as f32);
-        assert_eq!(
-            disparity_bound(&img, None, [0.01, 0.01], [1.0, 0.0], 3.0),
-            None
-        );
-        assert!(disparity_bound(&img, None, [0.01, 0.01], [0.0, 1.0], 3.0).is_some());
+        assert_eq!(disparity_bound(&img, [0.01, 0.01], [1.0, 0.0], 3.0), None);
+        assert!(disparity_bound(&img, [0.01, 0.01], [0.0, 1.0], 3.0).is_some());
         // A flat image has no measurable noise nor texture.
         let flat = Image::filled(64, 64, 0.5);
         assert_eq!(predict(&flat, &flat, 0.0, 3.0, 1.0), None);
