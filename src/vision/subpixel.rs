@@ -776,12 +776,19 @@ fn refine_level(
     // grid: finite samples only, weighted by their own count (a pixel with no
     // flow stays without one and spreads nothing), ones last for the grid's
     // normaliser.
+    // Only the pixels that take part spread their start: valid, with a
+    // starting flow. The others keep theirs.
+    let usable: Vec<bool> = (0..w * h)
+        .into_par_iter()
+        .map(|p| valid_a.is_none_or(|m| m[p]) && u0[p].is_finite() && v0[p].is_finite())
+        .collect();
     let (xb, start_sums) = if params.range_sigma > 0.0 {
         let mut sums: Vec<[f32; 4]> = u0
             .iter()
             .zip(v0)
-            .map(|(&a, &b)| {
-                if a.is_finite() && b.is_finite() {
+            .zip(&usable)
+            .map(|((&a, &b), &u)| {
+                if u {
                     [a, b, 1.0, 1.0]
                 } else {
                     [0.0, 0.0, 0.0, 1.0]
@@ -800,34 +807,44 @@ fn refine_level(
     } else {
         (None, None)
     };
-    let (u0, v0) = match &start_sums {
-        Some(sums) => {
-            let mean = |s: &[f32; 4], o: f32, c: usize| {
-                if o.is_finite() && s[2] > 1e-12 {
-                    s[c] / s[2]
-                } else {
-                    f32::NAN
-                }
-            };
-            (
-                sums.iter().zip(u0).map(|(s, &o)| mean(s, o, 0)).collect(),
-                sums.iter().zip(v0).map(|(s, &o)| mean(s, o, 1)).collect(),
-            )
-        }
-        None => {
-            let smooth_start = |f: &[f32]| blur_plane(f, w, h, params.window_sigma);
-            (smooth_start(u0), smooth_start(v0))
-        }
+    let (u0, v0): (Vec<f32>, Vec<f32>) = {
+        let sums: Vec<[f32; 4]> = match start_sums {
+            Some(sums) => sums,
+            None => {
+                let packed: Vec<[f32; 3]> = (0..w * h)
+                    .into_par_iter()
+                    .map(|p| {
+                        if usable[p] {
+                            [u0[p], v0[p], 1.0]
+                        } else {
+                            [0.0; 3]
+                        }
+                    })
+                    .collect();
+                blur(&packed, w, h, params.window_sigma)
+                    .into_par_iter()
+                    .map(|[a, b, n]| [a, b, n, 1.0])
+                    .collect()
+            }
+        };
+        let mean = |p: usize, o: &[f32], c: usize| {
+            let s = &sums[p];
+            if !usable[p] {
+                o[p]
+            } else if s[2] > 1e-12 {
+                s[c] / s[2]
+            } else {
+                f32::NAN
+            }
+        };
+        (
+            (0..w * h).into_par_iter().map(|p| mean(p, u0, 0)).collect(),
+            (0..w * h).into_par_iter().map(|p| mean(p, v0, 1)).collect(),
+        )
     };
-    drop(start_sums);
     let (u0, v0) = (&u0, &v0);
     let mut u = u0.clone();
     let mut v = v0.clone();
-    // The pixels that take part: valid, with a starting flow.
-    let usable: Vec<bool> = (0..w * h)
-        .into_par_iter()
-        .map(|p| valid_a.is_none_or(|m| m[p]) && u0[p].is_finite() && v0[p].is_finite())
-        .collect();
     let warped = |u: &[f32], v: &[f32], p: usize| -> Option<[f32; 3]> {
         if !usable[p] {
             return None;
@@ -1439,6 +1456,39 @@ mod tests {
             "error vs fractional part slope {locking}"
         );
         assert!(r.ncc[40 * w + 40] > 0.9, "ncc {}", r.ncc[40 * w + 40]);
+    }
+
+    /// Pixels outside `valid_a` hold whatever flow the matcher left there
+    /// (here −20 px, as beside the edge of the field of view); the valid
+    /// pixels beside them, whose windows reach over, still start from and
+    /// converge to their own flow — with the edge-aware windows and with the
+    /// plain Gaussian ones.
+    #[test]
+    fn flow_outside_the_valid_pixels_does_not_spread_into_their_neighbours() {
+        let (w, h) = (128, 96);
+        let tex = Texture::new(9);
+        let a = Image::from_fn(w, h, |x, y| tex.at(x as f64, y as f64) as f32);
+        let b = Image::from_fn(w, h, |x, y| tex.at(x as f64 - 3.3, y as f64) as f32);
+        let valid: Vec<bool> = (0..w * h).map(|p| p % w < 80).collect();
+        let u0: Vec<f32> = valid.iter().map(|&v| if v { 3.0 } else { -20.0 }).collect();
+        let v0 = vec![0f32; w * h];
+        for range_sigma in [0.5, 0.0] {
+            let params = RefineParams {
+                range_sigma,
+                ..RefineParams::default()
+            };
+            let r = refine_flow(&a, &b, Some(&valid), None, (&u0, &v0), 0, &params);
+            for x in 60..80 {
+                let p = 48 * w + x;
+                assert!(
+                    (r.u[p] - 3.3).abs() < 0.05,
+                    "range σ {range_sigma}: u at x = {x} is {}",
+                    r.u[p]
+                );
+            }
+            // The invalid pixels keep their start.
+            assert_eq!(r.u[48 * w + 100], -20.0);
+        }
     }
 
     /// 128×96 images shifted by (3.3, −0.4) and a half-resolution start of
