@@ -25,7 +25,9 @@ use serde::{Deserialize, Serialize};
 
 use super::Image;
 use super::bilateral_grid::{BilateralParams, GridInfo, bilateral_filter};
-use super::consistency::{left_right_check, left_right_residual, reject_beyond};
+use super::consistency::{
+    left_right_check, left_right_residual, matcher_level_rejects, reject_beyond,
+};
 use super::reassign::{self, ReassignParams};
 use super::sift_flow::{self, FlowParams, FlowStats, LevelReport, Mode};
 use super::subpixel::{RefineParams, upsample_flow};
@@ -88,7 +90,7 @@ pub enum DenseError {
 /// | `vertical_top_window` / `vertical_window` | 2 / 1 | half search window of the vertical flow (improved mode; the paper searches v as widely as u) |
 /// | `top_iterations` / `iterations` | none | BP iterations at the top / finest level; none = 60 / 30 (paper) or 20 / 8 (improved) |
 /// | `lr_tolerance` | 2.0 | left–right disagreement (pixels) above which a pixel is masked as occluded (1.0 rejected 6–13 % of the visible pixels of simulated scenes at 1024×768, θ = 11°; 2.0 keeps coverage ≥ 98 % there with the same RMSE on the dome) |
-/// | `lr_tolerance_smooth` | 4.0 | improved mode: the tolerance of the left–right check away from depth discontinuities (farther than `reassign.band_radius` pixels of the finest BP level from a flow gradient above `reassign.band`), pixels; values up to `lr_tolerance` change nothing. An occlusion as wide as the tolerance lies within that band, so the wider tolerance keeps weakly textured surface whose two fields disagree by a few pixels without admitting occlusions (see the table in `config/sdsem.toml`); the confidence keeps `lr_tolerance` as the scale of the residual |
+/// | `lr_tolerance_smooth` | 4.0 | improved mode: the tolerance of the left–right check away from depth discontinuities (farther than `reassign.band_radius` pixels of the finest BP level from a flow gradient above `reassign.band`), pixels; values up to `lr_tolerance` change nothing. At the matcher's pyramid level the wide tolerance judges the horizontal flow alone (see [`matcher_level_rejects`]). An occlusion as wide as the tolerance lies within that band, so the wider tolerance keeps weakly textured surface whose two fields disagree by a few pixels without admitting occlusions (see the table in `config/sdsem.toml`); the confidence keeps `lr_tolerance` as the scale of the residual |
 /// | `bilateral` | σs = σr = 3 | bilateral grid filter of the disparity |
 /// | `max_strips` | 4 | parallel row strips of the BP sweeps (1 = sequential BP-S) |
 /// | `finest_level` | none | finest pyramid level of BP; none = 0 (paper) or 1 (improved: the intensity refinement takes the disparity to full resolution) |
@@ -476,14 +478,16 @@ fn dense_disparity_impl(
         let img = |d: &[f32]| Image::from_vec(cw, ch, d.to_vec()).expect("level size");
         let (fu, fv, bu, bv) = (img(&fwd.u), img(&fwd.v), img(&bw.u), img(&bw.v));
         let level_tolerances = (tolerances.0 / scale, tolerances.1 / scale);
-        let (forward, backward) = rayon::join(
+        let (forward, backward): (Vec<bool>, Vec<bool>) = rayon::join(
+            || matcher_level_rejects((&fu, &fv), (&bu, &bv), level_tolerances, smooth.as_deref()),
             || {
-                let residual = left_right_residual(&fu, &fv, &bu, &bv);
-                reject_beyond(&residual, level_tolerances, smooth.as_deref())
-            },
-            || {
-                let residual = left_right_residual(&bu, &bv, &fu, &fv);
-                reject_beyond(&residual, level_tolerances, smooth_of(&bw.u).as_deref())
+                let smooth_b = smooth_of(&bw.u);
+                matcher_level_rejects(
+                    (&bu, &bv),
+                    (&fu, &fv),
+                    level_tolerances,
+                    smooth_b.as_deref(),
+                )
             },
         );
         (to_canvas(&forward), to_canvas(&backward))
