@@ -822,13 +822,13 @@ mod tests {
         )
     }
 
-    /// Beside the occluded band the matcher's flow is wrong, and caught by
-    /// its left–right check; it must not spread into the refinement of the
-    /// matched pixels next to it. Measured on this pair: the matched visible
-    /// pixels' mean error 0.160 → 0.102 px, off by more than 0.5 px 6.4 →
-    /// 4.2 % (1.5 points more of them masked).
-    #[test]
-    fn rejected_matches_do_not_spread_into_the_refinement_of_their_neighbours() {
+    /// The improved mode's disparity of the 320×192 occluded-band pair.
+    fn improved_on_occluded_band() -> (
+        usize,
+        usize,
+        crate::eval::synthetic::SyntheticPair,
+        Disparity,
+    ) {
         let (w, h) = (320, 192);
         let pair = occluded_band_pair(w, h);
         let out = dense_disparity(
@@ -839,6 +839,17 @@ mod tests {
             &small_params(Mode::Improved),
         )
         .unwrap();
+        (w, h, pair, out)
+    }
+
+    /// Beside the occluded band the matcher's flow is wrong, and caught by
+    /// its left–right check; it must not spread into the refinement of the
+    /// matched pixels next to it. Measured on this pair: the matched visible
+    /// pixels' mean error 0.160 → 0.102 px, off by more than 0.5 px 6.4 →
+    /// 4.2 % (1.5 points more of them masked).
+    #[test]
+    fn rejected_matches_do_not_spread_into_the_refinement_of_their_neighbours() {
+        let (w, h, pair, out) = improved_on_occluded_band();
         let (mut n, mut off, mut sum) = (0usize, 0usize, 0f64);
         for p in 0..w * h {
             let (x, y) = (p % w, p / w);
@@ -868,16 +879,7 @@ mod tests {
     /// 79 % with the cell's extent kept).
     #[test]
     fn left_right_check_masks_an_occluded_band() {
-        let (w, h) = (320, 192);
-        let pair = occluded_band_pair(w, h);
-        let out = dense_disparity(
-            &pair.left,
-            &pair.right,
-            None,
-            None,
-            &small_params(Mode::Improved),
-        )
-        .unwrap();
+        let (w, h, pair, out) = improved_on_occluded_band();
         let interior = |p: usize| {
             let (x, y) = (p % w, p / w);
             (8..w - 16).contains(&x) && (8..h - 8).contains(&y)
