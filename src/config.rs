@@ -140,11 +140,7 @@ pub enum ConfigError {
     Rule(String),
 }
 
-impl From<PlanError> for ConfigError {
-    fn from(e: PlanError) -> Self {
-        Self::Plan(e)
-    }
-}
+error_from!(ConfigError { Plan(PlanError) });
 
 /// Prefix of the environment variables that override configuration keys:
 /// `SDSEM_SERIES__END_TILT_DEG=5` sets `series.end_tilt_deg`. Only variables

@@ -22,6 +22,20 @@
 //! The vision core knows nothing of tokio, MCAP, configuration files or the stage;
 //! the stage protocol ([`sdsem_protocol`]) does no I/O; time is an input.
 
+/// `From` conversions for error variants whose message already shows the
+/// inner error (`#[error("stage: {0}")]`): thiserror's `#[from]` would also
+/// make the inner error the variant's `source`, and the one-line cause chain
+/// `main` prints (`{:#}`) would then name it twice.
+macro_rules! error_from {
+    ($outer:ty { $($variant:ident($inner:ty)),+ $(,)? }) => {
+        $(impl From<$inner> for $outer {
+            fn from(e: $inner) -> Self {
+                Self::$variant(e)
+            }
+        })+
+    };
+}
+
 pub mod acquisition;
 pub mod app;
 pub mod cli;

@@ -17,12 +17,18 @@ use crate::stage::{
 #[derive(Debug, thiserror::Error)]
 pub enum InstrumentsError {
     #[error("cannot start the simulator: {0}")]
-    Simulator(#[from] sdsem_sim::SimError),
+    Simulator(sdsem_sim::SimError),
     #[error("stage: {0}")]
-    Stage(#[from] StageError),
+    Stage(StageError),
     #[error("SEM imaging link: {0}")]
-    Imaging(#[from] ImagingError),
+    Imaging(ImagingError),
 }
+
+error_from!(InstrumentsError {
+    Simulator(sdsem_sim::SimError),
+    Stage(StageError),
+    Imaging(ImagingError),
+});
 
 /// Forwards the driver's records to the record of the run in progress, if any.
 /// The driver keeps one observer for its whole life; runs come and go.

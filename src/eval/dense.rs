@@ -108,14 +108,20 @@ pub enum SimEvalError {
     #[error("the exact rectification homography is singular")]
     Singular,
     #[error("scene: {0}")]
-    Scene(#[from] sdsem_sim::scene::SceneError),
+    Scene(sdsem_sim::scene::SceneError),
     #[error("sparse stage: {0}")]
-    Sparse(#[from] crate::vision::sparse::SparseError),
+    Sparse(crate::vision::sparse::SparseError),
     #[error("dense stage: {0}")]
-    Dense(#[from] crate::vision::dense::DenseError),
+    Dense(crate::vision::dense::DenseError),
     #[error("no pixel is visible in both micrographs")]
     NothingVisible,
 }
+
+error_from!(SimEvalError {
+    Scene(sdsem_sim::scene::SceneError),
+    Sparse(crate::vision::sparse::SparseError),
+    Dense(crate::vision::dense::DenseError),
+});
 
 /// Pixel dwell of the rendered micrographs, µs (a capture, not a tracking frame).
 const DWELL_US: f64 = 10.0;

@@ -39,8 +39,10 @@ pub enum FloError {
         v_height: usize,
     },
     #[error("reading or writing the .flo file: {0}")]
-    Io(#[from] std::io::Error),
+    Io(std::io::Error),
 }
+
+error_from!(FloError { Io(std::io::Error) });
 
 /// Encodes a flow field (`NaN` = unknown).
 ///

@@ -96,14 +96,19 @@ pub enum ReconstructError {
     #[error("tilt axis angle {0}° is not a finite number")]
     TiltAxis(f64),
     #[error("sparse stage: {0}")]
-    Sparse(#[from] SparseError),
+    Sparse(SparseError),
     #[error("dense stage: {0}")]
-    Dense(#[from] DenseError),
+    Dense(DenseError),
     #[error(
         "no height could be computed: the rectified images do not overlap (is it the same specimen area?)"
     )]
     NoOverlap,
 }
+
+error_from!(ReconstructError {
+    Sparse(SparseError),
+    Dense(DenseError),
+});
 
 /// Wall time of each stage, ms.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Serialize)]
@@ -419,6 +424,23 @@ fn depth_report(height: &Image, g: &StereoGeometry) -> DepthReport {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The one line `main` prints (`{:#}`, the cause chain) names a stage's
+    /// error once: the stage's message already carries it.
+    #[test]
+    fn a_stage_error_is_named_once_in_the_printed_chain() {
+        let e = ReconstructError::from(DenseError::InvalidParameter {
+            name: "finest_d",
+            reason: "must be finite and non-negative".to_owned(),
+        });
+        let line = format!("{:#}", anyhow::Error::from(e));
+        assert_eq!(
+            line,
+            "dense stage: invalid dense parameter `finest_d`: must be finite and non-negative"
+        );
+        let e = ReconstructError::from(DenseError::NoValidPixels);
+        assert!(std::error::Error::source(&e).is_none());
+    }
 
     #[test]
     fn paper_mode_takes_the_papers_sparse_path_unless_configured_otherwise() {
