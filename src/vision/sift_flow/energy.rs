@@ -26,6 +26,62 @@ pub struct EnergyWeights {
     pub gamma: f32,
 }
 
+/// Per-edge truncation of the smoothness term, replacing
+/// [`EnergyWeights::d`] on every edge of the grid: `right[p]` for the edge
+/// between pixel `p` and `p + 1`, `down[p]` for `p` and `p + width` (the last
+/// column's `right` and the last row's `down` are never read).
+#[derive(Debug, Clone, PartialEq)]
+pub struct EdgeTruncation {
+    pub right: Vec<f32>,
+    pub down: Vec<f32>,
+}
+
+/// A contrast-sensitive [`EdgeTruncation`] from the source image of a level:
+/// `tight + (d − tight) · exp(−(ΔI / (k · m))²)` on every edge, where ΔI is
+/// the intensity difference across the edge and `m` its median over the
+/// image. Edges across a strong intensity edge, where depth steps lie, get
+/// the tight truncation; weakly textured surface keeps `d`.
+#[must_use]
+pub fn contrast_truncation(
+    img: &super::super::Image,
+    d: f32,
+    tight: f32,
+    k: f32,
+) -> EdgeTruncation {
+    let (w, h) = img.dimensions();
+    let px = img.data();
+    let diff = |p: usize, q: usize| (px[p] - px[q]).abs();
+    let right: Vec<f32> = (0..w * h)
+        .into_par_iter()
+        .map(|p| if p % w + 1 < w { diff(p, p + 1) } else { 0.0 })
+        .collect();
+    let down: Vec<f32> = (0..w * h)
+        .into_par_iter()
+        .map(|p| if p / w + 1 < h { diff(p, p + w) } else { 0.0 })
+        .collect();
+    let mut all: Vec<f32> = right
+        .iter()
+        .chain(&down)
+        .copied()
+        .filter(|v| v.is_finite() && *v > 0.0)
+        .collect();
+    let m = if all.is_empty() {
+        1.0
+    } else {
+        let mid = all.len() / 2;
+        *all.select_nth_unstable_by(mid, f32::total_cmp).1
+    };
+    let scale = (k * m).max(1e-12);
+    let t = |v: f32| {
+        let v = if v.is_finite() { v } else { 0.0 };
+        tight + (d - tight) * (-(v / scale).powi(2)).exp()
+    };
+    EdgeTruncation {
+        right: right.into_par_iter().map(t).collect(),
+        down: down.into_par_iter().map(t).collect(),
+    }
+}
+
 /// Label geometry of one level: per-pixel offsets and uniform windows.
 #[derive(Debug, Clone)]
 pub struct LabelSpace {
@@ -301,6 +357,18 @@ pub fn energy(
     labels: &[Vec<u16>; 2],
     weights: &EnergyWeights,
 ) -> f64 {
+    energy_with(data, space, labels, weights, None)
+}
+
+/// [`energy`] with the truncation of every edge from `edges` (`None`: `d`).
+#[must_use]
+pub fn energy_with(
+    data: &DataTerm,
+    space: &LabelSpace,
+    labels: &[Vec<u16>; 2],
+    weights: &EnergyWeights,
+    edges: Option<&EdgeTruncation>,
+) -> f64 {
     let (w, h) = (space.width, space.height);
     let (nu, nv) = (space.states(0), space.states(1));
     let per = nu * nv;
@@ -327,15 +395,33 @@ pub fn energy(
                 for k in 0..2 {
                     let c = &mut cur[k * w..(k + 1) * w];
                     flows(k, y, c);
-                    for (a, b) in c.iter().zip(&c[1..]) {
-                        smooth += (alpha * (a - b).abs()).min(d);
+                    match edges {
+                        None => {
+                            for (a, b) in c.iter().zip(&c[1..]) {
+                                smooth += (alpha * (a - b).abs()).min(d);
+                            }
+                        }
+                        Some(e) => {
+                            for ((a, b), &t) in c.iter().zip(&c[1..]).zip(&e.right[y * w..]) {
+                                smooth += (alpha * (a - b).abs()).min(t);
+                            }
+                        }
                     }
                     range += c.iter().map(|f| f.abs()).sum::<f32>();
                     if y + 1 < h {
                         let n = &mut next[k * w..(k + 1) * w];
                         flows(k, y + 1, n);
-                        for (a, b) in c.iter().zip(n.iter()) {
-                            smooth += (alpha * (a - b).abs()).min(d);
+                        match edges {
+                            None => {
+                                for (a, b) in c.iter().zip(n.iter()) {
+                                    smooth += (alpha * (a - b).abs()).min(d);
+                                }
+                            }
+                            Some(e) => {
+                                for ((a, b), &t) in c.iter().zip(n.iter()).zip(&e.down[y * w..]) {
+                                    smooth += (alpha * (a - b).abs()).min(t);
+                                }
+                            }
                         }
                     }
                 }
@@ -361,6 +447,32 @@ pub fn energy(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Edges across a strong intensity step get the tight truncation; the
+    /// faint texture either side keeps most of `d`.
+    #[test]
+    fn contrast_truncation_is_tight_across_intensity_steps_only() {
+        let (w, h) = (16, 6);
+        let img = crate::vision::Image::from_fn(w, h, |x, y| {
+            0.01 * ((x * 7 + y * 3) % 3) as f32 + if x >= 8 { 1.0 } else { 0.0 }
+        });
+        let (d, tight) = (1000.0, 100.0);
+        let e = contrast_truncation(&img, d, tight, 2.0);
+        for y in 0..h {
+            for x in 0..w - 1 {
+                let t = e.right[y * w + x];
+                if x == 7 {
+                    assert!(t < tight + 0.01 * (d - tight), "step edge ({x}, {y}): {t}");
+                } else {
+                    assert!(t > tight + 0.3 * (d - tight), "edge ({x}, {y}): {t}");
+                }
+            }
+        }
+        assert!(e.down.iter().all(|&t| t > tight + 0.3 * (d - tight)));
+        // A flat image has no edge at all: `d` everywhere.
+        let flat = contrast_truncation(&crate::vision::Image::filled(w, h, 0.5), d, tight, 2.0);
+        assert!(flat.right.iter().chain(&flat.down).all(|&t| t == d));
+    }
 
     #[test]
     fn energy_matches_a_direct_sum() {
