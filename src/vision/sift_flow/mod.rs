@@ -1133,12 +1133,11 @@ mod tests {
         // Unrelated images: the flow is noise, so the smoothness term is not 0.
         let a = texture(w, h, 3);
         let b = texture(w, h, 4);
-        let energies = |mode: Mode, scale: f32| -> Vec<Vec<f64>> {
+        // Every level's energies, finest first, on three levels.
+        let run = |params: FlowParams| -> Vec<Vec<f64>> {
             let params = FlowParams {
-                mode,
                 levels: 3,
-                finest_alpha_scale: scale,
-                ..FlowParams::default()
+                ..params
             };
             sift_flow(&a, &b, &params)
                 .unwrap()
@@ -1147,25 +1146,27 @@ mod tests {
                 .map(|l| l.energy)
                 .collect()
         };
+        let base = |mode: Mode| FlowParams {
+            mode,
+            ..FlowParams::default()
+        };
+        let energies = |mode: Mode, scale: f32| {
+            run(FlowParams {
+                finest_alpha_scale: scale,
+                ..base(mode)
+            })
+        };
         let (one, four) = (energies(Mode::Improved, 1.0), energies(Mode::Improved, 4.0));
         // Finest first.
         assert_ne!(one[0], four[0], "the finest level must change");
         assert_eq!(one[1..], four[1..], "coarser levels must not change");
         assert_eq!(energies(Mode::Paper, 1.0), energies(Mode::Paper, 4.0));
         // `finest_d` likewise: the finest improved level only, none = `d`.
-        let truncated = |mode: Mode, finest_d: Option<f32>| -> Vec<Vec<f64>> {
-            let params = FlowParams {
-                mode,
-                levels: 3,
+        let truncated = |mode: Mode, finest_d: Option<f32>| {
+            run(FlowParams {
                 finest_d,
-                ..FlowParams::default()
-            };
-            sift_flow(&a, &b, &params)
-                .unwrap()
-                .levels
-                .into_iter()
-                .map(|l| l.energy)
-                .collect()
+                ..base(mode)
+            })
         };
         let (loose, tight) = (
             truncated(Mode::Improved, None),
@@ -1179,19 +1180,11 @@ mod tests {
             truncated(Mode::Paper, Some(2.0 * 255.0))
         );
         // `edge_d` likewise; at or above the finest level's `d` it is off.
-        let edged = |mode: Mode, edge_d: f32| -> Vec<Vec<f64>> {
-            let params = FlowParams {
-                mode,
-                levels: 3,
+        let edged = |mode: Mode, edge_d: f32| {
+            run(FlowParams {
                 edge_d,
-                ..FlowParams::default()
-            };
-            sift_flow(&a, &b, &params)
-                .unwrap()
-                .levels
-                .into_iter()
-                .map(|l| l.energy)
-                .collect()
+                ..base(mode)
+            })
         };
         let d = FlowParams::default().d;
         let (off, on) = (edged(Mode::Improved, d), edged(Mode::Improved, 255.0));
