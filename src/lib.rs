@@ -13,7 +13,7 @@
 //!                          → bilateral grid → depth h = d·p / (2 sin(θ/2))
 //!                                                    │
 //!                                                    ▼
-//!                     export (height.tif, height.gsf, pointcloud.ply, mesh.ply, report.json)
+//!                     export (height.tif, height.gsf, pointcloud.ply, mesh.ply, confidence.tif, report.json)
 //!
 //!   record: one MCAP per run, fed by everything above through a bounded channel
 //!   daemon: job spool, supervisor, signals, systemd notify

@@ -118,7 +118,13 @@ fn replay_reproduces_a_recorded_run_bit_for_bit_whatever_the_thread_count() {
             std::fs::read(run_dir.join("height.tif")).unwrap(),
             "height.tif with {threads} threads"
         );
-        for file in ["height.gsf", "pointcloud.ply", "mesh.ply", "report.json"] {
+        for file in [
+            "height.gsf",
+            "pointcloud.ply",
+            "mesh.ply",
+            "confidence.tif",
+            "report.json",
+        ] {
             assert!(out_dir.join(file).is_file(), "{file}");
         }
         let report: serde_json::Value =

@@ -25,6 +25,8 @@ pub mod files {
     pub const HEIGHT_GSF: &str = "height.gsf";
     pub const POINT_CLOUD: &str = "pointcloud.ply";
     pub const MESH: &str = "mesh.ply";
+    /// Beyond DESIGN §4: the per-pixel confidence of `height.tif`.
+    pub const CONFIDENCE_TIFF: &str = "confidence.tif";
     pub const REPORT: &str = "report.json";
 }
 
@@ -235,7 +237,7 @@ pub fn run(
 
 /// Reconstructs an acquired pair into `out` and, when recording, publishes the
 /// results: `/recon/height`, `/recon/pointcloud`, `/recon/report` and the
-/// `height.gsf` and `mesh.ply` attachments (DESIGN §5). Used by `acquire`
+/// `height.gsf`, `mesh.ply` and `confidence.tif` attachments (DESIGN §5). Used by `acquire`
 /// and `replay`, so both run the very same code.
 ///
 /// # Errors
@@ -277,6 +279,7 @@ pub fn reconstruct_recorded_pair(
         for (name, media_type) in [
             (files::HEIGHT_GSF, "application/x-gwyddion-gsf"),
             (files::MESH, "application/x-ply"),
+            (files::CONFIDENCE_TIFF, "image/tiff"),
         ] {
             let path = out.join(name);
             let bytes = std::fs::read(&path)
@@ -308,32 +311,53 @@ pub fn write_outputs(
     report.triangle_count = mesh.triangles.len();
     report.triangles_cut_at_discontinuities = mesh.cut_triangles;
 
-    // The four files are independent: written at the same time (the mesh,
-    // the largest, beside the rest). The report goes last: its presence says
+    // The files are independent: written at the same time (the mesh, the
+    // largest, beside the rest). The report goes last: its presence says
     // the set is complete. On any failure every file written is removed.
     let paths = [
         files::HEIGHT_TIFF,
         files::HEIGHT_GSF,
         files::POINT_CLOUD,
         files::MESH,
+        files::CONFIDENCE_TIFF,
     ]
     .map(|name| out.join(name));
-    let [tiff, gsf, cloud_path, mesh_path] = &paths;
-    let (mesh_written, (cloud_written, (tiff_written, gsf_written))) = rayon::join(
-        || ply::write_mesh_ply(mesh_path, &mesh, true),
-        || {
-            rayon::join(
-                || ply::write_point_cloud_ply(cloud_path, &cloud),
-                || {
-                    rayon::join(
-                        || export::height_tiff::write_height_tiff(tiff, &recon.height_um, Some(p)),
-                        || export::gsf::write_gsf(gsf, &recon.height_um, p, "sdsem height map"),
-                    )
-                },
-            )
-        },
-    );
-    let results = [tiff_written, gsf_written, cloud_written, mesh_written];
+    let [tiff, gsf, cloud_path, mesh_path, confidence_path] = &paths;
+    let (mesh_written, (cloud_written, ((tiff_written, confidence_written), gsf_written))) =
+        rayon::join(
+            || ply::write_mesh_ply(mesh_path, &mesh, true),
+            || {
+                rayon::join(
+                    || ply::write_point_cloud_ply(cloud_path, &cloud),
+                    || {
+                        rayon::join(
+                            || {
+                                (
+                                    export::height_tiff::write_height_tiff(
+                                        tiff,
+                                        &recon.height_um,
+                                        Some(p),
+                                    ),
+                                    export::height_tiff::write_confidence_tiff(
+                                        confidence_path,
+                                        &recon.confidence,
+                                        Some(p),
+                                    ),
+                                )
+                            },
+                            || export::gsf::write_gsf(gsf, &recon.height_um, p, "sdsem height map"),
+                        )
+                    },
+                )
+            },
+        );
+    let results = [
+        tiff_written,
+        gsf_written,
+        cloud_written,
+        mesh_written,
+        confidence_written,
+    ];
     let written: Vec<&PathBuf> = paths
         .iter()
         .zip(&results)
@@ -533,9 +557,26 @@ mod tests {
             files::HEIGHT_GSF,
             files::POINT_CLOUD,
             files::MESH,
+            files::CONFIDENCE_TIFF,
             files::REPORT,
         ] {
             assert!(out.join(name).is_file(), "{name} missing");
+        }
+        // The confidence is known exactly where the height is, measured
+        // (no filling by default): in (0, 1].
+        let heights = crate::export::height_tiff::read_height_tiff(&out.join(files::HEIGHT_TIFF))
+            .unwrap()
+            .height_um;
+        let confidence =
+            crate::export::height_tiff::read_height_tiff(&out.join(files::CONFIDENCE_TIFF))
+                .unwrap()
+                .height_um;
+        assert_eq!(confidence.dimensions(), (w, h));
+        for (hv, c) in heights.data().iter().zip(confidence.data()) {
+            assert_eq!(hv.is_finite(), c.is_finite(), "height {hv}, confidence {c}");
+            if c.is_finite() {
+                assert!(*c > 0.0 && *c <= 1.0, "confidence {c}");
+            }
         }
         let gsf = std::fs::read(out.join(files::HEIGHT_GSF)).unwrap();
         let data_start = gsf.len() - w * h * 4;
@@ -591,7 +632,7 @@ mod tests {
             (um / px / params_um_per_px() - 1.0).abs() < 1e-9,
             "{precision}"
         );
-        assert_eq!(report.outputs.len(), 5);
+        assert_eq!(report.outputs.len(), 6);
     }
 
     /// One output that cannot be written (a directory stands at its path):

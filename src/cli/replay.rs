@@ -13,7 +13,7 @@ pub struct ReplayArgs {
     /// The run record, e.g. runs/sim-…/run.mcap (also a truncated one).
     pub record: PathBuf,
     /// Output directory: height.tif, height.gsf, pointcloud.ply, mesh.ply,
-    /// report.json, and replay.json with the comparison.
+    /// confidence.tif, report.json, and replay.json with the comparison.
     #[arg(long, short)]
     pub out: PathBuf,
     /// Change a parameter of the recorded configuration, e.g.

@@ -14,7 +14,8 @@ pub struct ReconstructArgs {
     pub left: PathBuf,
     /// Micrograph at the higher stage tilt.
     pub right: PathBuf,
-    /// Output directory: height.tif, height.gsf, pointcloud.ply, mesh.ply, report.json.
+    /// Output directory: height.tif, height.gsf, pointcloud.ply, mesh.ply, confidence.tif,
+    /// report.json.
     #[arg(long, short)]
     pub out: PathBuf,
     /// Tilt difference θ between the micrographs, degrees (default: from their metadata).
@@ -93,8 +94,18 @@ fn summarise(report: &reconstruct::ReportFile, out: &Path) {
         r.sparse.initial_error_px,
         r.sparse.final_error_px
     );
+    // Interpolated heights are counted on the rectified canvas (report.json:
+    // dense.filled_fraction); confidence.tif marks them on the left grid.
+    let filled = if r.dense.filled_fraction > 0.0 {
+        format!(
+            " ({:.1} % of the canvas interpolated, confidence 0)",
+            100.0 * r.dense.filled_fraction
+        )
+    } else {
+        String::new()
+    };
     eprintln!(
-        "heights on {:.1} % of the pixels, {:.2} … {:.2} µm (1st–99th percentile)",
+        "heights on {:.1} % of the pixels{filled}, {:.2} … {:.2} µm (1st–99th percentile)",
         100.0 * r.depth.valid_fraction,
         r.depth.height_p01_um,
         r.depth.height_p99_um

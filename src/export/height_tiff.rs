@@ -39,17 +39,33 @@ pub(crate) fn rational(value: f64) -> Rational {
     }
 }
 
-fn description(pixel_size_um: Option<f64>) -> String {
-    let mut json = serde_json::json!({
-        "sdsem": "height",
-        "unit": "um",
-        "unknown": "NaN",
-        "grid": "left micrograph",
-    });
+fn description(kind: Field, pixel_size_um: Option<f64>) -> String {
+    let mut json = match kind {
+        Field::Height => serde_json::json!({
+            "sdsem": "height",
+            "unit": "um",
+            "unknown": "NaN",
+            "grid": "left micrograph",
+        }),
+        Field::Confidence => serde_json::json!({
+            "sdsem": "confidence",
+            "unit": "1",
+            "unknown": "NaN",
+            "interpolated": 0,
+            "grid": "left micrograph",
+        }),
+    };
     if let Some(p) = pixel_size_um {
         json["pixel_size_um"] = serde_json::json!(p);
     }
     json.to_string()
+}
+
+/// What a float32 map holds.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Field {
+    Height,
+    Confidence,
 }
 
 pub(crate) fn encode_height<W: Write + Seek>(
@@ -57,12 +73,22 @@ pub(crate) fn encode_height<W: Write + Seek>(
     height_um: &Image,
     pixel_size_um: Option<f64>,
 ) -> tiff::TiffResult<()> {
+    encode_field(out, height_um, pixel_size_um, Field::Height)
+}
+
+fn encode_field<W: Write + Seek>(
+    out: W,
+    height_um: &Image,
+    pixel_size_um: Option<f64>,
+    kind: Field,
+) -> tiff::TiffResult<()> {
     let (w, h) = dims_u32(height_um)?;
     let mut encoder = TiffEncoder::new(out)?;
     let mut image = encoder.new_image::<Gray32Float>(w, h)?;
-    image
-        .encoder()
-        .write_tag(Tag::ImageDescription, description(pixel_size_um).as_str())?;
+    image.encoder().write_tag(
+        Tag::ImageDescription,
+        description(kind, pixel_size_um).as_str(),
+    )?;
     image
         .encoder()
         .write_tag(Tag::Software, concat!("sdsem ", env!("CARGO_PKG_VERSION")))?;
@@ -95,6 +121,29 @@ pub fn write_height_tiff(
     }
     write_atomic(path, |w| {
         encode_height(&mut *w, height_um, pixel_size_um).map_err(std::io::Error::other)
+    })
+}
+
+/// Writes `confidence.tif` atomically: float32 on the height map's grid,
+/// `(0, 1]` where the height is measured, 0 where it was interpolated between
+/// measured neighbours, NaN where it is unknown.
+///
+/// # Errors
+/// [`ExportError::Invalid`] for an empty map, [`ExportError::Write`] on I/O failure.
+pub fn write_confidence_tiff(
+    path: &Path,
+    confidence: &Image,
+    pixel_size_um: Option<f64>,
+) -> Result<(), ExportError> {
+    if confidence.is_empty() {
+        return Err(ExportError::Invalid {
+            path: path.to_path_buf(),
+            reason: "the confidence map is empty".to_owned(),
+        });
+    }
+    write_atomic(path, |w| {
+        encode_field(&mut *w, confidence, pixel_size_um, Field::Confidence)
+            .map_err(std::io::Error::other)
     })
 }
 

@@ -44,6 +44,9 @@ pub const METADATA_LOG_DROPS: &str = "sdsem.log_drops";
 pub const ATTACHMENT_HEIGHT_GSF: &str = "height.gsf";
 /// Attachment name of the triangle mesh (DESIGN §5).
 pub const ATTACHMENT_MESH_PLY: &str = "mesh.ply";
+/// Attachment name of the per-pixel confidence of the height map (beyond
+/// DESIGN §5: 0 marks interpolated heights).
+pub const ATTACHMENT_CONFIDENCE_TIFF: &str = "confidence.tif";
 
 /// Which frame a `/sem/frame` message is: the `frame_id` of the image message and the
 /// `role` of its `/sem/frame_info` — the SEM link's own [`sdsem_protocol::sem::Role`].

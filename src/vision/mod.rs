@@ -20,6 +20,7 @@ pub mod consistency;
 pub mod dense;
 pub mod dense_sift;
 pub mod depth;
+pub mod fill;
 pub mod reassign;
 pub mod sift_flow;
 pub mod subpixel;

@@ -17,7 +17,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::Image;
-use super::dense::{DenseError, DenseParams, DenseStats, dense_disparity_in_range};
+use super::dense::{DenseError, DenseParams, DenseStats, Disparity, dense_disparity_in_range};
 use super::depth::{StereoGeometry, height_on_left_grid};
 use super::precision::{self, Precision};
 use super::sift_flow::Mode;
@@ -194,7 +194,9 @@ pub struct ReconReport {
 pub struct Reconstruction {
     /// Height, µm, positive towards the beam, `NaN` unknown (DESIGN §3).
     pub height_um: Image,
-    /// Confidence in `[0, 1]` of each height (0 where unknown).
+    /// Confidence in `(0, 1]` of each measured height, 0 where the height
+    /// was interpolated between measured neighbours (`fill_max_gap`), `NaN`
+    /// where the height is unknown.
     pub confidence: Image,
     pub report: ReconReport,
 }
@@ -244,7 +246,7 @@ pub fn reconstruct(
     };
     let (w, h) = left.dimensions();
     let height_um = height_on_left_grid(&disp.disparity, &r.h_left, &r.h_right, &stereo, w, h)?;
-    let confidence = resample_to_left_grid(&disp.confidence, &r.h_left, w, h);
+    let confidence = left_grid_confidence(&disp, &height_um, &r.h_left);
     let depth = depth_report(&height_um, &stereo);
     if depth.valid_fraction == 0.0 {
         return Err(ReconstructError::NoOverlap);
@@ -314,6 +316,27 @@ pub fn reconstruct(
         confidence,
         report,
     })
+}
+
+/// The dense stage's confidence on the left micrograph's grid: 0 where the
+/// height is mostly (by the resampling's weight) interpolated, `NaN` where
+/// there is no height.
+fn left_grid_confidence(disp: &Disparity, height_um: &Image, h_left: &Matrix3<f64>) -> Image {
+    let (w, h) = height_um.dimensions();
+    let mut confidence = resample_to_left_grid(&disp.confidence, h_left, w, h);
+    let filled = disp.filled.contains(&true).then(|| {
+        let (cw, ch) = disp.confidence.dimensions();
+        let mask = Image::from_fn(cw, ch, |x, y| f32::from(u8::from(disp.filled[y * cw + x])));
+        resample_to_left_grid(&mask, h_left, w, h)
+    });
+    for (p, c) in confidence.data_mut().iter_mut().enumerate() {
+        if !height_um.data()[p].is_finite() {
+            *c = f32::NAN;
+        } else if filled.as_ref().is_some_and(|f| f.data()[p] >= 0.5) || !c.is_finite() {
+            *c = 0.0;
+        }
+    }
+    confidence
 }
 
 /// The Gaussian window (σ, pixels) whose precision bounds the disparity:
