@@ -71,36 +71,86 @@ impl Grid {
     }
 }
 
-/// One-dimensional binomial blur of the homogeneous grid along the axis whose
-/// consecutive cells are `step` entries apart, over `n` cells.
-fn blur_axis(data: &mut [f32], lines: &[(usize, usize, usize)]) {
-    // Every line is (start, step, n); lines are disjoint, so process them in
-    // parallel through raw index arithmetic on a shared buffer copy.
-    let src = data.to_vec();
-    let out: Vec<(usize, Vec<[f32; 2]>)> = lines
-        .par_iter()
-        .map(|&(start, step, n)| {
-            let mut res = vec![[0f32; 2]; n];
-            for (i, r) in res.iter_mut().enumerate() {
-                for (t, &k) in KERNEL.iter().enumerate() {
-                    let j = i as isize + t as isize - 2;
-                    if j < 0 || j >= n as isize {
-                        continue;
-                    }
-                    let at = start + j as usize * step;
-                    r[0] += k * src[at];
-                    r[1] += k * src[at + 1];
+/// The binomial blur of `n` cells read through `get` (cell `j` → its
+/// `(w·f, w)`), written to `out[i]`: taps beyond the line are skipped.
+#[inline]
+fn blur_line(n: usize, get: impl Fn(usize) -> [f32; 2], out: &mut [[f32; 2]]) {
+    for (i, r) in out.iter_mut().enumerate().take(n) {
+        let mut acc = [0f32; 2];
+        for (t, &k) in KERNEL.iter().enumerate() {
+            let j = i as isize + t as isize - 2;
+            if j < 0 || j >= n as isize {
+                continue;
+            }
+            let c = get(j as usize);
+            acc[0] += k * c[0];
+            acc[1] += k * c[1];
+        }
+        *r = acc;
+    }
+}
+
+/// Blurs the grid in place along x, then y, then z. Along x and y every
+/// z-slab is one parallel task with a line buffer; along z the slabs are
+/// swept in order, keeping copies of the two originals below the current
+/// one, and each slab is computed in parallel — never a copy of the whole
+/// grid, and every pass reads memory in order.
+fn blur(grid: &mut Grid) {
+    let (nx, ny, nz) = (grid.nx, grid.ny, grid.nz);
+    let slab = nx * ny * 2;
+    grid.data.par_chunks_mut(slab).for_each_init(
+        || (vec![[0f32; 2]; nx.max(ny)], vec![0f32; slab]),
+        |(line, copy), s| {
+            // Along x: rows are contiguous.
+            for row in s.chunks_mut(nx * 2) {
+                blur_line(nx, |j| [row[2 * j], row[2 * j + 1]], line);
+                for (c, r) in row.chunks_exact_mut(2).zip(line.iter()) {
+                    c.copy_from_slice(r);
                 }
             }
-            (start, res)
-        })
-        .collect();
-    for (line, (start, res)) in lines.iter().zip(out) {
-        for (i, r) in res.iter().enumerate() {
-            let at = start + i * line.1;
-            data[at] = r[0];
-            data[at + 1] = r[1];
+            // Along y: from a copy of the slab, one column at a time.
+            copy.copy_from_slice(s);
+            for x in 0..nx {
+                let at = |y: usize| (y * nx + x) * 2;
+                blur_line(ny, |j| [copy[at(j)], copy[at(j) + 1]], line);
+                for (y, r) in line.iter().enumerate().take(ny) {
+                    s[at(y)..at(y) + 2].copy_from_slice(r);
+                }
+            }
+        },
+    );
+    // Along z: out[z] = Σ_t k_t · in[z + t − 2], the originals of z − 2 and
+    // z − 1 kept aside before they are overwritten.
+    let mut below = [vec![0f32; slab], vec![0f32; slab]];
+    let mut out = vec![0f32; slab];
+    for z in 0..nz {
+        {
+            let data = &grid.data;
+            let (b2, b1) = (&below[0], &below[1]);
+            out.par_chunks_mut(2 * nx).enumerate().for_each(|(y, o)| {
+                let start = y * 2 * nx;
+                for (i, v) in o.iter_mut().enumerate() {
+                    let mut acc = 0f32;
+                    for (t, &k) in KERNEL.iter().enumerate() {
+                        let zz = z as isize + t as isize - 2;
+                        if zz < 0 || zz >= nz as isize {
+                            continue;
+                        }
+                        let c = match t {
+                            0 => b2[start + i],
+                            1 => b1[start + i],
+                            _ => data[zz as usize * slab + start + i],
+                        };
+                        acc += k * c;
+                    }
+                    *v = acc;
+                }
+            });
         }
+        let cur = &mut grid.data[z * slab..(z + 1) * slab];
+        below.swap(0, 1);
+        below[1].copy_from_slice(cur);
+        cur.copy_from_slice(&out);
     }
 }
 
@@ -168,18 +218,7 @@ pub fn bilateral_filter(
 
     // Blur along x, y, z.
     let (nx, ny, nz) = (grid.nx, grid.ny, grid.nz);
-    let along_x: Vec<_> = (0..nz)
-        .flat_map(|z| (0..ny).map(move |y| (((z * ny + y) * nx) * 2, 2, nx)))
-        .collect();
-    let along_y: Vec<_> = (0..nz)
-        .flat_map(|z| (0..nx).map(move |x| (((z * ny) * nx + x) * 2, 2 * nx, ny)))
-        .collect();
-    let along_z: Vec<_> = (0..ny)
-        .flat_map(|y| (0..nx).map(move |x| ((y * nx + x) * 2, 2 * nx * ny, nz)))
-        .collect();
-    for lines in [&along_x, &along_y, &along_z] {
-        blur_axis(&mut grid.data, lines);
-    }
+    blur(&mut grid);
 
     // Slice: trilinear.
     let mut out = values.clone();
