@@ -34,6 +34,9 @@ pub struct PairFigures {
     pub tilt_deg: f64,
     /// Fraction of pot_03's pixels with a height.
     pub coverage: f64,
+    /// Fraction of pot_03's pixels whose height was interpolated, not
+    /// measured (confidence 0; `fill_max_gap`, off by default).
+    pub interpolated: f64,
     pub report: ReconReport,
     pub wall_ms: f64,
 }
@@ -107,7 +110,7 @@ pub fn reconstruct_series(
     mode: Mode,
     quick: bool,
     set: &[String],
-) -> anyhow::Result<Vec<(PairFigures, Image)>> {
+) -> anyhow::Result<Vec<(PairFigures, Image, Vec<bool>)>> {
     let params = ReconstructionParams {
         mode,
         dense: super::dense::apply_overrides(&crate::vision::dense::DenseParams::default(), set)?,
@@ -134,15 +137,19 @@ pub fn reconstruct_series(
             .iter()
             .filter(|v| v.is_finite())
             .count();
+        let interpolated: Vec<bool> = recon.confidence.data().iter().map(|&c| c == 0.0).collect();
+        let n_interpolated = interpolated.iter().filter(|&&i| i).count();
         out.push((
             PairFigures {
                 right: (*right).to_owned(),
                 tilt_deg: pair.geometry.tilt_deg,
                 coverage: known as f64 / recon.height_um.len() as f64,
+                interpolated: n_interpolated as f64 / recon.height_um.len() as f64,
                 report: recon.report,
                 wall_ms: t.elapsed().as_secs_f64() * 1e3,
             },
             recon.height_um,
+            interpolated,
         ));
     }
     Ok(out)
@@ -160,15 +167,20 @@ pub fn run(opts: &super::EvalOptions, mode: Option<Mode>, set: &[String]) -> any
         let series = reconstruct_series(&dir, mode, opts.quick, set)?;
         let m = format!("{mode:?}").to_lowercase();
         let mut agreements = Vec::new();
-        for (f, _) in &series {
+        for (f, _, _) in &series {
             if !opts.json {
                 let t = &f.report.timings;
                 let d = &f.report.dense.timings;
                 println!(
-                    "{m:<8} {LEFT} + {} (θ {:.0}°) | cover {:>5.1} % | heights {:>6.2} … {:>6.2} µm | inliers {} rect err {:.2} px | sparse {:>5.0} ms dense {:>5.0} ms (BP {:.0}, re-assign {:.0}, refine {:.0}, LR {:.0}, filter {:.0}) depth {:>4.0} ms | {:.1} s wall",
+                    "{m:<8} {LEFT} + {} (θ {:.0}°) | cover {:>5.1} %{} | heights {:>6.2} … {:>6.2} µm | inliers {} rect err {:.2} px | sparse {:>5.0} ms dense {:>5.0} ms (BP {:.0}, re-assign {:.0}, refine {:.0}, LR {:.0}, filter {:.0}) depth {:>4.0} ms | {:.1} s wall",
                     f.right,
                     f.tilt_deg,
                     100.0 * f.coverage,
+                    if f.interpolated > 0.0 {
+                        format!(" ({:.1} % interpolated)", 100.0 * f.interpolated)
+                    } else {
+                        String::new()
+                    },
                     f.report.depth.height_p01_um,
                     f.report.depth.height_p99_um,
                     f.report.sparse.inliers,
@@ -189,14 +201,28 @@ pub fn run(opts: &super::EvalOptions, mode: Option<Mode>, set: &[String]) -> any
             for j in i + 1..series.len() {
                 let a = agreement(&series[i].1, &series[j].1);
                 let ok = a.rmse_um <= 1.5 && a.common >= 0.9;
+                // Of the common area, the share interpolated in either map.
+                let either = series[i]
+                    .2
+                    .iter()
+                    .zip(&series[j].2)
+                    .zip(series[i].1.data().iter().zip(series[j].1.data()))
+                    .filter(|((p, q), (x, y))| (**p || **q) && x.is_finite() && y.is_finite())
+                    .count() as f64
+                    / series[i].1.len() as f64;
                 if !opts.json {
                     println!(
-                        "{m:<8} (0°, +{:.0}°) vs (0°, +{:.0}°): RMSE {:.2} µm, median {:.2} µm after plane removal, over {:.1} % of the image | {}",
+                        "{m:<8} (0°, +{:.0}°) vs (0°, +{:.0}°): RMSE {:.2} µm, median {:.2} µm after plane removal, over {:.1} % of the image{} | {}",
                         series[i].0.tilt_deg,
                         series[j].0.tilt_deg,
                         a.rmse_um,
                         a.median_um,
                         100.0 * a.common,
+                        if either > 0.0 {
+                            format!(" ({:.1} % interpolated in either map)", 100.0 * either)
+                        } else {
+                            String::new()
+                        },
                         if ok {
                             "ok"
                         } else {
@@ -206,12 +232,13 @@ pub fn run(opts: &super::EvalOptions, mode: Option<Mode>, set: &[String]) -> any
                 }
                 agreements.push(serde_json::json!({
                     "a": series[i].0.right, "b": series[j].0.right, "agreement": a,
+                    "interpolated_in_either": either,
                 }));
             }
         }
         json.push(serde_json::json!({
             "mode": m,
-            "pairs": series.iter().map(|(f, _)| f).collect::<Vec<_>>(),
+            "pairs": series.iter().map(|(f, _, _)| f).collect::<Vec<_>>(),
             "agreement": agreements,
         }));
     }
