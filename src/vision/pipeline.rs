@@ -17,7 +17,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::Image;
-use super::dense::{DenseError, DenseParams, DenseStats, Disparity, dense_disparity_in_range};
+use super::dense::{DenseError, DenseParams, DenseStats, dense_disparity_in_range};
 use super::depth::{StereoGeometry, height_on_left_grid};
 use super::precision::{self, Precision};
 use super::sift_flow::Mode;
@@ -246,7 +246,7 @@ pub fn reconstruct(
     };
     let (w, h) = left.dimensions();
     let height_um = height_on_left_grid(&disp.disparity, &r.h_left, &r.h_right, &stereo, w, h)?;
-    let confidence = left_grid_confidence(&disp, &height_um, &r.h_left);
+    let confidence = left_grid_confidence(&disp.confidence, &disp.filled, &height_um, &r.h_left);
     let depth = depth_report(&height_um, &stereo);
     if depth.valid_fraction == 0.0 {
         return Err(ReconstructError::NoOverlap);
@@ -321,12 +321,17 @@ pub fn reconstruct(
 /// The dense stage's confidence on the left micrograph's grid: 0 where the
 /// height is mostly (by the resampling's weight) interpolated, `NaN` where
 /// there is no height.
-fn left_grid_confidence(disp: &Disparity, height_um: &Image, h_left: &Matrix3<f64>) -> Image {
+fn left_grid_confidence(
+    canvas_confidence: &Image,
+    filled: &[bool],
+    height_um: &Image,
+    h_left: &Matrix3<f64>,
+) -> Image {
     let (w, h) = height_um.dimensions();
-    let mut confidence = resample_to_left_grid(&disp.confidence, h_left, w, h);
-    let filled = disp.filled.contains(&true).then(|| {
-        let (cw, ch) = disp.confidence.dimensions();
-        let mask = Image::from_fn(cw, ch, |x, y| f32::from(u8::from(disp.filled[y * cw + x])));
+    let mut confidence = resample_to_left_grid(canvas_confidence, h_left, w, h);
+    let filled = filled.contains(&true).then(|| {
+        let (cw, ch) = canvas_confidence.dimensions();
+        let mask = Image::from_fn(cw, ch, |x, y| f32::from(u8::from(filled[y * cw + x])));
         resample_to_left_grid(&mask, h_left, w, h)
     });
     for (p, c) in confidence.data_mut().iter_mut().enumerate() {
@@ -478,6 +483,24 @@ mod tests {
         assert_eq!(s.sift.c_dog, SparseParams::paper().sift.c_dog);
         let improved = ReconstructionParams::default();
         assert_eq!(improved.sparse_params(), SparseParams::default());
+    }
+
+    /// On the left grid: NaN where there is no height, 0 where the height
+    /// was interpolated, the dense stage's confidence elsewhere.
+    #[test]
+    fn confidence_marks_interpolated_and_unknown_heights() {
+        let (w, h) = (6, 4);
+        let canvas = Image::filled(w, h, 0.8);
+        let mut filled = vec![false; w * h];
+        filled[2 * w + 3] = true;
+        let height = Image::from_fn(w, h, |x, y| if (x, y) == (0, 0) { f32::NAN } else { 1.0 });
+        let c = left_grid_confidence(&canvas, &filled, &height, &Matrix3::identity());
+        assert!(c.get(0, 0).is_nan());
+        assert_eq!(c.get(3, 2), 0.0);
+        assert!((c.get(5, 3) - 0.8).abs() < 1e-6 && (c.get(1, 0) - 0.8).abs() < 1e-6);
+        let none =
+            left_grid_confidence(&canvas, &vec![false; w * h], &height, &Matrix3::identity());
+        assert_eq!(none.data().iter().filter(|v| **v == 0.0).count(), 0);
     }
 
     #[test]
