@@ -94,6 +94,25 @@ fn replay_reproduces_a_recorded_run_bit_for_bit_whatever_the_thread_count() {
     let record = record_small_run(dir.path());
     let run_dir = record.parent().unwrap();
 
+    // The run's results are attached to its record, as written beside it.
+    let summary = record::read_summary(&record).unwrap();
+    for (name, media_type) in [
+        (topics::ATTACHMENT_HEIGHT_GSF, "application/x-gwyddion-gsf"),
+        (topics::ATTACHMENT_MESH_PLY, "application/x-ply"),
+        (topics::ATTACHMENT_CONFIDENCE_TIFF, "image/tiff"),
+    ] {
+        let a = summary
+            .attachments
+            .iter()
+            .find(|a| a.name == name)
+            .unwrap_or_else(|| panic!("no {name} attachment: {:?}", summary.attachments));
+        assert_eq!(a.media_type, media_type);
+        assert_eq!(
+            a.bytes,
+            std::fs::metadata(run_dir.join(name)).unwrap().len()
+        );
+    }
+
     for threads in [1, 3] {
         let out_dir = dir.path().join(format!("replay-{threads}"));
         let out = sdsem(
