@@ -6,6 +6,12 @@
 //! cell), and the result is read back by trilinear slicing and division — an
 //! edge-preserving smoothing whose cost does not grow with σs.
 //!
+//! The grid is built tile by tile (32 × 32 cells of output, in parallel),
+//! each tile's grid holding the cells its pixels read plus the blur's reach
+//! and only the range of values found there: the same sums as one grid over
+//! the whole image, in memory and time that follow the occupied cells rather
+//! than the image times its whole disparity range.
+//!
 //! Used on the disparity (range axis = disparity itself, in pixels) with a
 //! per-pixel weight: 0 drops a pixel (unknown, occluded), a confidence in
 //! `(0, 1]` lets reliable pixels dominate. Pixels whose input is `NaN` stay `NaN`.
