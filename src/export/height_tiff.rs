@@ -68,14 +68,6 @@ enum Field {
     Confidence,
 }
 
-pub(crate) fn encode_height<W: Write + Seek>(
-    out: W,
-    height_um: &Image,
-    pixel_size_um: Option<f64>,
-) -> tiff::TiffResult<()> {
-    encode_field(out, height_um, pixel_size_um, Field::Height)
-}
-
 fn encode_field<W: Write + Seek>(
     out: W,
     height_um: &Image,
@@ -113,15 +105,7 @@ pub fn write_height_tiff(
     height_um: &Image,
     pixel_size_um: Option<f64>,
 ) -> Result<(), ExportError> {
-    if height_um.is_empty() {
-        return Err(ExportError::Invalid {
-            path: path.to_path_buf(),
-            reason: "the height map is empty".to_owned(),
-        });
-    }
-    write_atomic(path, |w| {
-        encode_height(&mut *w, height_um, pixel_size_um).map_err(std::io::Error::other)
-    })
+    write_field(path, height_um, pixel_size_um, Field::Height)
 }
 
 /// Writes `confidence.tif` atomically: float32 on the height map's grid,
@@ -135,15 +119,27 @@ pub fn write_confidence_tiff(
     confidence: &Image,
     pixel_size_um: Option<f64>,
 ) -> Result<(), ExportError> {
-    if confidence.is_empty() {
+    write_field(path, confidence, pixel_size_um, Field::Confidence)
+}
+
+fn write_field(
+    path: &Path,
+    map: &Image,
+    pixel_size_um: Option<f64>,
+    kind: Field,
+) -> Result<(), ExportError> {
+    if map.is_empty() {
+        let what = match kind {
+            Field::Height => "height",
+            Field::Confidence => "confidence",
+        };
         return Err(ExportError::Invalid {
             path: path.to_path_buf(),
-            reason: "the confidence map is empty".to_owned(),
+            reason: format!("the {what} map is empty"),
         });
     }
     write_atomic(path, |w| {
-        encode_field(&mut *w, confidence, pixel_size_um, Field::Confidence)
-            .map_err(std::io::Error::other)
+        encode_field(&mut *w, map, pixel_size_um, kind).map_err(std::io::Error::other)
     })
 }
 
