@@ -318,6 +318,10 @@ pub fn reconstruct(
     })
 }
 
+/// The confidence of a measured height at least, so that 0 marks the
+/// interpolated ones alone.
+const MIN_MEASURED_CONFIDENCE: f32 = 1e-6;
+
 /// The dense stage's confidence on the left micrograph's grid: 0 where the
 /// height is mostly (by the resampling's weight) interpolated, `NaN` where
 /// there is no height.
@@ -339,6 +343,10 @@ fn left_grid_confidence(
             *c = f32::NAN;
         } else if filled.as_ref().is_some_and(|f| f.data()[p] >= 0.5) || !c.is_finite() {
             *c = 0.0;
+        } else {
+            // A measured height whose match had no margin or correlation
+            // still is one: 0 stays reserved for interpolated heights.
+            *c = c.max(MIN_MEASURED_CONFIDENCE);
         }
     }
     confidence
@@ -501,6 +509,11 @@ mod tests {
         let none =
             left_grid_confidence(&canvas, &vec![false; w * h], &height, &Matrix3::identity());
         assert_eq!(none.data().iter().filter(|v| **v == 0.0).count(), 0);
+        // A measured height whose match had no margin still reads above 0.
+        let flat = Image::filled(w, h, 0.0);
+        let c = left_grid_confidence(&flat, &filled, &height, &Matrix3::identity());
+        assert_eq!(c.get(3, 2), 0.0);
+        assert!(c.get(1, 0) > 0.0 && c.get(5, 3) > 0.0);
     }
 
     #[test]
