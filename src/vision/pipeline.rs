@@ -318,13 +318,13 @@ pub fn reconstruct(
     })
 }
 
-/// The confidence of a measured height at least, so that 0 marks the
-/// interpolated ones alone.
+/// The lowest confidence a measured height reads, so that 0 marks the
+/// interpolated heights alone.
 const MIN_MEASURED_CONFIDENCE: f32 = 1e-6;
 
 /// The dense stage's confidence on the left micrograph's grid: 0 where the
 /// height is mostly (by the resampling's weight) interpolated, `NaN` where
-/// there is no height.
+/// there is no height, at least [`MIN_MEASURED_CONFIDENCE`] elsewhere.
 fn left_grid_confidence(
     canvas_confidence: &Image,
     filled: &[bool],
