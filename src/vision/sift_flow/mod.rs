@@ -479,6 +479,14 @@ pub(crate) fn check_size(w: usize, h: usize, levels: usize) -> Result<(), DenseE
 type Coarser<'f> = (&'f [Vec<f32>; 2], (usize, usize));
 
 /// One direction's state between levels: the flow of the level just solved.
+/// One level's label space and data term in one direction: all that BP
+/// needs of the descriptors.
+struct LevelData {
+    space: LabelSpace,
+    data: DataTerm,
+    data_term_ms: f64,
+}
+
 struct Direction {
     flow: [Vec<f32>; 2],
     margin: Vec<f32>,
@@ -583,10 +591,14 @@ impl Engine {
         let mut bwd: Option<Direction> = None;
         for l in (self.finest..levels).rev() {
             let td = Instant::now();
-            let computed;
+            // This level's descriptors, owned: they are dropped once its data
+            // terms hold what BP needs of them (the paper mode's full-resolution
+            // pair alone is 256 bytes a canvas pixel).
             let (da, db) = if self.mode == Mode::Paper {
-                let (da, db) = &desc_pyramid[l];
-                (da, db)
+                // Built finest first, taken coarsest first.
+                desc_pyramid
+                    .pop()
+                    .expect("one descriptor level per BP level")
             } else {
                 let (ia, ib) = &img_pyramid[l];
                 let sift = DenseSiftParams {
@@ -595,11 +607,10 @@ impl Engine {
                 // Each image's descriptors serve its real pixels only: as
                 // the source they have the data term, as the target the
                 // others are never matched.
-                computed = rayon::join(
+                rayon::join(
                     || dense_sift_where(ia, &sift, masks_a[l].as_deref()),
                     || dense_sift_where(ib, &sift, masks_b[l].as_deref()),
-                );
-                (&computed.0, &computed.1)
+                )
             };
             let descriptor_ms = ms(td) + if l + 1 == levels { pyramid_ms } else { 0.0 };
             let (wa, ha, wb, hb) = sizes[l];
@@ -622,30 +633,26 @@ impl Engine {
                     .map(|(ia, ib)| if k == 0 { ia } else { ib })
             };
             let forward = || {
-                self.level(
+                self.data_term(
                     l,
-                    source(0),
-                    da,
-                    db,
+                    &da,
+                    &db,
                     (wa, ha, wb, hb),
                     masks_a[l].as_deref(),
                     masks_b[l].as_deref(),
                     up_a.and_then(|s| coarse(&fwd, s)),
-                    descriptor_ms,
                     self.top_shift,
                 )
             };
             let backward = || {
-                self.level(
+                self.data_term(
                     l,
-                    source(1),
-                    db,
-                    da,
+                    &db,
+                    &da,
                     (wb, hb, wa, ha),
                     masks_b[l].as_deref(),
                     masks_a[l].as_deref(),
                     up_b.and_then(|s| coarse(&bwd, s)),
-                    descriptor_ms,
                     -self.top_shift,
                 )
             };
@@ -654,6 +661,17 @@ impl Engine {
                 (f, Some(b))
             } else {
                 (forward(), None)
+            };
+            drop((da, db));
+            let solve_f = || self.solve(l, source(0), f, masks_a[l].as_deref(), descriptor_ms);
+            let (f, b) = match b {
+                Some(b) => {
+                    let solve_b =
+                        || self.solve(l, source(1), b, masks_b[l].as_deref(), descriptor_ms);
+                    let (f, b) = rayon::join(solve_f, solve_b);
+                    (f, Some(b))
+                }
+                None => (solve_f(), None),
             };
             fwd = Some(merge(fwd, f));
             bwd = match (bwd, b) {
@@ -683,22 +701,20 @@ impl Engine {
         )
     }
 
-    /// Solves one level in one direction, from the flow of the coarser level
-    /// (`None` at the top).
+    /// The label space and data term of one level in one direction, around
+    /// the flow of the coarser level (`None` at the top).
     #[allow(clippy::too_many_arguments)]
-    fn level(
+    fn data_term(
         &self,
         l: usize,
-        source: Option<&Image>,
         da: &DescriptorImage,
         db: &DescriptorImage,
         (w, h, w2, h2): (usize, usize, usize, usize),
         mask_a: Option<&[bool]>,
         mask_b: Option<&[bool]>,
         coarser: Option<Coarser<'_>>,
-        descriptor_ms: f64,
         shift: f32,
-    ) -> Direction {
+    ) -> LevelData {
         let plan = self.plan[l];
         // The shift in this level's pixels (bounded by the image size).
         #[allow(clippy::cast_possible_truncation)]
@@ -724,7 +740,29 @@ impl Engine {
         };
         let tdata = Instant::now();
         let data = DataTerm::compute(da, db, &space, mask_a, mask_b, self.t);
-        let data_term_ms = ms(tdata);
+        LevelData {
+            space,
+            data,
+            data_term_ms: ms(tdata),
+        }
+    }
+
+    /// Solves one level in one direction by BP on its data term.
+    fn solve(
+        &self,
+        l: usize,
+        source: Option<&Image>,
+        level: LevelData,
+        mask_a: Option<&[bool]>,
+        descriptor_ms: f64,
+    ) -> Direction {
+        let plan = self.plan[l];
+        let LevelData {
+            space,
+            data,
+            data_term_ms,
+        } = level;
+        let (w, h) = (space.width, space.height);
         // Improved mode: a stronger smoothness at the finest BP level only,
         // and there its own truncation if one is set.
         let finest_improved = l == self.finest && self.mode == Mode::Improved;
@@ -791,7 +829,6 @@ impl Engine {
         } else {
             Vec::new()
         };
-        let _ = h2;
         Direction {
             flow,
             margin,
