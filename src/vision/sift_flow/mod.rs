@@ -478,7 +478,6 @@ pub(crate) fn check_size(w: usize, h: usize, levels: usize) -> Result<(), DenseE
 /// The flow of the coarser level and its size.
 type Coarser<'f> = (&'f [Vec<f32>; 2], (usize, usize));
 
-/// One direction's state between levels: the flow of the level just solved.
 /// One level's label space and data term in one direction: all that BP
 /// needs of the descriptors.
 struct LevelData {
@@ -487,6 +486,21 @@ struct LevelData {
     data_term_ms: f64,
 }
 
+/// Runs `forward`, and `backward` beside it when there is one.
+fn forward_and_backward<T: Send>(
+    forward: impl FnOnce() -> T + Send,
+    backward: Option<impl FnOnce() -> T + Send>,
+) -> (T, Option<T>) {
+    match backward {
+        Some(backward) => {
+            let (f, b) = rayon::join(forward, backward);
+            (f, Some(b))
+        }
+        None => (forward(), None),
+    }
+}
+
+/// One direction's state between levels: the flow of the level just solved.
 struct Direction {
     flow: [Vec<f32>; 2],
     margin: Vec<f32>,
@@ -656,23 +670,13 @@ impl Engine {
                     -self.top_shift,
                 )
             };
-            let (f, b) = if both {
-                let (f, b) = rayon::join(forward, backward);
-                (f, Some(b))
-            } else {
-                (forward(), None)
-            };
+            let (f, b) = forward_and_backward(forward, both.then_some(backward));
             drop((da, db));
-            let solve_f = || self.solve(l, source(0), f, masks_a[l].as_deref(), descriptor_ms);
-            let (f, b) = match b {
-                Some(b) => {
-                    let solve_b =
-                        || self.solve(l, source(1), b, masks_b[l].as_deref(), descriptor_ms);
-                    let (f, b) = rayon::join(solve_f, solve_b);
-                    (f, Some(b))
-                }
-                None => (solve_f(), None),
-            };
+            let mask_b = masks_b[l].as_deref();
+            let (f, b) = forward_and_backward(
+                || self.solve(l, source(0), f, masks_a[l].as_deref(), descriptor_ms),
+                b.map(|b| move || self.solve(l, source(1), b, mask_b, descriptor_ms)),
+            );
             fwd = Some(merge(fwd, f));
             bwd = match (bwd, b) {
                 (prev, Some(b)) => Some(merge(prev, b)),
