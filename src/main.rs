@@ -14,8 +14,8 @@ fn main() -> ExitCode {
     match sdsem::cli::run(cli) {
         Ok(code) => code,
         Err(err) => {
-            // One line that names the cause chain; details went to the log.
-            eprintln!("error: {err:#}");
+            // One line that names the cause chain (error priority in the journal); details went to the log.
+            eprintln!("{}error: {err:#}", sdsem::cli::journal_error_prefix());
             ExitCode::FAILURE
         }
     }

@@ -131,7 +131,7 @@ async fn jobs_run_one_at_a_time_oldest_first_each_in_its_own_directory() {
                 last_end = None;
             }
             Event::Ended { at, .. } => last_end = Some(at),
-            Event::LinkCheck { .. } => {}
+            Event::LinkCheck { .. } | Event::StageRead { .. } | Event::SafeMove { .. } => {}
         }
     }
     let jobs = rig.jobs();
@@ -520,21 +520,28 @@ async fn the_watchdog_is_fed_during_long_jobs_and_stops_when_the_spool_is_gone()
     let rig = Rig::new(script);
     rig.submit("long");
     let (sup, ctl) = rig.supervisor();
+    let root = rig.spool.root().to_owned();
     let driver = async {
         rig.wait_until(Duration::from_secs(700), all_final).await;
         let t0 = Instant::now();
+        // `mv daemon.lock` once stopped the pings (and let a second daemon in): now it
+        // is noticed, said, and the lock file written again; the pings go on.
+        std::fs::rename(root.join("daemon.lock"), root.join("elsewhere")).unwrap();
         sleep(Duration::from_secs(60)).await;
         let t1 = Instant::now();
-        std::fs::remove_file(rig.spool.root().join("daemon.lock")).unwrap();
+        let status = rig.spool.daemon_status().unwrap();
+        // The spool directory itself moved away: nothing can work, systemd must restart.
+        std::fs::rename(&root, root.with_extension("gone")).unwrap();
         sleep(Duration::from_secs(60)).await;
         let t2 = Instant::now();
+        std::fs::rename(root.with_extension("gone"), &root).unwrap();
         ctl.send(stop()).await.unwrap();
-        (t0, t1, t2)
+        (t0, t1, t2, status)
     };
     let start = Instant::now();
-    let (result, (t0, t1, t2)) = tokio::join!(sup.run(), driver);
+    let (result, (t0, t1, t2, status)) = tokio::join!(sup.run(), driver);
     result.unwrap();
-    // Every 5 s through the 600 s job, idle too; none once the spool is gone.
+    // Every 5 s through the 600 s job, idle too, with the lock file tampered with.
     assert!(rig.notices.watchdogs_between(start, t0) >= 120);
     assert_eq!(rig.notices.watchdogs_between(t0, t1), 12);
     assert_eq!(
@@ -542,6 +549,228 @@ async fn the_watchdog_is_fed_during_long_jobs_and_stops_when_the_spool_is_gone()
             .watchdogs_between(t1 + Duration::from_secs(5), t2),
         0
     );
+    assert_eq!(status.warnings.len(), 1, "{:?}", status.warnings);
+    assert!(
+        status.warnings[0].contains("daemon.lock was moved away or removed"),
+        "{:?}",
+        status.warnings
+    );
+    let pid = std::fs::read_to_string(root.join("daemon.lock")).unwrap();
+    assert_eq!(pid.trim(), std::process::id().to_string());
+}
+
+/// Starts a job and leaves it `running` with the stage at `tilt`, as a kill -9 would.
+fn crash_mid_job(rig: &Rig, name: &str) {
+    rig.submit(name);
+    let owned = rig.spool.clone().lock().unwrap();
+    let job = owned.next_queued().unwrap().0.unwrap();
+    owned
+        .start(&job, Path::new("/runs/x"), SystemTime::now())
+        .unwrap();
+}
+
+/// After kill -9 mid-job with the stage left at 14°, the next start said READY and "idle"
+/// without a word: now the stage is read and moved to its safe tilt before any job, and
+/// the event is kept in `daemon.json`.
+#[tokio::test(start_paused = true)]
+async fn after_an_unclean_end_the_stage_is_brought_to_its_safe_tilt_before_any_job() {
+    let script = Script {
+        tilt: 14.0,
+        safe_move: Duration::from_secs(14),
+        ..Script::default()
+    };
+    let rig = Rig::new(script);
+    crash_mid_job(&rig, "cut");
+    rig.submit("next");
+    let (sup, ctl) = rig.supervisor();
+    let driver = async {
+        rig.wait_until(Duration::from_secs(120), all_final).await;
+        ctl.send(stop()).await.unwrap();
+    };
+    let (result, ()) = tokio::join!(sup.run(), driver);
+    result.unwrap();
+    let events = rig.runner.events();
+    let moved = events
+        .iter()
+        .position(|e| matches!(e, Event::SafeMove { from, .. } if *from == 14.0))
+        .expect("moved to the safe tilt");
+    let started = events
+        .iter()
+        .position(|e| matches!(e, Event::Started { .. }))
+        .unwrap();
+    assert!(moved < started, "{events:#?}");
+    assert!(
+        rig.notices.statuses().iter().any(|s| s
+            .starts_with("after an unclean end the stage is at 14.000°, not at its safe tilt 0°")),
+        "{:#?}",
+        rig.notices.statuses()
+    );
+    let check = rig.spool.daemon_status().unwrap().stage_check.unwrap();
+    assert!(!check.pending);
+    assert_eq!(check.found_tilt_deg, Some(14.0));
+    assert!(check.cause.contains("job 1 was running"), "{}", check.cause);
+    assert!(
+        check.action.contains("moved to its safe tilt"),
+        "{}",
+        check.action
+    );
+
+    // A clean stop: the next start reads nothing, moves nothing, keeps the last check.
+    let runner = FakeRunner::new(Script {
+        tilt: 3.0,
+        ..Script::default()
+    });
+    let (tx, rx) = mpsc::channel(8);
+    let sup = Supervisor::new(
+        rig.spool.clone().lock().unwrap(),
+        rig.config.clone(),
+        runner.clone(),
+        rx,
+    )
+    .with_disk(rig.disk.clone());
+    let driver = async {
+        sleep(Duration::from_secs(10)).await;
+        tx.send(stop()).await.unwrap();
+    };
+    let (result, ()) = tokio::join!(sup.run(), driver);
+    result.unwrap();
+    assert!(
+        !runner
+            .events()
+            .iter()
+            .any(|e| matches!(e, Event::StageRead { .. })),
+        "{:?}",
+        runner.events()
+    );
+    assert_eq!(rig.spool.daemon_status().unwrap().stage_check, Some(check));
+}
+
+/// `daemon.after_crash = "wait"`: no job runs until an operator acknowledges; then the
+/// stage goes to its safe tilt and the queue runs. A wait cut short by a stop is still
+/// pending at the next start.
+#[tokio::test(start_paused = true)]
+async fn with_after_crash_wait_no_job_runs_until_an_operator_acknowledges() {
+    let script = Script {
+        tilt: 9.0,
+        ..Script::default()
+    };
+    let mut rig = Rig::new(script);
+    rig.config.daemon.after_crash = sdsem::daemon::AfterCrash::Wait;
+    crash_mid_job(&rig, "cut");
+    rig.submit("next");
+    // An old acknowledgement does not count for a new unclean end.
+    rig.spool.acknowledge(SystemTime::now()).unwrap();
+    let (sup, ctl) = rig.supervisor();
+    let driver = async {
+        sleep(Duration::from_secs(60)).await;
+        ctl.send(stop()).await.unwrap();
+    };
+    let (result, ()) = tokio::join!(sup.run(), driver);
+    result.unwrap();
+    assert!(rig.runner.started().is_empty());
+    let check = rig.spool.daemon_status().unwrap().stage_check.unwrap();
+    assert!(
+        check.pending && check.action.starts_with("waiting for an operator"),
+        "{check:?}"
+    );
+    assert!(
+        rig.notices
+            .statuses()
+            .iter()
+            .any(|s| s.starts_with("held: waiting for an operator"))
+    );
+
+    // Restarted cleanly while waiting: still held; acknowledged: moved, then the job runs.
+    let (sup, ctl) = rig.supervisor();
+    let driver = async {
+        sleep(Duration::from_secs(30)).await;
+        assert!(rig.runner.started().is_empty());
+        rig.spool.acknowledge(SystemTime::now()).unwrap();
+        rig.wait_until(Duration::from_secs(60), all_final).await;
+        ctl.send(stop()).await.unwrap();
+    };
+    let (result, ()) = tokio::join!(sup.run(), driver);
+    result.unwrap();
+    assert_eq!(rig.runner.started(), ["next"]);
+    let check = rig.spool.daemon_status().unwrap().stage_check.unwrap();
+    assert!(
+        !check.pending && check.action.contains("moved to its safe tilt"),
+        "{check:?}"
+    );
+}
+
+/// A record written straight into `queued/` with `"name": "../../pub/evil"` made the daemon
+/// create its run directory outside the output directory and run it: such a record gets the
+/// same check as `submit` and is rejected; nothing is created, nothing runs.
+#[tokio::test(start_paused = true)]
+async fn a_record_written_around_submit_gets_the_same_check_and_is_rejected() {
+    let rig = Rig::new(Script::default());
+    let good = rig.submit("good");
+    let queued = rig.spool.root().join("queued");
+    let mut forged = |id: u64, edit: &dyn Fn(&mut serde_json::Value)| {
+        let mut v = serde_json::to_value(&good).unwrap();
+        v["id"] = id.into();
+        edit(&mut v);
+        std::fs::write(queued.join(format!("{id:08}.json")), v.to_string()).unwrap();
+    };
+    forged(2, &|v| {
+        v["name"] = "../../pub/evil".into();
+        v["job"]["name"] = "../../pub/evil".into();
+    });
+    forged(3, &|v| v["job"]["step"] = 1e-4.into());
+    forged(4, &|v| {
+        v["job"]["capture"] = serde_json::json!({"tracking": {"max_correction_um": 500.0}});
+    });
+    forged(5, &|v| v["job"]["end_tilt"] = serde_json::Value::Null);
+    let (sup, ctl) = rig.supervisor();
+    let driver = async {
+        rig.wait_until(Duration::from_secs(60), |jobs| {
+            jobs.iter().filter(|j| j.state.is_final()).count() == 4
+        })
+        .await;
+        ctl.send(stop()).await.unwrap();
+    };
+    let (result, ()) = tokio::join!(sup.run(), driver);
+    result.unwrap();
+    assert_eq!(rig.runner.started(), ["good"]);
+    let jobs = rig.jobs();
+    let reason = |id: u64| {
+        let j = jobs.iter().find(|j| j.id.0 == id).unwrap();
+        assert_eq!(j.state, JobState::Rejected, "{j:?}");
+        assert!(j.run_dir.is_none());
+        j.reason.clone().unwrap()
+    };
+    assert!(
+        reason(2).starts_with("refused: name = \"../../pub/evil\" starts with"),
+        "{}",
+        reason(2)
+    );
+    assert!(
+        reason(3).contains("below the step floor daemon.min_step_deg"),
+        "{}",
+        reason(3)
+    );
+    assert!(
+        reason(4).contains("tracking.max_correction_um: a job may not set this key"),
+        "{}",
+        reason(4)
+    );
+    let listing = rig.spool.list().unwrap();
+    // JSON has no inf: `end_tilt = inf` reaches a record as null, which is no number.
+    assert_eq!(listing.set_aside_total, 1, "the record with end_tilt null");
+    assert!(
+        listing.set_aside[0]
+            .cause
+            .starts_with("not a job record: invalid type: null, expected f64"),
+        "{:?}",
+        listing.set_aside
+    );
+    // Only the good job's directory exists, inside the output directory.
+    let runs: Vec<_> = std::fs::read_dir(&rig.config.run.output_dir)
+        .unwrap()
+        .collect();
+    assert_eq!(runs.len(), 1);
+    assert!(!rig.config.run.output_dir.join("../../pub").exists());
 }
 
 #[tokio::test(start_paused = true)]

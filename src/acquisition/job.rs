@@ -7,6 +7,7 @@
 //! how the run ended from [`JobReport::outcome`], never from a lost error.
 
 use std::collections::BTreeMap;
+use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
@@ -16,9 +17,10 @@ use super::cancel::Cancel;
 use super::instruments::{Instruments, RunObserver};
 use super::machine::{FrameRole, Outcome, Series};
 use super::plan::SeriesPlan;
+use super::run_dir::RunDir;
 use super::runner::{Captured, SeriesContext, SeriesRecord, run_series};
 use crate::config::Config;
-use crate::imaging::file::{MicrographTags, SampleDepth, write_micrograph_tiff};
+use crate::imaging::file::{MicrographTags, SampleDepth, encode_micrograph_tiff};
 use crate::record::{
     RecordLogSwitch, RecordSummary, Recorder, RecorderHandle, RecorderOptions, RunOutcome,
     RunStatus, topics,
@@ -39,12 +41,7 @@ pub mod files {
 /// Why a run could not even be recorded.
 #[derive(Debug, thiserror::Error)]
 pub enum JobError {
-    #[error("cannot create the run directory {path}")]
-    RunDir {
-        path: PathBuf,
-        source: std::io::Error,
-    },
-    #[error("cannot create the run record {path}")]
+    #[error("cannot create the run record {path}: {source}")]
     Record {
         path: PathBuf,
         source: crate::record::RecordError,
@@ -60,46 +57,6 @@ pub struct JobReport {
     pub series: Option<SeriesRecord>,
     /// The record as finished; `Err` with the cause when it could not be completed.
     pub record: Result<RecordSummary, String>,
-}
-
-/// Creates `<output_dir>/<name>-<UTC time>` (with a numeric suffix if taken).
-///
-/// # Errors
-/// [`JobError::RunDir`] when the directory cannot be created.
-pub fn create_run_dir(output_dir: &Path, name: &str) -> Result<PathBuf, JobError> {
-    let stamp = compact_utc(wall_ns());
-    let fail = |path: &Path, source| JobError::RunDir {
-        path: path.to_owned(),
-        source,
-    };
-    std::fs::create_dir_all(output_dir).map_err(|e| fail(output_dir, e))?;
-    for n in 0..1000 {
-        let dir_name = if n == 0 {
-            format!("{name}-{stamp}")
-        } else {
-            format!("{name}-{stamp}-{n}")
-        };
-        let path = output_dir.join(dir_name);
-        match std::fs::create_dir(&path) {
-            Ok(()) => return Ok(path),
-            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {}
-            Err(e) => return Err(fail(&path, e)),
-        }
-    }
-    Err(fail(
-        output_dir,
-        std::io::Error::other("a thousand runs started in the same second"),
-    ))
-}
-
-/// `YYYYMMDDThhmmssZ`.
-fn compact_utc(ns: u64) -> String {
-    let digits: String = crate::record::utc_time(ns)
-        .chars()
-        .filter(char::is_ascii_digit)
-        .take(14)
-        .collect();
-    format!("{}T{}Z", &digits[..8], &digits[8..])
 }
 
 /// What a run reports to, and hears from, whoever started it.
@@ -124,16 +81,17 @@ impl RunHooks<'_> {
     }
 }
 
-/// Runs one acquisition into `run_dir` (which must exist). Connects the
+/// Runs one acquisition into `run_dir` (fresh and empty). Connects the
 /// instruments itself unless `instruments` are given (the daemon keeps them).
 ///
 /// # Errors
 /// [`JobError`] only when the record cannot be created; everything after that
-/// is reported in [`JobReport::outcome`] and in the record.
+/// is reported in [`JobReport::outcome`] and in the record. A record that could
+/// not be written to its end (a full disk) fails the run with the write error.
 pub async fn run_job(
     config: &Config,
     instruments: Option<&mut Instruments>,
-    run_dir: &Path,
+    run_dir: &RunDir,
     hooks: RunHooks<'_>,
 ) -> Result<JobReport, JobError> {
     let RunHooks {
@@ -142,25 +100,36 @@ pub async fn run_job(
         progress,
     } = hooks;
     let record_path = run_dir.join(files::RECORD);
-    let recorder =
-        Recorder::create(&record_path, RecorderOptions::default()).map_err(|source| {
-            JobError::Record {
-                path: record_path.clone(),
-                source,
-            }
-        })?;
+    let record_error = |source| JobError::Record {
+        path: record_path.clone(),
+        source,
+    };
+    let file = run_dir.create_file(files::RECORD).map_err(|source| {
+        record_error(crate::record::RecordError::Create {
+            path: record_path.clone(),
+            source,
+        })
+    })?;
+    let recorder = Recorder::with_file(record_path.clone(), file, RecorderOptions::default())
+        .map_err(record_error)?;
     let rec = recorder.handle();
     if let Some(logs) = logs {
         logs.attach(rec.clone());
     }
     let config_text = config.to_toml();
-    if let Err(e) = std::fs::write(run_dir.join(files::CONFIG), &config_text) {
+    if let Err(e) = run_dir.write_new(files::CONFIG, |w| w.write_all(config_text.as_bytes())) {
         warn!("cannot write the effective configuration beside the record: {e}");
     }
     let _ = rec.metadata(topics::METADATA_RUN, run_metadata(config, &config_text));
-    info!(run_dir = %run_dir.display(), "run started");
+    info!(run_dir = %run_dir.path().display(), "run started");
 
-    let (outcome, series) = acquire(config, instruments, run_dir, &rec, cancel, progress).await;
+    let (mut outcome, series) = acquire(config, instruments, run_dir, &rec, cancel, progress).await;
+    // A record that stopped on a write error (a full disk) is the real cause of what followed.
+    if let Some(cause) = rec.status().failed
+        && !matches!(outcome, Outcome::Interrupted { .. })
+    {
+        outcome = failed(cause);
+    }
 
     let (status, cause) = match &outcome {
         Outcome::Completed => (RunStatus::Succeeded, None),
@@ -179,8 +148,11 @@ pub async fn run_job(
         );
         e.to_string()
     });
+    if let (Err(e), Outcome::Completed) = (&record, &outcome) {
+        outcome = Outcome::Failed { reason: e.clone() };
+    }
     Ok(JobReport {
-        run_dir: run_dir.to_owned(),
+        run_dir: run_dir.path().to_owned(),
         outcome,
         series,
         record,
@@ -190,7 +162,7 @@ pub async fn run_job(
 async fn acquire(
     config: &Config,
     instruments: Option<&mut Instruments>,
-    run_dir: &Path,
+    run_dir: &RunDir,
     rec: &RecorderHandle,
     mut cancel: Cancel,
     progress: &(dyn Fn(&str) + Send + Sync),
@@ -254,7 +226,7 @@ async fn acquire(
             outcome = Outcome::Interrupted { reason };
         } else {
             progress("reconstructing the pair");
-            if let Err(e) = reconstruct_series(config, &record, run_dir, rec).await {
+            if let Err(e) = reconstruct_series(config, &record, run_dir.path(), rec).await {
                 outcome = failed(format!("reconstruction failed: {e:#}"));
             }
         }
@@ -395,7 +367,7 @@ fn failed(reason: String) -> Outcome {
 }
 
 /// `left.tif` and `right.tif`, 16-bit, with tilt and pixel size in their metadata.
-fn write_micrographs(record: &SeriesRecord, run_dir: &Path) -> Result<(), String> {
+fn write_micrographs(record: &SeriesRecord, run_dir: &RunDir) -> Result<(), String> {
     for (role, captured, name) in [
         (FrameRole::Left, &record.left, files::LEFT),
         (FrameRole::Right, &record.right, files::RIGHT),
@@ -425,9 +397,11 @@ fn write_micrographs(record: &SeriesRecord, run_dir: &Path) -> Result<(), String
         } else {
             SampleDepth::Bits16
         };
-        let path = run_dir.join(name);
-        write_micrograph_tiff(&path, image, &tags, depth)
-            .map_err(|e| format!("{}: {e}", path.display()))?;
+        run_dir
+            .write_new(name, |w| {
+                encode_micrograph_tiff(w, image, &tags, depth).map_err(std::io::Error::other)
+            })
+            .map_err(|e| format!("{}: {e}", run_dir.join(name).display()))?;
     }
     Ok(())
 }
@@ -460,13 +434,6 @@ mod tests {
     use super::*;
 
     #[test]
-    fn compact_time_is_sortable() {
-        // 2026-11-22 03:04:05 UTC
-        let ns = 1_795_316_645_000_000_000;
-        assert_eq!(compact_utc(ns), "20261122T030405Z");
-    }
-
-    #[test]
     fn a_series_beyond_the_controller_limits_is_refused_naming_key_and_limits() {
         let config = crate::acquisition::SeriesConfig {
             start_tilt_deg: 0.0,
@@ -494,14 +461,5 @@ mod tests {
         .unwrap();
         let e = check_plan_against_limits(&short, 0.0, (5.0, 70.0)).unwrap_err();
         assert!(e.contains("stage.safe_tilt_deg = 0°"), "{e}");
-    }
-
-    #[test]
-    fn run_dirs_do_not_collide() {
-        let dir = tempfile::tempdir().unwrap();
-        let a = create_run_dir(dir.path(), "run").unwrap();
-        let b = create_run_dir(dir.path(), "run").unwrap();
-        assert_ne!(a, b);
-        assert!(a.is_dir() && b.is_dir());
     }
 }

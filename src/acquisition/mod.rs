@@ -6,11 +6,13 @@ pub mod instruments;
 pub mod job;
 pub mod machine;
 pub mod plan;
+pub mod run_dir;
 pub mod runner;
 
 pub use cancel::{Cancel, CancelHandle, cancel_pair};
 pub use instruments::{Instruments, InstrumentsError, RunObserver};
-pub use job::{JobError, JobReport, RunHooks, create_run_dir, run_job};
+pub use job::{JobError, JobReport, RunHooks, run_job};
 pub use machine::{Action, Event, FrameRole, Outcome, Series, Tracked, TrackingConfig};
 pub use plan::{PlanError, SeriesConfig, SeriesPlan};
+pub use run_dir::{NameError, RunDir, RunDirError, RunName};
 pub use runner::{Captured, SeriesContext, SeriesRecord, SeriesTimings, TrackingStep, run_series};

@@ -51,7 +51,15 @@ pub enum PlanError {
     },
     #[error("series.{key} is not a finite number")]
     NotFinite { key: &'static str },
+    #[error(
+        "series.step_deg = {step} gives more than {MAX_PLAN_STEPS} steps from \
+         series.start_tilt_deg to series.end_tilt_deg: choose a larger step"
+    )]
+    TooManySteps { step: f64 },
 }
+
+/// Most steps a plan holds, whatever the limits of the daemon: the plan is a list in memory.
+pub const MAX_PLAN_STEPS: usize = 100_000;
 
 /// Tilts of a series, in the order they are visited; the first and the last
 /// are the end micrographs.
@@ -105,6 +113,10 @@ impl SeriesPlan {
         let span = (end - start).abs();
         // Tolerate floating-point dust: 7/1 must give 7 steps, not 8 with a 1e-15 one.
         let whole = (span / step + 1e-9).floor();
+        #[allow(clippy::cast_precision_loss)]
+        if whole >= MAX_PLAN_STEPS as f64 {
+            return Err(PlanError::TooManySteps { step });
+        }
         #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
         let whole_steps = whole as usize;
         let mut tilts: Vec<f64> = (0..=whole_steps)
@@ -184,6 +196,9 @@ mod tests {
 
     #[test]
     fn bad_steps_name_the_key() {
+        // 1e-9 would have been a 70-billion-tilt list (a 56 GB allocation): refused before.
+        let err = SeriesPlan::new(&series(0.0, 70.0, 1e-9), -5.0, 70.0).unwrap_err();
+        assert_eq!(err, PlanError::TooManySteps { step: 1e-9 });
         for step in [0.0, -1.0] {
             let err = SeriesPlan::new(&series(0.0, 7.0, step), -5.0, 70.0).unwrap_err();
             assert!(err.to_string().contains("series.step_deg"), "{err}");

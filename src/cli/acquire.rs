@@ -7,7 +7,7 @@ use anyhow::Context;
 use tracing::warn;
 
 use super::{ConfigArgs, logging};
-use crate::acquisition::{CancelHandle, Outcome, RunHooks, cancel_pair, create_run_dir, run_job};
+use crate::acquisition::{CancelHandle, Outcome, RunDir, RunHooks, RunName, cancel_pair, run_job};
 
 /// Exit code of a run stopped by the operator (as a shell reports SIGINT).
 const EXIT_INTERRUPTED: u8 = 130;
@@ -20,7 +20,8 @@ pub fn run(args: &ConfigArgs) -> anyhow::Result<ExitCode> {
         .build()
         .context("cannot start the async runtime")?;
     runtime.block_on(async {
-        let run_dir = create_run_dir(&config.run.output_dir, &config.run.name)?;
+        let name = RunName::new(&config.run.name).context("run.name")?;
+        let run_dir = RunDir::create(&config.run.output_dir, &name, std::time::SystemTime::now())?;
         let (handle, cancel) = cancel_pair();
         tokio::spawn(cancel_on_signals(handle));
         let hooks = RunHooks {

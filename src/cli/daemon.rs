@@ -1,30 +1,50 @@
 //! `sdsem daemon --config FILE [--spool DIR]`: the unattended service.
+//! `sdsem daemon --ack [--spool DIR | --config FILE]`: an operator's acknowledgement
+//! for a daemon that waits after an unclean end (`daemon.after_crash = "wait"`).
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::process::ExitCode;
+use std::time::SystemTime;
 
 use clap::Args;
 
-use crate::acquisition::{Instruments, RunHooks, run_job};
+use crate::acquisition::{Instruments, RunDir, RunHooks, run_job};
 use crate::config::Config;
-use crate::daemon::{DaemonOptions, JobContext, JobOutcome, JobRecord, JobRunner, run_daemon};
+use crate::daemon::{
+    DaemonOptions, JobContext, JobOutcome, JobRecord, JobRunner, Spool, run_daemon,
+};
 
 #[derive(Debug, Args)]
 pub struct DaemonArgs {
     /// Configuration file (TOML), read again on SIGHUP.
-    #[arg(long, short = 'c', value_name = "FILE")]
-    pub config: PathBuf,
+    #[arg(
+        long,
+        short = 'c',
+        value_name = "FILE",
+        required_unless_present = "ack"
+    )]
+    pub config: Option<PathBuf>,
     /// Override one key (repeatable), applied again on SIGHUP.
     #[arg(long = "set", value_name = "KEY=VALUE")]
     pub overrides: Vec<String>,
     /// The job spool (default: daemon.spool_dir, /var/lib/sdsem/spool).
     #[arg(long, value_name = "DIR")]
     pub spool: Option<PathBuf>,
+    /// Do not run: tell the daemon on this spool that an operator has checked the stage
+    /// after an unclean end, so that it moves the stage to its safe tilt and runs jobs again.
+    #[arg(long)]
+    pub ack: bool,
 }
 
 pub fn run(args: &DaemonArgs) -> anyhow::Result<ExitCode> {
+    if args.ack {
+        return acknowledge(args);
+    }
+    let Some(config_file) = args.config.clone() else {
+        anyhow::bail!("--config FILE is required to run the daemon");
+    };
     let options = DaemonOptions {
-        config_file: args.config.clone(),
+        config_file,
         overrides: args.overrides.clone(),
         spool: args.spool.clone(),
     };
@@ -32,6 +52,29 @@ pub fn run(args: &DaemonArgs) -> anyhow::Result<ExitCode> {
     let runner = acquisition_runner(&config)?;
     let stopped = run_daemon(&options, config, runner)?;
     tracing::info!(signal = %stopped.signal, "sdsem daemon exits");
+    Ok(ExitCode::SUCCESS)
+}
+
+/// `--ack`: the acknowledgement file in the spool, seen by the daemon at its next turn.
+fn acknowledge(args: &DaemonArgs) -> anyhow::Result<ExitCode> {
+    let config = match &args.config {
+        Some(path) => Some(Config::load(Some(path), &args.overrides)?),
+        None => None,
+    };
+    let dir = super::submit::spool_dir(args.spool.as_deref(), config.as_ref())?;
+    let spool = Spool::existing(&dir)?;
+    let path = spool.acknowledge(SystemTime::now())?;
+    match spool.daemon_status().and_then(|d| d.stage_check) {
+        Some(check) if check.pending => println!(
+            "acknowledged ({}): the daemon moves the stage to its safe tilt, then runs jobs",
+            path.display()
+        ),
+        _ => println!(
+            "acknowledged ({}), although the daemon is not waiting for it: it counts only for \
+             a wait that begins later if it is still there then",
+            path.display()
+        ),
+    }
     Ok(ExitCode::SUCCESS)
 }
 
@@ -101,11 +144,46 @@ impl JobRunner for AcquisitionRunner {
         Ok(())
     }
 
+    async fn stage_tilt(&mut self, _config: &Config) -> Result<f64, String> {
+        let (instruments, _) = self
+            .instruments
+            .as_mut()
+            .ok_or("the instruments are not connected")?;
+        match instruments.stage.position().await {
+            Ok(p) => Ok(p.tilt_deg),
+            Err(e) => {
+                self.instruments = None;
+                Err(format!("stage: {e}"))
+            }
+        }
+    }
+
+    async fn move_to_safe_tilt(&mut self, _config: &Config) -> Result<f64, String> {
+        let (instruments, _) = self
+            .instruments
+            .as_mut()
+            .ok_or("the instruments are not connected")?;
+        let moved = instruments.stage.move_to_safe_tilt().await;
+        match moved {
+            Ok(_) => match instruments.stage.position().await {
+                Ok(p) => Ok(p.tilt_deg),
+                Err(e) => Err(format!("stage: {e}")),
+            },
+            Err(e) => {
+                if let Err(stop) = instruments.stage.stop().await {
+                    tracing::warn!("STP after the failed move failed too: {stop}");
+                }
+                self.instruments = None;
+                Err(format!("stage: {e}"))
+            }
+        }
+    }
+
     async fn run(
         &mut self,
         _job: &JobRecord,
         config: &Config,
-        run_dir: &Path,
+        run_dir: &RunDir,
         ctx: JobContext,
     ) -> JobOutcome {
         let Some((instruments, _)) = self.instruments.as_mut() else {

@@ -15,6 +15,8 @@ mod daemon;
 mod eval;
 mod inspect;
 pub(crate) mod logging;
+
+pub use logging::journal_error_prefix;
 mod replay;
 mod status;
 mod submit;
@@ -109,7 +111,9 @@ impl Command {
             Self::Reconstruct(args) => args.config.load().ok()?,
             Self::Rectify(args) => args.config.load().ok()?,
             Self::Flow(args) => args.config.load().ok()?,
-            Self::Daemon(args) => Config::load(Some(&args.config), &args.overrides).ok()?,
+            Self::Daemon(args) => {
+                Config::load(Some(args.config.as_deref()?), &args.overrides).ok()?
+            }
             _ => return None,
         };
         Some(config.log)

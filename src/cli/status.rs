@@ -7,6 +7,7 @@ use anyhow::Context;
 use clap::Args;
 use serde::Serialize;
 
+use crate::acquisition::run_dir::printable;
 use crate::config::Config;
 use crate::daemon::spool::{DaemonStatus, Unreadable};
 use crate::daemon::{JobRecord, Spool};
@@ -31,6 +32,9 @@ struct Report<'a> {
     daemon: Option<DaemonReport>,
     jobs: &'a [JobRecord],
     unreadable: &'a [Unreadable],
+    /// The latest entries set aside in `quarantine/`, with their reasons.
+    set_aside: &'a [Unreadable],
+    set_aside_total: usize,
 }
 
 #[derive(Debug, Serialize)]
@@ -68,28 +72,62 @@ pub fn run(args: &StatusArgs) -> anyhow::Result<ExitCode> {
             daemon,
             jobs: &listing.jobs,
             unreadable: &listing.unreadable,
+            set_aside: &listing.set_aside,
+            set_aside_total: listing.set_aside_total,
         };
         println!("{}", serde_json::to_string_pretty(&report)?);
         return Ok(ExitCode::SUCCESS);
     }
+    // Everything printed may come from outside: escaped and cut short.
+    let p = |text: &str| printable(text, 300);
     match &daemon {
-        Some(d) if d.alive => println!("daemon: PID {}: {}", d.last.pid, d.last.status),
+        Some(d) if d.alive => println!("daemon: PID {}: {}", d.last.pid, p(&d.last.status)),
         Some(d) => println!(
             "daemon: not running (last seen {}: {})",
-            d.last.updated, d.last.status
+            p(&d.last.updated),
+            p(&d.last.status)
         ),
         None => println!("daemon: has never run on this spool"),
+    }
+    if let Some(d) = &daemon {
+        if let Some(check) = &d.last.stage_check {
+            let state = if check.pending { "PENDING" } else { "done" };
+            println!(
+                "stage check after an unclean end ({}, {state}): {}; {}",
+                p(&check.noticed),
+                p(&check.cause),
+                p(&check.action)
+            );
+        }
+        for w in &d.last.warnings {
+            println!("warning: {}", p(w));
+        }
     }
     if listing.jobs.is_empty() {
         println!("no jobs in {}", spool.root().display());
     } else {
         print!("{}", table(&listing.jobs));
     }
+    if listing.set_aside_total > 0 {
+        println!(
+            "set aside in {}/quarantine ({} in all{}):",
+            spool.root().display(),
+            listing.set_aside_total,
+            if listing.set_aside_total > listing.set_aside.len() {
+                format!(", the latest {} shown", listing.set_aside.len())
+            } else {
+                String::new()
+            }
+        );
+        for u in &listing.set_aside {
+            println!("  {}: {}", p(&u.name), p(&u.cause));
+        }
+    }
     for u in &listing.unreadable {
         eprintln!(
             "warning: {} is not a job record: {}",
-            u.path.display(),
-            u.cause
+            p(&u.name),
+            p(&u.cause)
         );
     }
     Ok(ExitCode::SUCCESS)
@@ -115,14 +153,16 @@ fn table(jobs: &[JobRecord]) -> String {
         .map(|j| {
             [
                 j.id.to_string(),
-                j.name.clone(),
+                printable(&j.name, 64),
                 j.state.to_string(),
-                j.submitted.clone(),
-                j.finished.clone().unwrap_or_else(|| "-".into()),
+                printable(&j.submitted, 30),
+                j.finished
+                    .as_deref()
+                    .map_or_else(|| "-".into(), |t| printable(t, 30)),
                 j.run_dir
                     .as_ref()
-                    .map_or_else(|| "-".into(), |p| p.display().to_string()),
-                j.reason.clone().unwrap_or_default(),
+                    .map_or_else(|| "-".into(), |p| printable(&p.display().to_string(), 200)),
+                printable(j.reason.as_deref().unwrap_or_default(), 500),
             ]
         })
         .collect();

@@ -91,17 +91,22 @@ pub(super) fn spool_dir(spool: Option<&Path>, config: Option<&Config>) -> anyhow
 /// The configuration the daemon published in its spool, else the defaults.
 fn daemon_or_default_config(spool_dir: &Path) -> anyhow::Result<(Config, Basis)> {
     let snapshot = spool_dir.join("config.toml");
-    if snapshot.is_file() {
-        // Already effective: the submitter's environment must not change it.
-        let config =
-            Config::load_with_env(Some(&snapshot), &[], std::iter::empty()).with_context(|| {
-                format!(
-                    "the daemon's configuration {} is unreadable",
-                    snapshot.display()
-                )
-            })?;
-        Ok((config, Basis::Daemon(snapshot)))
-    } else {
-        Ok((Config::load(None, &[])?, Basis::Defaults))
+    let text = match Spool::existing(spool_dir) {
+        Ok(spool) => spool.read_config_snapshot()?,
+        Err(_) => None,
+    };
+    match text {
+        Some(text) => {
+            // Already effective: the submitter's environment must not change it.
+            let config = Config::from_layers(Some(&text), Some(&snapshot), &[], std::iter::empty())
+                .with_context(|| {
+                    format!(
+                        "the daemon's configuration {} is unreadable",
+                        snapshot.display()
+                    )
+                })?;
+            Ok((config, Basis::Daemon(snapshot)))
+        }
+        None => Ok((Config::load(None, &[])?, Basis::Defaults)),
     }
 }

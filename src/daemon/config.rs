@@ -18,6 +18,10 @@ use serde::{Deserialize, Serialize};
 /// | `backoff_max_s` | 60 | the longest wait between two link checks |
 /// | `stop_timeout_s` | 12 | time a running job has, after SIGTERM, to bring the stage to its safe tilt and finish its record; ≤ 14 so the daemon exits within 15 s |
 /// | `stall_timeout_s` | 1800 | a running job that reports no progress for this long is cancelled and fails; 0 disables |
+/// | `min_step_deg` | 0.1 | the step floor: a job with a smaller tilt step is refused |
+/// | `max_steps` | 300 | a job with more tilt steps is refused |
+/// | `max_job_minutes` | 240 | a job whose acquisition is estimated longer (tilt moves and frames) is refused |
+/// | `after_crash` | `move` | after an unclean end, a stage found off its safe tilt is moved there (`move`) or left for an operator (`wait`: no job runs until `sdsem daemon --ack`) |
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct DaemonConfig {
@@ -30,6 +34,20 @@ pub struct DaemonConfig {
     pub backoff_max_s: f64,
     pub stop_timeout_s: f64,
     pub stall_timeout_s: f64,
+    pub min_step_deg: f64,
+    pub max_steps: u32,
+    pub max_job_minutes: f64,
+    pub after_crash: AfterCrash,
+}
+
+/// What the daemon does with a stage found off its safe tilt after an unclean end.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum AfterCrash {
+    /// Move it to `stage.safe_tilt_deg` before anything else.
+    Move,
+    /// Run no job until an operator acknowledges (`sdsem daemon --ack`), then move it.
+    Wait,
 }
 
 /// Default spool: inside systemd's `StateDirectory=sdsem`.
@@ -51,6 +69,10 @@ impl Default for DaemonConfig {
             backoff_max_s: 60.0,
             stop_timeout_s: 12.0,
             stall_timeout_s: 1800.0,
+            min_step_deg: 0.1,
+            max_steps: 300,
+            max_job_minutes: 240.0,
+            after_crash: AfterCrash::Move,
         }
     }
 }
@@ -76,6 +98,17 @@ impl DaemonConfig {
             if !(v.is_finite() && v > 0.0) {
                 return Err(format!("{key} = {v} must be a positive number of seconds"));
             }
+        }
+        for (key, v) in [
+            ("daemon.min_step_deg", self.min_step_deg),
+            ("daemon.max_job_minutes", self.max_job_minutes),
+        ] {
+            if !(v.is_finite() && v > 0.0) {
+                return Err(format!("{key} = {v} must be a positive number"));
+            }
+        }
+        if self.max_steps == 0 {
+            return Err("daemon.max_steps = 0 must be at least 1".into());
         }
         for (key, v) in [
             ("daemon.min_free_gib", self.min_free_gib),
@@ -195,5 +228,17 @@ mod tests {
             ..DaemonConfig::default()
         };
         assert!(c.validate().unwrap_err().contains("daemon.backoff_max_s"));
+        let c = DaemonConfig {
+            min_step_deg: f64::NAN,
+            ..DaemonConfig::default()
+        };
+        assert!(
+            c.validate()
+                .unwrap_err()
+                .contains("daemon.min_step_deg = NaN")
+        );
+        let c: DaemonConfig = toml::from_str("after_crash = \"wait\"\n").unwrap();
+        assert_eq!(c.after_crash, AfterCrash::Wait);
+        assert!(toml::from_str::<DaemonConfig>("after_crash = \"pray\"\n").is_err());
     }
 }

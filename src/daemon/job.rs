@@ -16,33 +16,48 @@
 //!
 //! The overrides are configuration keys written as in the configuration file,
 //! merged over the daemon's configuration like `--set key=value`. A job may
-//! only touch the sections listed in [`CAPTURE_KEYS`] and
-//! [`RECONSTRUCTION_KEYS`]: the stage (limits, endpoint, safe tilt), the
-//! daemon and the output directory belong to the instrument's configuration.
+//! only touch the keys listed in [`CAPTURE_KEYS`] and [`RECONSTRUCTION_KEYS`]:
+//! the calibration and safety guards (`tracking.stage_to_image`,
+//! `tracking.max_correction_um`, `tracking.max_lost_frames`), the stage (limits,
+//! endpoint, protocol, safe tilt), the imaging endpoints, the daemon and the
+//! output directory are the operator's.
+//!
+//! [`JobSpec::effective_config`] is the one check of a job: `sdsem submit` runs it
+//! before queueing, the daemon again on every record it reads from the spool.
+//! Besides the configuration's own rules it bounds the job by the operator's
+//! `[daemon]` limits: a step floor, a number of steps and an estimated duration.
 
 use std::path::{Path, PathBuf};
+use std::time::Duration;
 
 use serde::{Deserialize, Serialize};
 
-use crate::acquisition::PlanError;
+use super::untrusted::{Links, read_capped};
+use crate::acquisition::run_dir::printable;
+use crate::acquisition::{NameError, PlanError, RunName, SeriesPlan};
 use crate::config::{Config, ConfigError};
 
 /// Configuration keys (sections or single keys) a job's `[capture]` table may
-/// set: how to scan and track, not where the instruments are.
+/// set: how to scan and track, not how the instruments are calibrated, guarded or reached.
 pub const CAPTURE_KEYS: &[&str] = &[
     "imaging.micrograph",
     "imaging.tracking",
     "imaging.bits",
-    "tracking",
+    "tracking.enabled",
+    "tracking.gain",
+    "tracking.deadband_px",
 ];
+
+/// Sections whose other keys belong to the operator: calibration, safety guards, endpoints.
+const OPERATOR_SECTIONS: &[&str] = &["tracking", "stage", "imaging", "daemon", "run", "series"];
+
+/// Largest job file `sdsem submit` reads, bytes.
+pub const MAX_JOB_FILE_BYTES: u64 = 64 * 1024;
 
 /// Configuration keys a job's `[reconstruction]` table may set: whether to
 /// reconstruct, and every parameter of the pipeline (`reconstruction.mode`,
 /// `reconstruction.dense.levels`, …).
 pub const RECONSTRUCTION_KEYS: &[&str] = &["run.reconstruct", "reconstruction"];
-
-/// Longest job name accepted.
-pub const MAX_NAME_LEN: usize = 64;
 
 fn default_step() -> f64 {
     1.0
@@ -72,24 +87,26 @@ pub struct JobSpec {
 /// Why a job cannot run. Each variant names the job key at fault and what is accepted.
 #[derive(Debug, thiserror::Error)]
 pub enum JobError {
-    #[error("cannot read job file {path}: {source}")]
+    #[error("cannot read job file {}: {source}", path.display())]
     Read {
         path: PathBuf,
-        source: std::io::Error,
+        source: super::untrusted::UntrustedError,
     },
     #[error("not a valid job file: {message}")]
     Syntax { message: String },
+    #[error("name = {0}")]
+    Name(NameError),
     #[error(
-        "name = {name:?} {reason}; use letters, digits, '-', '_' and '.', at most {MAX_NAME_LEN} \
-         characters, not starting with '.'"
+        "[{table}] {key}: a job may not set this key{operator}; allowed in [{table}]: {allowed}"
     )]
-    Name { name: String, reason: &'static str },
-    #[error("[{table}] {key}: a job may not set this key; allowed in [{table}]: {allowed}")]
     KeyNotAllowed {
         table: &'static str,
         key: String,
+        operator: &'static str,
         allowed: String,
     },
+    #[error("{key} = {value}: not a finite number")]
+    NotFinite { key: String, value: String },
     #[error("[{table}] {key}: no such configuration key ({reason})")]
     UnknownKey {
         table: &'static str,
@@ -114,24 +131,40 @@ pub enum JobError {
     },
     #[error("{message}")]
     Tilts { message: String },
+    #[error("step = {step}° is below the step floor daemon.min_step_deg = {min}°")]
+    StepTooSmall { step: f64, min: f64 },
+    #[error("the job has {steps} tilt steps, more than daemon.max_steps = {max}")]
+    TooManySteps { steps: usize, max: u32 },
+    #[error(
+        "the job would take about {minutes:.0} min (estimated from its plan: tilt moves and \
+         frames), more than daemon.max_job_minutes = {max}"
+    )]
+    TooLong { minutes: f64, max: f64 },
     #[error("the job's overrides give an invalid configuration: {message}")]
     Config { message: String },
 }
 
 impl JobSpec {
-    /// Reads and checks a job file (syntax, name, which keys it overrides).
+    /// Reads and checks a job file (syntax, name, which keys it overrides): a regular file
+    /// of at most [`MAX_JOB_FILE_BYTES`], read without blocking (`submit /dev/zero` is
+    /// refused at once).
     ///
     /// # Errors
     /// [`JobError`] naming the file's problem.
     pub fn load(path: &Path) -> Result<Self, JobError> {
-        let text = std::fs::read_to_string(path).map_err(|source| JobError::Read {
-            path: path.to_owned(),
-            source,
+        let bytes = read_capped(path, Links::Follow, MAX_JOB_FILE_BYTES).map_err(|source| {
+            JobError::Read {
+                path: path.to_owned(),
+                source,
+            }
+        })?;
+        let text = String::from_utf8(bytes).map_err(|e| JobError::Syntax {
+            message: format!("not UTF-8 text (byte {})", e.utf8_error().valid_up_to()),
         })?;
         Self::parse(&text)
     }
 
-    /// Parses and checks a job (syntax, name, which keys it overrides).
+    /// Parses and checks a job (syntax, name, finite numbers, which keys it overrides).
     ///
     /// # Errors
     /// [`JobError`] naming the problem.
@@ -148,41 +181,55 @@ impl JobSpec {
                     format!("line {line}, column {column}: ")
                 });
             JobError::Syntax {
-                message: format!(
-                    "{}{}",
-                    place.unwrap_or_default(),
-                    e.message().trim_end().replace('\n', " ")
+                message: printable(
+                    &format!(
+                        "{}{}",
+                        place.unwrap_or_default(),
+                        e.message().trim_end().replace('\n', " ")
+                    ),
+                    300,
                 ),
             }
         })?;
-        spec.check_name()?;
-        spec.overrides()?;
+        spec.check_shape()?;
         Ok(spec)
     }
 
-    fn check_name(&self) -> Result<(), JobError> {
-        let name = &self.name;
-        let reason = if name.is_empty() {
-            Some("is empty")
-        } else if name.chars().count() > MAX_NAME_LEN {
-            Some("is too long")
-        } else if name.starts_with('.') {
-            Some("starts with '.'")
-        } else if !name
-            .chars()
-            .all(|c| c.is_alphanumeric() || matches!(c, '-' | '_' | '.'))
-        {
-            Some("has a character that does not belong in a directory name")
-        } else {
-            None
-        };
-        match reason {
-            Some(reason) => Err(JobError::Name {
-                name: name.clone(),
-                reason,
-            }),
-            None => Ok(()),
+    /// The checks that need no configuration: the name, finite numbers, the keys overridden.
+    ///
+    /// # Errors
+    /// [`JobError`] naming the key at fault.
+    pub fn check_shape(&self) -> Result<(), JobError> {
+        self.run_name()?;
+        for (key, v) in [
+            ("start_tilt", self.start_tilt),
+            ("end_tilt", self.end_tilt),
+            ("step", self.step),
+        ] {
+            if !v.is_finite() {
+                return Err(JobError::NotFinite {
+                    key: key.to_owned(),
+                    value: v.to_string(),
+                });
+            }
         }
+        for (key, value) in self.overrides()? {
+            if let Some(bad) = non_finite(&value) {
+                return Err(JobError::NotFinite {
+                    key: format!("[{}] {key}", self.table_of(&key)),
+                    value: bad.to_string(),
+                });
+            }
+        }
+        Ok(())
+    }
+
+    /// The job's name, checked: what its run directory is named after.
+    ///
+    /// # Errors
+    /// [`JobError::Name`] saying what is wrong with it.
+    pub fn run_name(&self) -> Result<RunName, JobError> {
+        RunName::new(&self.name).map_err(JobError::Name)
     }
 
     /// Every override as (dotted configuration key, value), checked against
@@ -207,9 +254,16 @@ impl JobSpec {
                             .is_some_and(|rest| rest.starts_with('.'))
                 });
                 if !permitted {
+                    let section = key.split('.').next().unwrap_or("");
                     return Err(JobError::KeyNotAllowed {
                         table: table_name,
-                        key,
+                        operator: if OPERATOR_SECTIONS.contains(&section) {
+                            " (operator-only: a calibration, safety guard or instrument setting of \
+                             the daemon's configuration)"
+                        } else {
+                            ""
+                        },
+                        key: printable(&key, 100),
                         allowed: allowed.join(", "),
                     });
                 }
@@ -220,11 +274,14 @@ impl JobSpec {
     }
 
     /// The configuration this job runs with: `base` (the daemon's), with the
-    /// job's tilts and name and its overrides, validated (tilt limits included).
+    /// job's tilts and name and its overrides, validated (tilt limits included) and
+    /// bounded by `base`'s `[daemon]` limits. The one check of a job, for `sdsem submit`
+    /// and for every record the daemon reads.
     ///
     /// # Errors
     /// [`JobError`] naming the job key and the limit it breaks.
     pub fn effective_config(&self, base: &Config) -> Result<Config, JobError> {
+        self.check_shape()?;
         let overrides = self.overrides()?;
         let mut root = toml::Table::try_from(base).map_err(|e| JobError::Config {
             message: format!("the daemon's configuration cannot be rendered: {e}"),
@@ -258,7 +315,28 @@ impl JobSpec {
             Ok(config) => config,
             Err(e) => return Err(self.blame_override(&series_only, &overrides, &e)),
         };
+        let limits = &base.daemon;
+        if self.step < limits.min_step_deg {
+            return Err(JobError::StepTooSmall {
+                step: self.step,
+                min: limits.min_step_deg,
+            });
+        }
         config.validate().map_err(job_error)?;
+        let plan = config.plan().map_err(|e| job_error(ConfigError::Plan(e)))?;
+        if plan.steps() > usize::try_from(limits.max_steps).unwrap_or(usize::MAX) {
+            return Err(JobError::TooManySteps {
+                steps: plan.steps(),
+                max: limits.max_steps,
+            });
+        }
+        let minutes = estimated_duration(&config, &plan).as_secs_f64() / 60.0;
+        if minutes > limits.max_job_minutes {
+            return Err(JobError::TooLong {
+                minutes,
+                max: limits.max_job_minutes,
+            });
+        }
         Ok(config)
     }
 
@@ -296,6 +374,40 @@ impl JobSpec {
         } else {
             "reconstruction"
         }
+    }
+}
+
+/// How long the acquisition of `plan` takes at least: the tilt moves (from the safe tilt,
+/// through the series, back) at `stage.tilt_speed_deg_s`, a tracking frame per step when
+/// tracking is on and the two micrographs, each width × height × dwell.
+#[must_use]
+pub fn estimated_duration(config: &Config, plan: &SeriesPlan) -> Duration {
+    let safe = config.stage.safe_tilt_deg;
+    let travel = (plan.first() - safe).abs()
+        + (plan.last() - plan.first()).abs()
+        + (plan.last() - safe).abs();
+    let frame_s = |scan: &crate::imaging::ScanSettings| {
+        f64::from(scan.width) * f64::from(scan.height) * scan.dwell_us * 1e-6
+    };
+    #[allow(clippy::cast_precision_loss)]
+    let tracking = if config.tracking.enabled {
+        plan.steps() as f64 * frame_s(&config.imaging.tracking)
+    } else {
+        0.0
+    };
+    let seconds = travel / config.stage.tilt_speed_deg_s
+        + tracking
+        + 2.0 * frame_s(&config.imaging.micrograph);
+    Duration::try_from_secs_f64(seconds).unwrap_or(Duration::MAX)
+}
+
+/// The first non-finite float in a value (arrays included), if any.
+fn non_finite(value: &toml::Value) -> Option<f64> {
+    match value {
+        toml::Value::Float(f) if !f.is_finite() => Some(*f),
+        toml::Value::Array(items) => items.iter().find_map(non_finite),
+        toml::Value::Table(t) => t.values().find_map(non_finite),
+        _ => None,
     }
 }
 
@@ -384,6 +496,12 @@ fn job_error(e: ConfigError) -> JobError {
             PlanError::NotFinite { key } => JobError::Tilts {
                 message: format!("{} is not a finite number", job_key(key)),
             },
+            PlanError::TooManySteps { step } => JobError::Tilts {
+                message: format!(
+                    "step = {step}° gives more than {} steps",
+                    crate::acquisition::plan::MAX_PLAN_STEPS
+                ),
+            },
         },
         other => JobError::Config {
             message: other.to_string(),
@@ -451,7 +569,7 @@ mod tests {
         for name in ["", "../x", "a/b", ".hidden", "a b", &"x".repeat(65)] {
             let text = format!("name = {name:?}\nstart_tilt = 0\nend_tilt = 5\n");
             let err = JobSpec::parse(&text).unwrap_err();
-            assert!(matches!(err, JobError::Name { .. }), "{name:?}: {err}");
+            assert!(matches!(err, JobError::Name(_)), "{name:?}: {err}");
         }
         JobSpec::parse("name = \"Probe_Müller.2\"\nstart_tilt = 0\nend_tilt = 5\n").unwrap();
     }
@@ -503,12 +621,13 @@ mod tests {
 
     #[test]
     fn unknown_and_mistyped_override_keys_are_named() {
-        let err =
-            job("name = \"a\"\nstart_tilt = 0\nend_tilt = 5\n[capture]\ntracking.gian = 0.5\n")
-                .unwrap_err();
+        let err = job(
+            "name = \"a\"\nstart_tilt = 0\nend_tilt = 5\n[capture]\nimaging.micrograph.widht = 640\n",
+        )
+        .unwrap_err();
         assert!(
             err.to_string()
-                .starts_with("[capture] tracking.gian = 0.5: unknown field `gian`"),
+                .starts_with("[capture] imaging.micrograph.widht = 640: unknown field `widht`"),
             "{err}"
         );
         let err = job(
@@ -523,6 +642,126 @@ mod tests {
             job("name = \"a\"\nstart_tilt = 0\nend_tilt = 5\n[capture]\ntracking.gain = 2.0\n")
                 .unwrap_err();
         assert!(err.to_string().contains("tracking.gain = 2"), "{err}");
+    }
+
+    /// The guard was overridden to drive the stage 450 µm in one step: calibration and
+    /// guards are the operator's, refused with the key named.
+    #[test]
+    fn calibration_guards_and_endpoints_are_operator_only() {
+        for key in [
+            "tracking.stage_to_image = [[9.0, 0.0], [0.0, 9.0]]",
+            "tracking.max_correction_um = 500.0",
+            "tracking.max_lost_frames = 100",
+            "stage.tilt_max_deg = 90",
+            "stage.protocol = \"sharksem\"",
+            "stage.endpoint = \"/dev/ttyS0\"",
+            "imaging.endpoint = \"10.0.0.1:7520\"",
+            "imaging.protocol = \"watch-folder\"",
+        ] {
+            let text = format!("name = \"a\"\nstart_tilt = 0\nend_tilt = 5\n[capture]\n{key}\n");
+            let err = JobSpec::parse(&text).unwrap_err().to_string();
+            let name = key.split(' ').next().unwrap();
+            assert!(
+                err.starts_with(&format!(
+                    "[capture] {name}: a job may not set this key (operator-only"
+                )),
+                "{err}"
+            );
+        }
+        // What a job may still choose: how to scan and how eagerly to follow.
+        let c = job("name = \"a\"\nstart_tilt = 0\nend_tilt = 5\n[capture]\n\
+             tracking.gain = 0.5\ntracking.deadband_px = 0.5\nimaging.micrograph.width = 640\n")
+        .unwrap();
+        assert_eq!((c.tracking.gain, c.imaging.micrograph.width), (0.5, 640));
+    }
+
+    /// inf/NaN were "queued" then silently set aside (JSON has no inf): refused at parse.
+    #[test]
+    fn numbers_must_be_finite_and_the_key_is_named() {
+        for (body, key) in [
+            ("start_tilt = nan\nend_tilt = 5\n", "start_tilt = NaN"),
+            ("start_tilt = 0\nend_tilt = inf\n", "end_tilt = inf"),
+            ("start_tilt = 0\nend_tilt = 5\nstep = -inf\n", "step = -inf"),
+            (
+                "start_tilt = 0\nend_tilt = 5\n[capture]\ntracking.gain = nan\n",
+                "[capture] tracking.gain = NaN",
+            ),
+        ] {
+            let err = JobSpec::parse(&format!("name = \"a\"\n{body}")).unwrap_err();
+            assert_eq!(err.to_string(), format!("{key}: not a finite number"));
+        }
+    }
+
+    /// `step = 1e-9` aborted submit and the daemon (a 56 GB plan); `1e-4` made a 70 000-step
+    /// job: the operator's floor, step count and estimated duration bound every job.
+    #[test]
+    fn jobs_are_bounded_by_the_operators_limits() {
+        let run = |body: &str| job(&format!("name = \"a\"\n{body}"));
+        let err = run("start_tilt = 0\nend_tilt = 70\nstep = 1e-9\n").unwrap_err();
+        assert_eq!(
+            err.to_string(),
+            "step = 0.000000001° is below the step floor daemon.min_step_deg = 0.1°"
+        );
+        let mut base = Config::default();
+        base.daemon.min_step_deg = 1e-12;
+        let err = JobSpec::parse("name = \"a\"\nstart_tilt = 0\nend_tilt = 70\nstep = 1e-9\n")
+            .unwrap()
+            .effective_config(&base)
+            .unwrap_err();
+        assert!(
+            err.to_string().contains("gives more than 100000 steps"),
+            "{err}"
+        );
+        let err = run("start_tilt = 0\nend_tilt = 70\nstep = 0.2\n").unwrap_err();
+        assert_eq!(
+            err.to_string(),
+            "the job has 350 tilt steps, more than daemon.max_steps = 300"
+        );
+        // 0→10° of 2048×2048 micrographs at 500 µs a pixel and tracking frames to match: 7 h.
+        let err = run(
+            "start_tilt = 0\nend_tilt = 10\n[capture]\nimaging.micrograph.width = 2048\n\
+             imaging.micrograph.height = 2048\nimaging.micrograph.dwell_us = 500.0\n\
+             imaging.tracking.width = 2048\nimaging.tracking.height = 2048\n\
+             imaging.tracking.dwell_us = 500.0\n",
+        )
+        .unwrap_err();
+        assert!(
+            err.to_string()
+                .contains("more than daemon.max_job_minutes = 240"),
+            "{err}"
+        );
+        run("start_tilt = 0\nend_tilt = 70\nstep = 0.5\n").unwrap();
+    }
+
+    #[test]
+    fn a_huge_name_is_cut_short_in_the_error() {
+        let name = "\u{1b}x".repeat(1_000_000);
+        let err = JobSpec::parse(&format!(
+            "name = \"{name}\"\nstart_tilt = 0\nend_tilt = 5\n"
+        ))
+        .unwrap_err()
+        .to_string();
+        assert!(
+            err.len() < 500 && !err.contains('\u{1b}'),
+            "{} bytes",
+            err.len()
+        );
+    }
+
+    #[test]
+    fn a_job_file_is_read_capped_and_never_blocks() {
+        let err = JobSpec::load(Path::new("/dev/zero"))
+            .unwrap_err()
+            .to_string();
+        assert_eq!(
+            err,
+            "cannot read job file /dev/zero: it is a character device, not a regular file"
+        );
+        let dir = tempfile::tempdir().unwrap();
+        let big = dir.path().join("big.toml");
+        std::fs::write(&big, vec![b'#'; 100_000]).unwrap();
+        let err = JobSpec::load(&big).unwrap_err().to_string();
+        assert!(err.ends_with("it is larger than 65536 bytes"), "{err}");
     }
 
     #[test]

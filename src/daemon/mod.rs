@@ -23,16 +23,17 @@ pub mod notify;
 pub mod runner;
 pub mod spool;
 pub mod supervisor;
+pub mod untrusted;
 pub mod utc;
 
 use std::path::PathBuf;
 use std::time::Duration;
 
-pub use config::DaemonConfig;
+pub use config::{AfterCrash, DaemonConfig};
 pub use job::{JobError, JobSpec};
 pub use notify::{Notice, Notifier, SystemdNotifier};
 pub use runner::{CancelSignal, JobContext, JobOutcome, JobRunner, Progress};
-pub use spool::{JobId, JobRecord, JobState, OwnedSpool, Spool, SpoolError};
+pub use spool::{JobId, JobRecord, JobState, OwnedSpool, Spool, SpoolError, Tamper};
 pub use supervisor::{Control, Stopped, Supervisor, SupervisorError};
 
 use crate::config::{Config, ConfigError};

@@ -15,9 +15,15 @@
 //! - picks up a changed configuration (the argument is the one in force, which
 //!   SIGHUP may have replaced since the last call).
 //!
+//! [`JobRunner::stage_tilt`] and [`JobRunner::move_to_safe_tilt`] (after an unclean end)
+//! - are called only after a successful `check_links`;
+//! - read the stage's tilt, resp. bring it to `stage.safe_tilt_deg` verified, and
+//!   return the tilt (degrees) or `Err(reason)`; the move may be dropped at an await
+//!   point once the daemon must stop (after `daemon.stop_timeout_s`).
+//!
 //! [`JobRunner::run`]
-//! - performs the whole job in `run_dir` (which exists and is empty): `run.mcap`,
-//!   the micrographs and the reconstruction outputs;
+//! - performs the whole job in `run_dir` (fresh and empty; its files are created
+//!   through it, exclusively): `run.mcap`, the micrographs and the reconstruction outputs;
 //! - reports what it is doing through [`JobContext::progress`] (it becomes the
 //!   systemd STATUS line and `sdsem status`'s daemon line), at least every
 //!   `daemon.stall_timeout_s` (default 30 min) or it is cancelled as stalled;
@@ -35,11 +41,11 @@
 //!   Never retries a job by itself.
 
 use std::future::Future;
-use std::path::Path;
 
 use tokio::sync::watch;
 
 use super::spool::JobRecord;
+use crate::acquisition::RunDir;
 use crate::config::Config;
 
 /// How a job ended: the acquisition's own outcome.
@@ -50,12 +56,18 @@ pub trait JobRunner {
     /// Checks (and if needed re-establishes) the stage and imaging links.
     fn check_links(&mut self, config: &Config) -> impl Future<Output = Result<(), String>>;
 
+    /// Reads the stage's tilt, degrees; moves nothing.
+    fn stage_tilt(&mut self, config: &Config) -> impl Future<Output = Result<f64, String>>;
+
+    /// Brings the stage to `stage.safe_tilt_deg`, verified; returns the tilt reached.
+    fn move_to_safe_tilt(&mut self, config: &Config) -> impl Future<Output = Result<f64, String>>;
+
     /// Runs one job with its effective configuration, in `run_dir`.
     fn run(
         &mut self,
         job: &JobRecord,
         config: &Config,
-        run_dir: &Path,
+        run_dir: &RunDir,
         ctx: JobContext,
     ) -> impl Future<Output = JobOutcome>;
 }

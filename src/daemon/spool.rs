@@ -1,41 +1,52 @@
-//! The job spool: a directory that is crash-safe by construction.
+//! The job spool: a directory that is crash-safe by construction, and that trusts
+//! nothing a submitter put in it.
 //!
 //! ```text
-//! SPOOL/
-//!   daemon.lock     flock(2) held by the one daemon that owns the spool; holds its PID
-//!   daemon.json     what the daemon is doing (its last STATUS line), for `sdsem status`
-//!   config.toml     the daemon's effective configuration, which `sdsem submit` validates against
-//!   submit.lock     flock(2) serialising the allocation of job ids
-//!   next-id         the next job id
-//!   tmp/            files being written, renamed into place once complete and synced
-//!   queued/ running/ done/ failed/ interrupted/ rejected/
-//!                   one `<id>.json` record per job, in the directory of its state
+//! SPOOL/            0750  owned by the daemon; its flock(2) on this directory = ownership
+//!   daemon.lock     0640  the PID of the daemon that holds the spool (informational)
+//!   daemon.json     0640  what the daemon is doing, its warnings, the last stage check
+//!   config.toml     0640  the daemon's effective configuration, which `sdsem submit` validates against
+//!   next-id         0660  the next job id, rewritten in place under the submit lock
+//!   queued/         1770  sticky: a submitter adds its own records; flock(2) on it serialises submits
+//!   running/ done/ failed/ interrupted/ rejected/
+//!                   0750  one `<id>.json` record per job, in the directory of its state; daemon only
+//!   quarantine/     0750  entries of queued/ that are not valid records, each with `<name>.reason`
 //! ```
 //!
-//! Every change is one of two atomic steps: a rewrite (write `tmp/…`, fsync,
-//! rename over the record, fsync the directory) or a move to another state
-//! directory (rename, fsync both directories). A job leaves `running/` by
-//! first rewriting its record with its final state and reason, then moving;
-//! a crash between the two leaves a record whose own `state` is ahead of its
-//! directory, which readers honour and recovery completes. Ids grow with
-//! submission, so the oldest queued job is the one with the smallest id.
+//! Every change is one of two atomic steps: a rewrite (the one atomic writer: a temporary
+//! file created exclusively beside the record, fsync, rename, fsync the directory) or a move
+//! to another state directory (rename, fsync both directories). A job leaves `running/` by
+//! first rewriting its record with its final state and reason, then moving; a crash between
+//! the two leaves a record whose own `state` is ahead of its directory, which readers honour
+//! and recovery completes. Ids grow with submission, so the oldest queued job is the one
+//! with the smallest id; an id that exists is never given again nor overwritten.
 //!
-//! `sdsem submit` and `sdsem status` work while the daemon runs: submit only
-//! adds new files to `queued/`, status only reads.
+//! Every entry is read without following a link and without blocking, as a regular file
+//! under a size cap ([`super::untrusted`]); whatever fails (a FIFO, a directory, a link,
+//! an unreadable or huge file, garbage, a record that lies about its id or state) is moved
+//! to `quarantine/` with its reason, which `sdsem status` shows. Nothing in the spool can
+//! make the daemon block or exit.
 
-use std::fs::{self, File, OpenOptions};
+use std::collections::HashSet;
+use std::ffi::{OsStr, OsString};
+use std::fs::{self, File};
 use std::io::{self, Read, Write};
-use std::os::unix::fs::{DirBuilderExt, OpenOptionsExt};
+use std::os::fd::{AsFd, OwnedFd};
+use std::os::unix::ffi::OsStrExt;
+use std::os::unix::fs::{DirBuilderExt, FileExt};
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicU64, Ordering};
-use std::time::{Duration, SystemTime};
+use std::sync::{Mutex, PoisonError};
+use std::time::{Duration, Instant, SystemTime};
 
-use rustix::fs::{FlockOperation, flock};
+use rustix::fs::{FlockOperation, Mode, OFlags, RenameFlags, flock};
 use serde::{Deserialize, Serialize};
 
 use super::job::JobSpec;
+use super::untrusted::{Links, read_capped_at};
 use super::utc;
+use crate::acquisition::run_dir::printable;
 use crate::config::Config;
+use crate::export::atomic::{Existing, open_dir, write_atomic_at};
 
 /// The state of a job. Its record lives in the directory of the same name.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
@@ -52,8 +63,8 @@ pub enum JobState {
     Failed,
     /// Stopped before the end (SIGTERM, crash, power cut); never re-run by itself.
     Interrupted,
-    /// Valid when submitted but not under the configuration in force when its
-    /// turn came (e.g. tilt limits narrowed by a reload); never ran.
+    /// Refused by the daemon when its turn came (it no longer fits the configuration in
+    /// force, or its record was not one `sdsem submit` would have queued); never ran.
     Rejected,
 }
 
@@ -119,12 +130,12 @@ impl JobId {
         format!("{:08}.json", self.0)
     }
 
-    fn from_file_name(name: &str) -> Option<Self> {
-        let digits = name.strip_suffix(".json")?;
-        if digits.is_empty() || !digits.bytes().all(|b| b.is_ascii_digit()) {
+    fn from_file_name(name: &OsStr) -> Option<Self> {
+        let digits = name.as_bytes().strip_suffix(b".json")?;
+        if digits.is_empty() || digits.len() > 20 || !digits.iter().all(u8::is_ascii_digit) {
             return None;
         }
-        digits.parse().ok().map(Self)
+        std::str::from_utf8(digits).ok()?.parse().ok().map(Self)
     }
 }
 
@@ -150,18 +161,46 @@ pub struct JobRecord {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct DaemonStatus {
     pub pid: u32,
-    /// `starting`, `ready` or `stopped`.
+    /// `starting`, `ready` or `stopped`; anything but `stopped` at the next start means
+    /// the daemon ended uncleanly.
     pub state: String,
     /// The daemon's current STATUS line.
     pub status: String,
     /// UTC, RFC 3339.
     pub updated: String,
+    /// What the daemon noticed and wants a human to know (its lock file tampered with, …).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub warnings: Vec<String>,
+    /// The stage check after the last unclean end, if there was one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub stage_check: Option<StageCheck>,
 }
 
-/// A file in a state directory that is not a readable job record.
+/// The check of the stage after an unclean end (kill -9, crash, watchdog, power cut).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct StageCheck {
+    /// When the unclean end was noticed (UTC, RFC 3339).
+    pub noticed: String,
+    /// How it was noticed.
+    pub cause: String,
+    /// The tilt the stage was found at, degrees, once read.
+    pub found_tilt_deg: Option<f64>,
+    /// What was done or is awaited, in one line.
+    pub action: String,
+    /// True until the stage is known to be at its safe tilt; no job runs meanwhile.
+    pub pending: bool,
+    /// When it stopped being pending (UTC, RFC 3339).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub resolved: Option<String>,
+}
+
+/// An entry of the spool that is not a job record.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct Unreadable {
+    /// Where it is now (in `quarantine/` once set aside).
     pub path: PathBuf,
+    /// Its original name, printable (control characters escaped, cut short).
+    pub name: String,
     pub cause: String,
 }
 
@@ -169,7 +208,12 @@ pub struct Unreadable {
 #[derive(Debug, Clone, Default)]
 pub struct Listing {
     pub jobs: Vec<JobRecord>,
+    /// Entries of the state directories that are not job records (not yet set aside).
     pub unreadable: Vec<Unreadable>,
+    /// The latest entries set aside in `quarantine/`, oldest first.
+    pub set_aside: Vec<Unreadable>,
+    /// How many entries `quarantine/` holds in all.
+    pub set_aside_total: usize,
 }
 
 /// Why the spool cannot be used.
@@ -188,12 +232,24 @@ pub enum SpoolError {
         spool.display()
     )]
     Locked { spool: PathBuf, holder: String },
-    #[error("spool {}: {} is not a job record: {cause}", spool.display(), path.display())]
+    #[error("spool {}: {} is not usable: {cause}", spool.display(), path.display())]
     Corrupt {
         spool: PathBuf,
         path: PathBuf,
         cause: String,
     },
+    #[error(
+        "spool {}: another submission has held the lock on queued/ for {}s; try again, or \
+         find the process holding it (fuser -v {}/queued)",
+        spool.display(), SUBMIT_LOCK_WAIT.as_secs(), spool.display()
+    )]
+    Busy { spool: PathBuf },
+    #[error(
+        "spool {}: job ids are exhausted (next-id would pass {}); nothing was queued: \
+         archive the spool and start a new one",
+        spool.display(), u64::MAX
+    )]
+    IdsExhausted { spool: PathBuf },
 }
 
 fn remedy(e: &io::Error) -> &'static str {
@@ -202,13 +258,59 @@ fn remedy(e: &io::Error) -> &'static str {
             "; check you may write there (members of the group owning the spool, `sdsem` for \
              the packaged service, may submit)"
         }
-        io::ErrorKind::StorageFull => "; the disk is full",
+        _ if is_disk_full(e) => "; the disk is full",
         _ => "",
+    }
+}
+
+/// True for "no space left on device" and "disk quota exceeded".
+#[must_use]
+pub fn is_disk_full(e: &io::Error) -> bool {
+    matches!(
+        e.raw_os_error(),
+        Some(code) if code == rustix::io::Errno::NOSPC.raw_os_error()
+            || code == rustix::io::Errno::DQUOT.raw_os_error()
+    )
+}
+
+impl SpoolError {
+    /// True when the cause is a full disk (or quota).
+    #[must_use]
+    pub fn is_disk_full(&self) -> bool {
+        matches!(self, Self::Io { source, .. } if is_disk_full(source))
     }
 }
 
 /// Temp files older than this are left-overs of a crash and are removed at recovery.
 const STALE_TMP: Duration = Duration::from_secs(600);
+/// Largest job record read, bytes (a job file is at most 64 KiB).
+const RECORD_CAP: u64 = 256 * 1024;
+/// Largest `daemon.json`, `.reason` or `next-id` read, bytes.
+const SMALL_CAP: u64 = 64 * 1024;
+/// Largest configuration snapshot read, bytes.
+const SNAPSHOT_CAP: u64 = 1024 * 1024;
+/// Longest reason kept in a record, bytes.
+const REASON_CAP: usize = 2000;
+/// Spaces after a running record's JSON: room to write its end in place on a full disk.
+const RESERVE: usize = 4096;
+/// How long `submit` waits for another submission's lock.
+const SUBMIT_LOCK_WAIT: Duration = Duration::from_secs(10);
+/// Entries of `quarantine/` that [`Spool::list`] reads.
+const SET_ASIDE_SHOWN: usize = 50;
+
+/// Mode of every record and file the spool writes: the daemon and `sdsem status` read it
+/// through the group; only its writer may change it.
+const RECORD_MODE: u32 = 0o640;
+/// `next-id`: group members rewrite it (in place) when they submit.
+const COUNTER_MODE: u32 = 0o660;
+/// The spool and every directory but `queued/`: only the daemon writes them.
+const PRIVATE_DIR: u32 = 0o750;
+/// `queued/`: group members add records; sticky, so none can move or delete another's.
+const DROP_DIR: u32 = 0o1770;
+
+const QUARANTINE: &str = "quarantine";
+/// In `queued/`: an operator's acknowledgement after an unclean end (`sdsem daemon --ack`).
+const ACK: &str = ".ack";
 
 /// The reason recorded for a job found running when a daemon starts.
 pub const CRASH_REASON: &str =
@@ -221,10 +323,15 @@ pub struct Spool {
     root: PathBuf,
 }
 
+/// One entry of a state directory.
+struct Entry {
+    id: Option<JobId>,
+    name: OsString,
+}
+
 impl Spool {
-    /// Opens a spool, creating its layout when missing. Directories are
-    /// created group-writable (mode 775 less the umask; the unit's `UMask=0002`
-    /// keeps it) so that members of the spool's group may submit.
+    /// Opens a spool, creating its layout when missing, with the modes above whatever the
+    /// umask (the daemon corrects them on the directories it owns when it takes the spool).
     ///
     /// # Errors
     /// [`SpoolError::Io`] naming the directory that cannot be created.
@@ -232,17 +339,23 @@ impl Spool {
         let spool = Self {
             root: root.to_owned(),
         };
-        let mut builder = fs::DirBuilder::new();
-        builder.recursive(true).mode(0o775);
-        for dir in std::iter::once(spool.root.clone())
-            .chain(std::iter::once(spool.root.join("tmp")))
-            .chain(JobState::ALL.iter().map(|s| spool.state_dir(*s)))
-        {
-            if !dir.is_dir() {
-                builder
-                    .create(&dir)
-                    .map_err(|e| spool.io("create directory", &dir, e))?;
+        for (dir, mode) in spool.layout() {
+            match fs::symlink_metadata(&dir) {
+                Ok(m) if m.is_dir() => continue,
+                Ok(_) => {
+                    return Err(spool.io("use", &dir, io::ErrorKind::NotADirectory.into()));
+                }
+                Err(e) if e.kind() == io::ErrorKind::NotFound => {}
+                Err(e) => return Err(spool.io("open", &dir, e)),
             }
+            fs::DirBuilder::new()
+                .recursive(true)
+                .mode(mode & 0o777)
+                .create(&dir)
+                .and_then(|()| {
+                    rustix::fs::chmod(&dir, Mode::from_raw_mode(mode)).map_err(Into::into)
+                })
+                .map_err(|e| spool.io("create directory", &dir, e))?;
         }
         Ok(spool)
     }
@@ -264,6 +377,21 @@ impl Spool {
         }
     }
 
+    /// Every directory of the spool with its mode, the spool itself first.
+    fn layout(&self) -> Vec<(PathBuf, u32)> {
+        let mut dirs = vec![(self.root.clone(), PRIVATE_DIR)];
+        for state in JobState::ALL {
+            let mode = if state == JobState::Queued {
+                DROP_DIR
+            } else {
+                PRIVATE_DIR
+            };
+            dirs.push((self.state_dir(state), mode));
+        }
+        dirs.push((self.root.join(QUARANTINE), PRIVATE_DIR));
+        dirs
+    }
+
     /// The spool's directory.
     #[must_use]
     pub fn root(&self) -> &Path {
@@ -274,6 +402,29 @@ impl Spool {
     #[must_use]
     pub fn config_snapshot_path(&self) -> PathBuf {
         self.root.join("config.toml")
+    }
+
+    /// The configuration the daemon published, if any (read as any spool entry).
+    ///
+    /// # Errors
+    /// [`SpoolError::Corrupt`] when it is there but not a readable file.
+    pub fn read_config_snapshot(&self) -> Result<Option<String>, SpoolError> {
+        let path = self.config_snapshot_path();
+        match read_capped_at(rustix::fs::CWD, &path, Links::Refuse, SNAPSHOT_CAP) {
+            Ok(c) => String::from_utf8(c.bytes)
+                .map(Some)
+                .map_err(|e| SpoolError::Corrupt {
+                    spool: self.root.clone(),
+                    path,
+                    cause: e.to_string(),
+                }),
+            Err(e) if e.is_not_found() => Ok(None),
+            Err(e) => Err(SpoolError::Corrupt {
+                spool: self.root.clone(),
+                path,
+                cause: e.to_string(),
+            }),
+        }
     }
 
     fn state_dir(&self, state: JobState) -> PathBuf {
@@ -293,25 +444,54 @@ impl Spool {
         }
     }
 
-    /// Queues a job that was validated by the caller. Safe to call while the
-    /// daemon runs and from several processes at once.
+    /// Queues a job that was validated by the caller. Safe to call while the daemon runs
+    /// and from several processes at once: the id is allocated under a lock on `queued/`,
+    /// never wraps, and the record is created exclusively (an existing id is never overwritten).
     ///
     /// # Errors
-    /// [`SpoolError::Io`] when the spool cannot be written.
+    /// [`SpoolError::Io`] when the spool cannot be written, [`SpoolError::Busy`] when
+    /// another submission holds the lock too long, [`SpoolError::IdsExhausted`].
     pub fn submit(&self, job: JobSpec, now: SystemTime) -> Result<JobRecord, SpoolError> {
-        let lock_path = self.root.join("submit.lock");
-        let lock = open_lock_file(&lock_path).map_err(|e| self.io("open", &lock_path, e))?;
-        flock(&lock, FlockOperation::LockExclusive)
-            .map_err(|e| self.io("lock", &lock_path, e.into()))?;
-        let next_path = self.root.join("next-id");
-        let counted = match fs::read_to_string(&next_path) {
-            Ok(text) => text.trim().parse::<u64>().unwrap_or(1),
-            Err(e) if e.kind() == io::ErrorKind::NotFound => 1,
-            Err(e) => return Err(self.io("read", &next_path, e)),
+        let queued = self.state_dir(JobState::Queued);
+        let lock = open_dir(&queued).map_err(|e| self.io("open", &queued, e))?;
+        let t0 = Instant::now();
+        loop {
+            match flock(&lock, FlockOperation::NonBlockingLockExclusive) {
+                Ok(()) => break,
+                Err(rustix::io::Errno::WOULDBLOCK) if t0.elapsed() < SUBMIT_LOCK_WAIT => {
+                    std::thread::sleep(Duration::from_millis(20));
+                }
+                Err(rustix::io::Errno::WOULDBLOCK) => {
+                    return Err(SpoolError::Busy {
+                        spool: self.root.clone(),
+                    });
+                }
+                Err(e) => return Err(self.io("lock", &queued, e.into())),
+            }
+        }
+        let counter_path = self.root.join("next-id");
+        let mut counter =
+            open_counter(&counter_path).map_err(|e| self.io("open", &counter_path, e))?;
+        let mut text = String::new();
+        (&mut counter)
+            .take(SMALL_CAP)
+            .read_to_string(&mut text)
+            .map_err(|e| self.io("read", &counter_path, e))?;
+        let counted = text.trim().parse::<u64>().unwrap_or(1).max(1);
+        // The counter may be older than the records (crash between the two writes below)
+        // or tampered with: never reuse an id that exists.
+        let after_highest = match self.highest_id()? {
+            Some(h) => h.0.checked_add(1),
+            None => Some(1),
         };
-        // The counter may be older than the records (crash between the two
-        // writes below): never reuse an id that exists.
-        let id = JobId(counted.max(self.highest_id()?.map_or(1, |h| h.0 + 1)));
+        let id = match after_highest.map(|h| h.max(counted)) {
+            Some(id) if id < u64::MAX => JobId(id),
+            _ => {
+                return Err(SpoolError::IdsExhausted {
+                    spool: self.root.clone(),
+                });
+            }
+        };
         let record = JobRecord {
             id,
             state: JobState::Queued,
@@ -323,8 +503,14 @@ impl Spool {
             reason: None,
             job,
         };
-        self.write_record(JobState::Queued, &record)?;
-        self.write_atomic(&next_path, format!("{}\n", id.0 + 1).as_bytes())?;
+        let bytes = self.to_json(&record, &self.record_path(JobState::Queued, id), 0)?;
+        self.write_file(&queued, &id.file_name(), Existing::Refuse, &bytes)?;
+        let next = format!("{:020}\n", id.0 + 1);
+        counter
+            .write_all_at(next.as_bytes(), 0)
+            .and_then(|()| counter.set_len(next.len() as u64))
+            .and_then(|()| counter.sync_data())
+            .map_err(|e| self.io("write", &counter_path, e))?;
         drop(lock);
         Ok(record)
     }
@@ -332,16 +518,15 @@ impl Spool {
     fn highest_id(&self) -> Result<Option<JobId>, SpoolError> {
         let mut highest = None;
         for state in JobState::ALL {
-            for (id, _) in self.entries(state)? {
-                highest = highest.max(id);
+            for entry in self.entries(state)? {
+                highest = highest.max(entry.id);
             }
         }
         Ok(highest)
     }
 
-    /// `(id, path)` of every file in a state directory; id `None` for a file
-    /// that is not named like a record.
-    fn entries(&self, state: JobState) -> Result<Vec<(Option<JobId>, PathBuf)>, SpoolError> {
+    /// Every entry of a state directory but the hidden ones (temporary files), by id.
+    fn entries(&self, state: JobState) -> Result<Vec<Entry>, SpoolError> {
         let dir = self.state_dir(state);
         let read = match fs::read_dir(&dir) {
             Ok(read) => read,
@@ -351,32 +536,44 @@ impl Spool {
         };
         let mut out = Vec::new();
         for entry in read {
-            let entry = entry.map_err(|e| self.io("list", &dir, e))?;
-            let name = entry.file_name();
-            let name = name.to_string_lossy();
-            if name.starts_with('.') {
+            let name = entry.map_err(|e| self.io("list", &dir, e))?.file_name();
+            if name.as_bytes().starts_with(b".") {
                 continue;
             }
-            out.push((JobId::from_file_name(&name), entry.path()));
+            out.push(Entry {
+                id: JobId::from_file_name(&name),
+                name,
+            });
         }
-        out.sort();
+        out.sort_by(|a, b| (a.id, &a.name).cmp(&(b.id, &b.name)));
         Ok(out)
     }
 
-    fn read_record(&self, path: &Path) -> Result<Option<JobRecord>, SpoolError> {
-        let text = match fs::read(path) {
-            Ok(t) => t,
-            // Moved on by the daemon between listing and reading.
-            Err(e) if e.kind() == io::ErrorKind::NotFound => return Ok(None),
-            Err(e) => return Err(self.io("read", path, e)),
+    /// Reads one record as an untrusted entry: `Ok(None)` when it went away meanwhile,
+    /// `Err(cause)` when it is not a record of job `id`. Also returns its owner's user id.
+    fn read_record(
+        &self,
+        state: JobState,
+        entry: &Entry,
+    ) -> Result<Option<(JobRecord, u32)>, String> {
+        let Some(id) = entry.id else {
+            return Err("not named <id>.json".into());
         };
-        serde_json::from_slice(&text)
-            .map(Some)
-            .map_err(|e| SpoolError::Corrupt {
-                spool: self.root.clone(),
-                path: path.to_owned(),
-                cause: e.to_string(),
-            })
+        let path = self.state_dir(state).join(&entry.name);
+        let read = match read_capped_at(rustix::fs::CWD, &path, Links::Refuse, RECORD_CAP) {
+            Ok(read) => read,
+            Err(e) if e.is_not_found() => return Ok(None),
+            Err(e) => return Err(e.to_string()),
+        };
+        let record: JobRecord = serde_json::from_slice(&read.bytes)
+            .map_err(|e| format!("not a job record: {}", printable(&e.to_string(), 200)))?;
+        if record.id != id {
+            return Err(format!(
+                "its id {} does not match its file name (job {id})",
+                record.id
+            ));
+        }
+        Ok(Some((record, read.owner)))
     }
 
     /// Every job, oldest first. A job being moved while we list is seen once,
@@ -390,16 +587,9 @@ impl Spool {
         let mut by_id: std::collections::BTreeMap<JobId, JobRecord> = Default::default();
         let mut unreadable = Vec::new();
         for state in JobState::ALL {
-            for (id, path) in self.entries(state)? {
-                if id.is_none() {
-                    unreadable.push(Unreadable {
-                        cause: "not named <id>.json".into(),
-                        path,
-                    });
-                    continue;
-                }
-                match self.read_record(&path) {
-                    Ok(Some(mut record)) => {
+            for entry in self.entries(state)? {
+                match self.read_record(state, &entry) {
+                    Ok(Some((mut record, _))) => {
                         record.state = effective_state(state, record.state);
                         let newer = by_id
                             .get(&record.id)
@@ -409,109 +599,187 @@ impl Spool {
                         }
                     }
                     Ok(None) => {}
-                    Err(SpoolError::Corrupt { cause, .. }) => {
-                        unreadable.push(Unreadable { path, cause });
-                    }
-                    Err(e) => return Err(e),
+                    Err(cause) => unreadable.push(Unreadable {
+                        path: self.state_dir(state).join(&entry.name),
+                        name: shown_name(&entry.name),
+                        cause,
+                    }),
                 }
             }
         }
+        let (set_aside, set_aside_total) = self.set_aside_entries();
         Ok(Listing {
             jobs: by_id.into_values().collect(),
             unreadable,
+            set_aside,
+            set_aside_total,
         })
+    }
+
+    /// The latest entries of `quarantine/` with their reasons, and how many there are.
+    fn set_aside_entries(&self) -> (Vec<Unreadable>, usize) {
+        let dir = self.root.join(QUARANTINE);
+        let Ok(read) = fs::read_dir(&dir) else {
+            return (Vec::new(), 0);
+        };
+        let mut names: Vec<OsString> = read
+            .filter_map(|e| e.ok().map(|e| e.file_name()))
+            .filter(|n| !n.as_bytes().ends_with(b".reason") && !n.as_bytes().starts_with(b"."))
+            .collect();
+        names.sort();
+        let total = names.len();
+        let shown = names
+            .iter()
+            .skip(total.saturating_sub(SET_ASIDE_SHOWN))
+            .map(|name| {
+                let mut reason_name = name.clone();
+                reason_name.push(".reason");
+                let reason = read_capped_at(
+                    rustix::fs::CWD,
+                    &dir.join(&reason_name),
+                    Links::Refuse,
+                    SMALL_CAP,
+                )
+                .ok()
+                .and_then(|c| serde_json::from_slice::<SetAsideReason>(&c.bytes).ok());
+                match reason {
+                    Some(r) => Unreadable {
+                        path: dir.join(name),
+                        name: printable(&r.name, 120),
+                        cause: printable(&r.cause, 400),
+                    },
+                    None => Unreadable {
+                        path: dir.join(name),
+                        name: shown_name(name),
+                        cause: "set aside (its reason could not be recorded)".into(),
+                    },
+                }
+            })
+            .collect();
+        (shown, total)
     }
 
     /// What the daemon last reported, if one ever ran on this spool.
     #[must_use]
     pub fn daemon_status(&self) -> Option<DaemonStatus> {
-        let text = fs::read(self.root.join("daemon.json")).ok()?;
-        serde_json::from_slice(&text).ok()
+        let path = self.root.join("daemon.json");
+        let read = read_capped_at(rustix::fs::CWD, &path, Links::Refuse, SMALL_CAP).ok()?;
+        serde_json::from_slice(&read.bytes).ok()
     }
 
-    /// Takes ownership of the spool for a daemon: only one at a time. The
-    /// lock is released when the [`OwnedSpool`] is dropped or the process ends
-    /// (even by SIGKILL or a power cut: flock locks die with their holder).
+    /// An operator's acknowledgement for a daemon waiting after an unclean end
+    /// (`sdsem daemon --ack`): a file the daemon sees at its next turn.
+    ///
+    /// # Errors
+    /// [`SpoolError::Io`] when it cannot be written.
+    pub fn acknowledge(&self, now: SystemTime) -> Result<PathBuf, SpoolError> {
+        let queued = self.state_dir(JobState::Queued);
+        let text = format!("acknowledged at {}\n", utc::rfc3339(now));
+        self.write_file(&queued, ACK, Existing::Replace, text.as_bytes())?;
+        Ok(queued.join(ACK))
+    }
+
+    /// Takes ownership of the spool for a daemon: only one at a time. The lock is a
+    /// flock(2) on the spool directory itself, held on an open descriptor: moving or
+    /// deleting `daemon.lock` does not release it. It dies with its holder (even by
+    /// SIGKILL or a power cut).
     ///
     /// # Errors
     /// [`SpoolError::Locked`] naming the PID of the daemon that holds it.
     pub fn lock(self) -> Result<OwnedSpool, SpoolError> {
-        let path = self.root.join("daemon.lock");
-        let mut file = OpenOptions::new()
-            .read(true)
-            .write(true)
-            .create(true)
-            .truncate(false)
-            .mode(0o644)
-            .open(&path)
-            .map_err(|e| self.io("open", &path, e))?;
-        if let Err(e) = flock(&file, FlockOperation::NonBlockingLockExclusive) {
-            if e == rustix::io::Errno::WOULDBLOCK {
-                let mut holder = String::new();
-                // The holder writes its PID right after locking; it may not have yet.
-                let _ = file.read_to_string(&mut holder);
-                let holder = holder.trim();
+        let dir = open_dir(&self.root).map_err(|e| self.io("open", &self.root, e))?;
+        match flock(&dir, FlockOperation::NonBlockingLockExclusive) {
+            Ok(()) => {}
+            Err(rustix::io::Errno::WOULDBLOCK) => {
+                let holder = read_capped_at(
+                    rustix::fs::CWD,
+                    &self.root.join("daemon.lock"),
+                    Links::Refuse,
+                    64,
+                )
+                .ok()
+                .and_then(|c| String::from_utf8(c.bytes).ok())
+                .map(|s| s.trim().to_owned())
+                .filter(|s| !s.is_empty() && s.bytes().all(|b| b.is_ascii_digit()))
+                .unwrap_or_else(|| "unknown".into());
                 return Err(SpoolError::Locked {
                     spool: self.root.clone(),
-                    holder: if holder.is_empty() {
-                        "unknown".into()
-                    } else {
-                        holder.to_owned()
-                    },
+                    holder,
                 });
             }
-            return Err(self.io("lock", &path, e.into()));
+            Err(e) => return Err(self.io("lock", &self.root, e.into())),
         }
-        let write_pid = |file: &mut File| -> io::Result<()> {
-            file.set_len(0)?;
-            file.write_all(format!("{}\n", std::process::id()).as_bytes())?;
-            file.sync_all()
-        };
-        write_pid(&mut file).map_err(|e| self.io("write", &path, e))?;
-        Ok(OwnedSpool {
+        let stat = rustix::fs::fstat(&dir).map_err(|e| self.io("inspect", &self.root, e.into()))?;
+        let owned = OwnedSpool {
+            root_id: (stat.st_dev, stat.st_ino),
+            _dir: dir,
             spool: self,
-            _lock: file,
-        })
+            lock_file: Mutex::new(None),
+            stuck: Mutex::new(HashSet::new()),
+        };
+        owned.fix_modes();
+        owned.write_pid_file()?;
+        let counter = owned.root.join("next-id");
+        open_counter(&counter).map_err(|e| owned.io("create", &counter, e))?;
+        Ok(owned)
     }
 
-    fn write_record(&self, state: JobState, record: &JobRecord) -> Result<(), SpoolError> {
-        let bytes = serde_json::to_vec_pretty(record).map_err(|e| SpoolError::Corrupt {
+    /// The JSON of a record; `reserve` spaces after it leave room for its end.
+    fn to_json(
+        &self,
+        record: &JobRecord,
+        path: &Path,
+        reserve: usize,
+    ) -> Result<Vec<u8>, SpoolError> {
+        let mut bytes = serde_json::to_vec_pretty(record).map_err(|e| SpoolError::Corrupt {
             spool: self.root.clone(),
-            path: self.record_path(state, record.id),
+            path: path.to_owned(),
             cause: e.to_string(),
         })?;
-        self.write_atomic(&self.record_path(state, record.id), &bytes)
+        bytes.push(b'\n');
+        bytes.resize(bytes.len() + reserve, b' ');
+        Ok(bytes)
     }
 
-    /// Writes `bytes` to `target` so that readers and a crash see either the
-    /// old or the new content, never a part.
-    fn write_atomic(&self, target: &Path, bytes: &[u8]) -> Result<(), SpoolError> {
-        static COUNTER: AtomicU64 = AtomicU64::new(0);
-        let stem = target
-            .file_name()
-            .map_or_else(String::new, |n| n.to_string_lossy().into_owned());
-        let tmp = self.root.join("tmp").join(format!(
-            "{stem}.{}.{}",
-            std::process::id(),
-            COUNTER.fetch_add(1, Ordering::Relaxed)
-        ));
-        let write = || -> io::Result<()> {
-            let mut file = OpenOptions::new()
-                .write(true)
-                .create_new(true)
-                .mode(RECORD_MODE)
-                .open(&tmp)?;
-            // Whatever the writer's umask: a submitter with umask 077 would
-            // otherwise queue a record the daemon cannot read (and stop on).
-            file.set_permissions(std::os::unix::fs::PermissionsExt::from_mode(RECORD_MODE))?;
-            file.write_all(bytes)?;
-            file.sync_all()
-        };
-        if let Err(e) = write().and_then(|()| fs::rename(&tmp, target)) {
-            let _ = fs::remove_file(&tmp);
-            return Err(self.io("write", target, e));
+    /// The one atomic writer, in a spool directory, with the spool's file mode.
+    fn write_file(
+        &self,
+        dir: &Path,
+        name: &str,
+        existing: Existing,
+        bytes: &[u8],
+    ) -> Result<(), SpoolError> {
+        let path = dir.join(name);
+        let fd = open_dir(dir).map_err(|e| self.io("open", dir, e))?;
+        write_atomic_at(
+            fd.as_fd(),
+            OsStr::new(name),
+            existing,
+            Some(RECORD_MODE),
+            |w| w.write_all(bytes),
+        )
+        .map_err(|e| self.io("write", &path, e))
+    }
+
+    fn write_record(
+        &self,
+        state: JobState,
+        record: &JobRecord,
+        reserve: usize,
+    ) -> Result<(), SpoolError> {
+        let path = self.record_path(state, record.id);
+        let bytes = self.to_json(record, &path, reserve)?;
+        match self.write_file(
+            &self.state_dir(state),
+            &record.id.file_name(),
+            Existing::Replace,
+            &bytes,
+        ) {
+            // On a full disk a new file may be impossible; the reserve of a running
+            // record takes its end in place.
+            Err(e) if e.is_disk_full() => overwrite_in_place(&path, &bytes).map_err(|_| e),
+            other => other,
         }
-        sync_parent(target).map_err(|e| self.io("sync", target, e))
     }
 
     fn move_record(&self, id: JobId, from: JobState, to: JobState) -> Result<(), SpoolError> {
@@ -521,6 +789,47 @@ impl Spool {
         sync_parent(&dst).map_err(|e| self.io("sync", &dst, e))?;
         sync_parent(&src).map_err(|e| self.io("sync", &src, e))
     }
+}
+
+/// Opens (creating if missing) the id counter, never through a link, group-writable.
+fn open_counter(path: &Path) -> io::Result<File> {
+    let fd = rustix::fs::open(
+        path,
+        OFlags::RDWR | OFlags::CREATE | OFlags::NOFOLLOW | OFlags::CLOEXEC | OFlags::NONBLOCK,
+        Mode::from_raw_mode(COUNTER_MODE),
+    )?;
+    let stat = rustix::fs::fstat(&fd)?;
+    if rustix::fs::FileType::from_raw_mode(stat.st_mode) != rustix::fs::FileType::RegularFile {
+        return Err(io::Error::other("next-id is not a regular file"));
+    }
+    if stat.st_uid == rustix::process::geteuid().as_raw() {
+        rustix::fs::fchmod(&fd, Mode::from_raw_mode(COUNTER_MODE))?;
+    }
+    Ok(File::from(fd))
+}
+
+/// Rewrites a record where it lies, padded to its length: needs no new block on a full disk.
+fn overwrite_in_place(path: &Path, bytes: &[u8]) -> io::Result<()> {
+    let fd = rustix::fs::open(
+        path,
+        OFlags::WRONLY | OFlags::NOFOLLOW | OFlags::CLOEXEC,
+        Mode::empty(),
+    )?;
+    let file = File::from(fd);
+    let len = usize::try_from(file.metadata()?.len()).unwrap_or(usize::MAX);
+    let body = trim_end_spaces(bytes);
+    if body.len() > len {
+        return Err(io::Error::other("no room reserved in the record"));
+    }
+    let mut padded = body.to_vec();
+    padded.resize(len, b' ');
+    file.write_all_at(&padded, 0)?;
+    file.sync_data()
+}
+
+fn trim_end_spaces(bytes: &[u8]) -> &[u8] {
+    let end = bytes.iter().rposition(|b| *b != b' ').map_or(0, |i| i + 1);
+    &bytes[..end]
 }
 
 /// The state a reader believes: a record written ahead of its move counts in
@@ -533,23 +842,21 @@ fn effective_state(dir: JobState, recorded: JobState) -> JobState {
     }
 }
 
-/// Mode of every file the spool writes: readable by the daemon and by
-/// `sdsem status` whoever wrote it (the spool directories keep others out).
-const RECORD_MODE: u32 = 0o664;
+/// An entry's name as printed.
+fn shown_name(name: &OsStr) -> String {
+    printable(&name.to_string_lossy(), 120)
+}
 
-fn open_lock_file(path: &Path) -> io::Result<File> {
-    // Read-only suffices for flock, and works for submitters who cannot write
-    // a lock file created by someone else.
-    match File::open(path) {
-        Err(e) if e.kind() == io::ErrorKind::NotFound => OpenOptions::new()
-            .read(true)
-            .write(true)
-            .create(true)
-            .truncate(false)
-            .mode(0o664)
-            .open(path),
-        other => other,
-    }
+/// `quarantine/<entry>.reason`.
+#[derive(Debug, Serialize, Deserialize)]
+struct SetAsideReason {
+    /// The entry's original name (lossy UTF-8).
+    name: String,
+    /// The directory it was found in.
+    from: String,
+    cause: String,
+    /// UTC, RFC 3339.
+    at: String,
 }
 
 fn sync_parent(path: &Path) -> io::Result<()> {
@@ -557,11 +864,33 @@ fn sync_parent(path: &Path) -> io::Result<()> {
     File::open(dir)?.sync_all()
 }
 
+/// A reason cut to [`REASON_CAP`] bytes, on a character boundary.
+fn capped_reason(reason: Option<String>) -> Option<String> {
+    reason.map(|mut r| {
+        if r.len() > REASON_CAP {
+            let mut end = REASON_CAP;
+            while !r.is_char_boundary(end) {
+                end -= 1;
+            }
+            r.truncate(end);
+            r.push('…');
+        }
+        r
+    })
+}
+
 /// A spool owned by this daemon (the lock is held while this value lives).
 #[derive(Debug)]
 pub struct OwnedSpool {
     spool: Spool,
-    _lock: File,
+    /// The spool directory, flock(2)ed: the ownership itself.
+    _dir: OwnedFd,
+    /// (device, inode) of the spool directory when it was locked.
+    root_id: (u64, u64),
+    /// (device, inode) of the `daemon.lock` this daemon wrote.
+    lock_file: Mutex<Option<(u64, u64)>>,
+    /// Entries that could not be set aside: skipped from then on.
+    stuck: Mutex<HashSet<OsString>>,
 }
 
 impl std::ops::Deref for OwnedSpool {
@@ -578,108 +907,373 @@ pub struct Recovery {
     pub interrupted: Vec<JobRecord>,
     /// Transitions a crash had cut short, now completed.
     pub completed_moves: usize,
-    /// Records that could not be read, moved out of `queued/` and `running/`
-    /// into `rejected/` (with the extension `.unreadable`) so they block nothing.
+    /// Entries of `queued/` and `running/` that are not valid records, set aside.
     pub quarantined: Vec<Unreadable>,
+    /// What could not be put in order (e.g. on a full disk), with the cause; tried again
+    /// at the next start.
+    pub problems: Vec<String>,
+}
+
+/// Something done to the spool behind the daemon's back.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Tamper {
+    /// `daemon.lock` was moved, removed, replaced or rewritten; it has been written again.
+    LockFile(String),
+    /// The spool directory itself was moved, replaced or removed: the daemon cannot go on.
+    SpoolGone(String),
 }
 
 impl OwnedSpool {
-    /// Puts the spool back in order after a crash or power cut: a job found
-    /// running is marked interrupted (never re-run silently), transitions cut
-    /// short are completed, stale temp files are removed.
-    ///
-    /// # Errors
-    /// [`SpoolError::Io`] when the spool cannot be written.
-    pub fn recover(&self, now: SystemTime) -> Result<Recovery, SpoolError> {
-        let mut recovery = Recovery::default();
-        let tmp = self.root.join("tmp");
-        for entry in fs::read_dir(&tmp).map_err(|e| self.io("list", &tmp, e))? {
-            let path = entry.map_err(|e| self.io("list", &tmp, e))?.path();
-            let stale = fs::metadata(&path)
-                .and_then(|m| m.modified())
-                .is_ok_and(|t| now.duration_since(t).is_ok_and(|age| age > STALE_TMP));
-            if stale {
-                fs::remove_file(&path).map_err(|e| self.io("remove", &path, e))?;
+    /// Sets the modes of the layout on the directories this daemon owns.
+    fn fix_modes(&self) {
+        let me = rustix::process::geteuid().as_raw();
+        for (dir, mode) in self.layout() {
+            if let Ok(stat) = rustix::fs::lstat(&dir)
+                && stat.st_uid == me
+                && stat.st_mode & 0o7777 != mode
+                && let Err(e) = rustix::fs::chmod(&dir, Mode::from_raw_mode(mode))
+            {
+                tracing::warn!(dir = %dir.display(), error = %e, "cannot set the spool directory's mode to {mode:o}");
             }
         }
+    }
+
+    fn write_pid_file(&self) -> Result<(), SpoolError> {
+        let text = format!("{}\n", std::process::id());
+        self.write_file(
+            &self.root,
+            "daemon.lock",
+            Existing::Replace,
+            text.as_bytes(),
+        )?;
+        let path = self.root.join("daemon.lock");
+        let stat = rustix::fs::lstat(&path).map_err(|e| self.io("inspect", &path, e.into()))?;
+        *self
+            .lock_file
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner) = Some((stat.st_dev, stat.st_ino));
+        Ok(())
+    }
+
+    /// Checks that the spool is still the one this daemon locked, and that `daemon.lock`
+    /// is still its own; writes `daemon.lock` again when it is not.
+    ///
+    /// # Errors
+    /// [`Tamper`] saying what was found.
+    pub fn check_ownership(&self) -> Result<(), Tamper> {
+        match rustix::fs::stat(&self.root) {
+            Ok(s) if (s.st_dev, s.st_ino) == self.root_id => {}
+            Ok(_) => {
+                return Err(Tamper::SpoolGone(format!(
+                    "the spool directory {} was replaced by another one",
+                    self.root.display()
+                )));
+            }
+            Err(e) => {
+                return Err(Tamper::SpoolGone(format!(
+                    "the spool directory {} is gone ({e})",
+                    self.root.display()
+                )));
+            }
+        }
+        let path = self.root.join("daemon.lock");
+        let expected = *self
+            .lock_file
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner);
+        let found = match rustix::fs::lstat(&path) {
+            Err(rustix::io::Errno::NOENT) => Some("was moved away or removed".to_owned()),
+            Err(e) => Some(format!("cannot be inspected ({e})")),
+            Ok(s) if Some((s.st_dev, s.st_ino)) != expected => Some("was replaced".to_owned()),
+            Ok(_) => {
+                let pid = read_capped_at(rustix::fs::CWD, &path, Links::Refuse, 64)
+                    .ok()
+                    .and_then(|c| String::from_utf8(c.bytes).ok());
+                let mine = std::process::id().to_string();
+                match pid {
+                    Some(p) if p.trim() == mine => None,
+                    Some(p) => Some(format!(
+                        "was rewritten (it said {:?})",
+                        printable(p.trim(), 40)
+                    )),
+                    None => Some("was made unreadable".to_owned()),
+                }
+            }
+        };
+        let Some(what) = found else {
+            return Ok(());
+        };
+        let restored = match self.write_pid_file() {
+            Ok(()) => "written again".to_owned(),
+            Err(e) => format!("could not be written again: {e}"),
+        };
+        Err(Tamper::LockFile(format!(
+            "{} {what}; this daemon (PID {}) still owns the spool — the lock is held on the \
+             spool directory itself, so no second daemon can start — and daemon.lock was {restored}",
+            path.display(),
+            std::process::id()
+        )))
+    }
+
+    /// Puts the spool back in order after a crash or power cut: a job found running is
+    /// marked interrupted (never re-run silently), transitions cut short are completed,
+    /// stale temporary files are removed and entries that are not records set aside.
+    /// What cannot be written (a full disk) is reported in [`Recovery::problems`].
+    ///
+    /// # Errors
+    /// [`SpoolError::Io`] when a spool directory cannot be read.
+    pub fn recover(&self, now: SystemTime) -> Result<Recovery, SpoolError> {
+        let mut recovery = Recovery::default();
+        self.remove_stale_temps(now, &mut recovery);
         for dir_state in [JobState::Queued, JobState::Running] {
-            for (id, path) in self.entries(dir_state)? {
-                let record = match (id, self.read_record(&path)) {
-                    (Some(_), Ok(Some(record))) => record,
-                    (Some(_), Ok(None)) => continue,
-                    (None, _) => {
-                        recovery
-                            .quarantined
-                            .push(self.quarantine(&path, "not named <id>.json")?);
+            for entry in self.entries(dir_state)? {
+                let (record, owner) = match self.read_record(dir_state, &entry) {
+                    Ok(Some(found)) => found,
+                    Ok(None) => continue,
+                    Err(cause) => {
+                        recovery.quarantined.push(self.set_aside(
+                            dir_state,
+                            &entry.name,
+                            &cause,
+                            now,
+                        ));
                         continue;
                     }
-                    (Some(_), Err(SpoolError::Corrupt { cause, .. })) => {
-                        recovery.quarantined.push(self.quarantine(&path, &cause)?);
-                        continue;
-                    }
-                    (Some(_), Err(e)) => return Err(e),
                 };
                 if record.state.stage() > dir_state.stage() {
-                    self.move_record(record.id, dir_state, record.state)?;
-                    recovery.completed_moves += 1;
+                    if let Some(cause) = self.forged(dir_state, &record, owner) {
+                        recovery.quarantined.push(self.set_aside(
+                            dir_state,
+                            &entry.name,
+                            &cause,
+                            now,
+                        ));
+                        continue;
+                    }
+                    match self.move_record(record.id, dir_state, record.state) {
+                        Ok(()) => recovery.completed_moves += 1,
+                        Err(e) => recovery.problems.push(e.to_string()),
+                    }
                 } else if dir_state == JobState::Running {
                     let record = JobRecord {
                         state: JobState::Running,
                         ..record
                     };
-                    let record = self.finish(
+                    match self.finish(
                         &record,
                         JobState::Interrupted,
                         Some(CRASH_REASON.to_owned()),
                         now,
-                    )?;
-                    recovery.interrupted.push(record);
+                    ) {
+                        Ok(record) => recovery.interrupted.push(record),
+                        Err(e) => recovery.problems.push(format!(
+                            "job {} ({}) was running when the daemon stopped, but cannot be marked \
+                             interrupted: {e}",
+                            record.id,
+                            printable(&record.name, 64)
+                        )),
+                    }
                 }
             }
         }
         Ok(recovery)
     }
 
-    fn quarantine(&self, path: &Path, cause: &str) -> Result<Unreadable, SpoolError> {
-        let name = path
-            .file_name()
-            .map_or_else(String::new, |n| n.to_string_lossy().into_owned());
-        let dst = self
-            .state_dir(JobState::Rejected)
-            .join(format!("{name}.unreadable"));
-        fs::rename(path, &dst).map_err(|e| self.io("move", path, e))?;
-        sync_parent(&dst).map_err(|e| self.io("sync", &dst, e))?;
-        Ok(Unreadable {
-            path: dst,
-            cause: cause.to_owned(),
+    /// Removes temporary files a crash left behind (older than [`STALE_TMP`]); other hidden
+    /// entries that are not regular files are set aside.
+    fn remove_stale_temps(&self, now: SystemTime, recovery: &mut Recovery) {
+        let mut dirs = vec![self.root.clone(), self.root.join("tmp")];
+        dirs.extend(JobState::ALL.iter().map(|s| self.state_dir(*s)));
+        for dir in dirs {
+            let Ok(read) = fs::read_dir(&dir) else {
+                continue;
+            };
+            for entry in read.flatten() {
+                let name = entry.file_name();
+                let hidden = name.as_bytes().starts_with(b".") || dir.ends_with("tmp");
+                if !hidden || name == ACK {
+                    continue;
+                }
+                let path = dir.join(&name);
+                let Ok(meta) = fs::symlink_metadata(&path) else {
+                    continue;
+                };
+                let stale = meta
+                    .modified()
+                    .is_ok_and(|t| now.duration_since(t).is_ok_and(|age| age > STALE_TMP));
+                if !stale {
+                    continue;
+                }
+                if meta.is_file() || meta.is_symlink() {
+                    if let Err(e) = fs::remove_file(&path) {
+                        recovery
+                            .problems
+                            .push(format!("cannot remove {}: {e}", path.display()));
+                    }
+                } else if let Some(state) =
+                    JobState::ALL.iter().find(|s| dir == self.state_dir(**s))
+                {
+                    recovery.quarantined.push(self.set_aside(
+                        *state,
+                        &name,
+                        "a hidden entry that is not a file",
+                        now,
+                    ));
+                }
+            }
+        }
+    }
+
+    /// Why a record found ahead of its directory must not be believed: in `queued/` only
+    /// the daemon's own rewrite (a rejection cut short) may be ahead.
+    fn forged(&self, dir_state: JobState, record: &JobRecord, owner: u32) -> Option<String> {
+        (dir_state == JobState::Queued && owner != rustix::process::geteuid().as_raw()).then(|| {
+            format!(
+                "a record in queued/ must say \"queued\"; this one says {:?} and was not written \
+                 by the daemon",
+                record.state.as_str()
+            )
         })
     }
 
-    /// The oldest queued job, if any. Unreadable records are quarantined
-    /// (see [`Recovery::quarantined`]) and returned beside it so the caller can log them.
-    ///
-    /// # Errors
-    /// [`SpoolError::Io`] when the spool cannot be read.
-    pub fn next_queued(&self) -> Result<(Option<JobRecord>, Vec<Unreadable>), SpoolError> {
-        let mut quarantined = Vec::new();
-        for (id, path) in self.entries(JobState::Queued)? {
-            match (id, self.read_record(&path)) {
-                (Some(_), Ok(Some(record))) if record.state == JobState::Queued => {
-                    return Ok((Some(record), quarantined));
+    /// Moves an entry of a state directory to `quarantine/` with its reason, never
+    /// following it. An entry that cannot be moved is skipped from then on.
+    fn set_aside(&self, from: JobState, name: &OsStr, cause: &str, now: SystemTime) -> Unreadable {
+        let src = self.state_dir(from).join(name);
+        let shown = shown_name(name);
+        let safe: String = name
+            .as_bytes()
+            .iter()
+            .take(60)
+            .map(|b| {
+                if b.is_ascii_alphanumeric() || matches!(b, b'.' | b'-' | b'_') {
+                    char::from(*b)
+                } else {
+                    '_'
                 }
-                (Some(_), Ok(Some(record))) => {
-                    // A rejection cut short by a crash: finish it.
-                    self.move_record(record.id, JobState::Queued, record.state)?;
+            })
+            .collect();
+        let quarantine = self.root.join(QUARANTINE);
+        let stamp = utc::compact(now);
+        let mut moved = Err(io::Error::other("no free name in quarantine/"));
+        for n in 0..1000 {
+            let dst = quarantine.join(format!("{stamp}-{n:03}-{from}-{safe}"));
+            match rustix::fs::renameat_with(
+                rustix::fs::CWD,
+                &src,
+                rustix::fs::CWD,
+                &dst,
+                RenameFlags::NOREPLACE,
+            ) {
+                Ok(()) => {
+                    moved = Ok(dst);
+                    break;
                 }
-                (Some(_), Ok(None)) => {}
-                (None, _) => quarantined.push(self.quarantine(&path, "not named <id>.json")?),
-                (Some(_), Err(SpoolError::Corrupt { cause, .. })) => {
-                    quarantined.push(self.quarantine(&path, &cause)?);
+                Err(rustix::io::Errno::EXIST) => {}
+                Err(e) => {
+                    moved = Err(e.into());
+                    break;
                 }
-                (Some(_), Err(e)) => return Err(e),
             }
         }
-        Ok((None, quarantined))
+        match moved {
+            Ok(dst) => {
+                let reason = SetAsideReason {
+                    name: name.to_string_lossy().chars().take(500).collect(),
+                    from: from.as_str().to_owned(),
+                    cause: cause.to_owned(),
+                    at: utc::rfc3339(now),
+                };
+                let mut reason_name = dst.file_name().unwrap_or_default().to_owned();
+                reason_name.push(".reason");
+                let written = serde_json::to_vec_pretty(&reason)
+                    .map_err(io::Error::other)
+                    .and_then(|bytes| {
+                        let fd = open_dir(&quarantine)?;
+                        write_atomic_at(
+                            fd.as_fd(),
+                            &reason_name,
+                            Existing::Refuse,
+                            Some(RECORD_MODE),
+                            |w| w.write_all(&bytes),
+                        )
+                    });
+                if let Err(e) = written {
+                    tracing::warn!(entry = %dst.display(), error = %e, "cannot record why an entry was set aside");
+                }
+                Unreadable {
+                    path: dst,
+                    name: shown,
+                    cause: cause.to_owned(),
+                }
+            }
+            Err(e) => {
+                self.stuck
+                    .lock()
+                    .unwrap_or_else(PoisonError::into_inner)
+                    .insert(name.to_owned());
+                Unreadable {
+                    path: src,
+                    name: shown,
+                    cause: format!(
+                        "{cause}; it cannot be set aside ({e}) and is ignored from now on"
+                    ),
+                }
+            }
+        }
+    }
+
+    /// The oldest queued job, if any, as a fresh queued record (what a submitter may not
+    /// set — start, end, run directory, reason — is dropped). Entries that are not job
+    /// records are set aside and returned beside it so the caller can log them. The job
+    /// itself is not checked here: [`JobSpec::effective_config`] is, by the caller.
+    ///
+    /// # Errors
+    /// [`SpoolError::Io`] when `queued/` cannot be read.
+    pub fn next_queued(&self) -> Result<(Option<JobRecord>, Vec<Unreadable>), SpoolError> {
+        let mut set_aside = Vec::new();
+        let now = SystemTime::now();
+        for entry in self.entries(JobState::Queued)? {
+            if self
+                .stuck
+                .lock()
+                .unwrap_or_else(PoisonError::into_inner)
+                .contains(&entry.name)
+            {
+                continue;
+            }
+            let (record, owner) = match self.read_record(JobState::Queued, &entry) {
+                Ok(Some(found)) => found,
+                Ok(None) => continue,
+                Err(cause) => {
+                    set_aside.push(self.set_aside(JobState::Queued, &entry.name, &cause, now));
+                    continue;
+                }
+            };
+            if record.state == JobState::Queued {
+                if !utc::is_rfc3339(&record.submitted) {
+                    let cause = "its submission time is not an RFC 3339 UTC time";
+                    set_aside.push(self.set_aside(JobState::Queued, &entry.name, cause, now));
+                    continue;
+                }
+                let record = JobRecord {
+                    name: record.job.name.clone(),
+                    started: None,
+                    finished: None,
+                    run_dir: None,
+                    reason: None,
+                    ..record
+                };
+                return Ok((Some(record), set_aside));
+            }
+            if let Some(cause) = self.forged(JobState::Queued, &record, owner) {
+                set_aside.push(self.set_aside(JobState::Queued, &entry.name, &cause, now));
+                continue;
+            }
+            // A rejection cut short by a crash: finish it.
+            self.move_record(record.id, JobState::Queued, record.state)?;
+        }
+        Ok((None, set_aside))
     }
 
     /// Number of queued jobs.
@@ -690,11 +1284,19 @@ impl OwnedSpool {
         Ok(self
             .entries(JobState::Queued)?
             .iter()
-            .filter(|(id, _)| id.is_some())
+            .filter(|e| e.id.is_some())
             .count())
     }
 
-    /// Marks a queued job running in `run_dir`.
+    /// The directory job `id`'s record lies in, if any.
+    #[must_use]
+    pub fn state_of(&self, id: JobId) -> Option<JobState> {
+        JobState::ALL
+            .into_iter()
+            .find(|s| fs::symlink_metadata(self.record_path(*s, id)).is_ok())
+    }
+
+    /// Marks a queued job running in `run_dir`. Its record keeps room to be ended in place.
     ///
     /// # Errors
     /// [`SpoolError::Io`] when the spool cannot be written.
@@ -711,11 +1313,11 @@ impl OwnedSpool {
             run_dir: Some(run_dir.to_owned()),
             ..record.clone()
         };
-        self.write_record(JobState::Running, &running)?;
+        self.write_record(JobState::Running, &running, RESERVE)?;
         Ok(running)
     }
 
-    /// Moves a queued or running job to its final state with its reason.
+    /// Moves a queued or running job to its final state with its reason (cut to 2000 bytes).
     ///
     /// # Errors
     /// [`SpoolError::Io`] when the spool cannot be written.
@@ -734,12 +1336,12 @@ impl OwnedSpool {
         let finished = JobRecord {
             state,
             finished: Some(utc::rfc3339(now)),
-            reason,
+            reason: capped_reason(reason),
             ..record.clone()
         };
         // Record first, then move: a crash in between leaves a record ahead of
         // its directory, which readers honour and recovery completes.
-        self.write_record(from, &finished)?;
+        self.write_record(from, &finished, 0)?;
         self.move_record(record.id, from, state)?;
         Ok(finished)
     }
@@ -752,10 +1354,10 @@ impl OwnedSpool {
         let path = self.root.join("daemon.json");
         let bytes = serde_json::to_vec_pretty(status).map_err(|e| SpoolError::Corrupt {
             spool: self.root.clone(),
-            path: path.clone(),
+            path,
             cause: e.to_string(),
         })?;
-        self.write_atomic(&path, &bytes)
+        self.write_file(&self.root, "daemon.json", Existing::Replace, &bytes)
     }
 
     /// Publishes the daemon's effective configuration, which `sdsem submit`
@@ -769,7 +1371,26 @@ impl OwnedSpool {
              reload).\n# `sdsem submit` validates jobs against it. Edits here have no effect.\n{}",
             config.to_toml()
         );
-        self.write_atomic(&self.config_snapshot_path(), text.as_bytes())
+        self.write_file(
+            &self.root,
+            "config.toml",
+            Existing::Replace,
+            text.as_bytes(),
+        )
+    }
+
+    /// Removes an operator's acknowledgement, so that only one given from now on counts.
+    pub fn clear_ack(&self) {
+        let _ = fs::remove_file(self.state_dir(JobState::Queued).join(ACK));
+    }
+
+    /// Consumes an operator's acknowledgement: `Some(who)` when there was one.
+    #[must_use]
+    pub fn take_ack(&self) -> Option<String> {
+        let path = self.state_dir(JobState::Queued).join(ACK);
+        let stat = rustix::fs::lstat(&path).ok()?;
+        let _ = fs::remove_file(&path);
+        Some(format!("user id {}", stat.st_uid))
     }
 }
 
@@ -792,7 +1413,7 @@ mod tests {
         let record = record.unwrap();
         let path = spool.record_path(JobState::Queued, record.id);
         let mode = fs::metadata(&path).unwrap().permissions().mode() & 0o777;
-        assert_eq!(mode, 0o664, "{}", path.display());
+        assert_eq!(mode, 0o640, "{}", path.display());
     }
 
     fn spec(name: &str) -> JobSpec {
@@ -851,7 +1472,8 @@ mod tests {
         assert_eq!(failed.reason.as_deref(), Some("link lost"));
         assert_eq!(failed.run_dir.as_deref(), Some(Path::new("/runs/a")));
         assert!(dir.path().join("failed/00000001.json").is_file());
-        assert_eq!(fs::read_dir(dir.path().join("tmp")).unwrap().count(), 0);
+        let hidden = fs::read_dir(dir.path().join("failed")).unwrap().count();
+        assert_eq!(hidden, 1, "temporary files left behind");
     }
 
     #[test]
@@ -939,7 +1561,7 @@ mod tests {
             finished: Some("x".into()),
             ..running
         };
-        owned.write_record(JobState::Running, &done).unwrap();
+        owned.write_record(JobState::Running, &done, 0).unwrap();
         assert_eq!(states(&spool), [(1, "a".into(), JobState::Done)]);
         let recovery = owned.recover(at(2)).unwrap();
         assert!(recovery.interrupted.is_empty());
@@ -974,13 +1596,194 @@ mod tests {
         let owned = spool.clone().lock().unwrap();
         let (next, quarantined) = owned.next_queued().unwrap();
         assert_eq!(quarantined.len(), 1);
+        assert!(
+            quarantined[0].cause.starts_with("not a job record"),
+            "{:?}",
+            quarantined[0]
+        );
         // `b` got id 8 (after the 7 on disk) and runs despite the bad file before it.
         assert_eq!(next.unwrap().id, JobId(8));
+        let listing = spool.list().unwrap();
+        assert!(listing.unreadable.is_empty());
+        assert_eq!(listing.set_aside_total, 1);
+        assert_eq!(listing.set_aside[0].name, "00000007.json");
+        assert!(listing.set_aside[0].cause.starts_with("not a job record"));
+    }
+
+    /// Every hostile entry of `queued/` is set aside at once, with its reason, and the
+    /// valid job behind them is the next one; nothing blocks, follows or reads unbounded.
+    #[test]
+    fn hostile_entries_are_set_aside_without_blocking() {
+        use std::os::unix::fs::PermissionsExt;
+        let dir = tempfile::tempdir().unwrap();
+        let spool = Spool::open(dir.path()).unwrap();
+        let q = dir.path().join("queued");
+        fs::create_dir(q.join("00000001.json")).unwrap();
+        rustix::fs::mknodat(
+            rustix::fs::CWD,
+            &q.join("00000002.json"),
+            rustix::fs::FileType::Fifo,
+            Mode::from_raw_mode(0o644),
+            0,
+        )
+        .unwrap();
+        std::os::unix::fs::symlink("/dev/zero", q.join("00000003.json")).unwrap();
+        fs::write(q.join("00000004.json"), vec![b' '; 300 * 1024]).unwrap();
+        fs::write(q.join("00000005.json"), "garbage").unwrap();
+        fs::write(q.join("bad\u{1b}[2J\nname"), "x").unwrap();
+        // A record that lies about its id, and one that claims to be done already.
+        let mut record = spool.submit(spec("liar"), at(0)).unwrap();
+        fs::rename(q.join("00000006.json"), q.join("00000009.json")).unwrap();
+        record.id = JobId(10);
+        record.state = JobState::Done;
+        let text = serde_json::to_string(&record).unwrap();
+        fs::write(q.join("00000010.json"), text).unwrap();
+        fs::set_permissions(q.join("00000010.json"), fs::Permissions::from_mode(0o644)).unwrap();
+        let good = spool.submit(spec("good"), at(0)).unwrap();
+        assert_eq!(good.id, JobId(11));
+
+        let owned = spool.clone().lock().unwrap();
+        let t0 = Instant::now();
+        let (next, set_aside) = owned.next_queued().unwrap();
+        assert!(t0.elapsed() < Duration::from_secs(2), "{:?}", t0.elapsed());
+        assert_eq!(next.unwrap().name, "good");
+        let causes: Vec<(&str, &str)> = set_aside
+            .iter()
+            .map(|u| (u.name.as_str(), u.cause.as_str()))
+            .collect();
+        let want = [
+            ("00000001.json", "it is a directory, not a regular file"),
+            ("00000002.json", "it is a FIFO, not a regular file"),
+            (
+                "00000003.json",
+                "it is a symbolic link, which is never followed",
+            ),
+            ("00000004.json", "it is larger than 262144 bytes"),
+            ("00000005.json", "not a job record"),
+            (
+                "00000009.json",
+                "its id 6 does not match its file name (job 9)",
+            ),
+        ];
+        for (name, cause) in want {
+            assert!(
+                causes
+                    .iter()
+                    .any(|(n, c)| *n == name && c.starts_with(cause)),
+                "{name}: {causes:?}"
+            );
+        }
         assert!(
-            dir.path()
-                .join("rejected/00000007.json.unreadable")
-                .is_file()
+            causes
+                .iter()
+                .any(|(n, c)| *n == "bad\\u{1b}[2J\\nname" && *c == "not named <id>.json"),
+            "{causes:?}"
         );
+        // Written by the daemon's own user (as everything in this test): honoured as a
+        // transition cut short. From a submitter (another user) it is set aside:
+        assert!(dir.path().join("done/00000010.json").exists());
+        let me = rustix::process::geteuid().as_raw();
+        assert!(owned.forged(JobState::Queued, &record, me).is_none());
+        let forged = owned
+            .forged(JobState::Queued, &record, me.wrapping_add(1))
+            .unwrap();
+        assert!(forged.contains("must say \"queued\""), "{forged}");
+        // Nothing followed: /dev/zero is still a device, the link moved as a link.
+        let listing = spool.list().unwrap();
+        assert!(listing.unreadable.is_empty(), "{:?}", listing.unreadable);
+        assert!(listing.set_aside_total >= 7, "{}", listing.set_aside_total);
+        assert!(
+            listing
+                .set_aside
+                .iter()
+                .all(|u| !u.name.contains('\u{1b}') && !u.cause.contains('\n')),
+            "{:?}",
+            listing.set_aside
+        );
+        // The second turn finds only the good job.
+        let (next, set_aside) = owned.next_queued().unwrap();
+        assert!(set_aside.is_empty());
+        assert_eq!(next.unwrap().name, "good");
+    }
+
+    #[test]
+    fn a_queued_record_cannot_carry_a_start_or_a_reason() {
+        let dir = tempfile::tempdir().unwrap();
+        let spool = Spool::open(dir.path()).unwrap();
+        let mut record = spool.submit(spec("a"), at(0)).unwrap();
+        record.run_dir = Some("/etc".into());
+        record.reason = Some("x".into());
+        record.name = "../../evil".into();
+        fs::write(
+            dir.path().join("queued/00000001.json"),
+            serde_json::to_string(&record).unwrap(),
+        )
+        .unwrap();
+        let owned = spool.lock().unwrap();
+        let next = owned.next_queued().unwrap().0.unwrap();
+        assert_eq!(
+            (next.name.as_str(), next.run_dir, next.reason),
+            ("a", None, None)
+        );
+    }
+
+    #[test]
+    fn ids_never_wrap_and_an_existing_id_is_never_overwritten() {
+        let dir = tempfile::tempdir().unwrap();
+        let spool = Spool::open(dir.path()).unwrap();
+        fs::write(dir.path().join("next-id"), format!("{}\n", u64::MAX)).unwrap();
+        let err = spool.submit(spec("a"), at(0)).unwrap_err();
+        assert!(matches!(err, SpoolError::IdsExhausted { .. }), "{err}");
+        assert!(err.to_string().contains("nothing was queued"), "{err}");
+        fs::write(dir.path().join("next-id"), format!("{}\n", u64::MAX - 1)).unwrap();
+        assert_eq!(
+            spool.submit(spec("a"), at(0)).unwrap().id,
+            JobId(u64::MAX - 1)
+        );
+        let err = spool.submit(spec("b"), at(0)).unwrap_err();
+        assert!(matches!(err, SpoolError::IdsExhausted { .. }), "{err}");
+        assert_eq!(spool.list().unwrap().jobs.len(), 1);
+
+        // A counter set back does not give an existing id again.
+        let dir = tempfile::tempdir().unwrap();
+        let spool = Spool::open(dir.path()).unwrap();
+        spool.submit(spec("a"), at(0)).unwrap();
+        fs::write(dir.path().join("next-id"), "1\n").unwrap();
+        assert_eq!(spool.submit(spec("b"), at(0)).unwrap().id, JobId(2));
+        assert_eq!(
+            states(&spool),
+            [
+                (1, "a".into(), JobState::Queued),
+                (2, "b".into(), JobState::Queued)
+            ]
+        );
+    }
+
+    #[test]
+    fn the_layout_is_private_but_for_a_sticky_queue() {
+        use std::os::unix::fs::PermissionsExt;
+        let dir = tempfile::tempdir().unwrap();
+        let root = dir.path().join("spool");
+        let old = rustix::process::umask(Mode::from_raw_mode(0o002));
+        let spool = Spool::open(&root);
+        rustix::process::umask(old);
+        let owned = spool.unwrap().lock().unwrap();
+        let mode = |p: &str| fs::metadata(root.join(p)).unwrap().permissions().mode() & 0o7777;
+        assert_eq!(mode(""), 0o750);
+        assert_eq!(mode("queued"), 0o1770);
+        for d in [
+            "running",
+            "done",
+            "failed",
+            "interrupted",
+            "rejected",
+            "quarantine",
+        ] {
+            assert_eq!(mode(d), 0o750, "{d}");
+        }
+        assert_eq!(mode("next-id"), 0o660);
+        assert_eq!(mode("daemon.lock"), 0o640);
+        drop(owned);
     }
 
     #[test]
@@ -998,20 +1801,81 @@ mod tests {
         Spool::open(dir.path()).unwrap().lock().unwrap();
     }
 
+    /// `mv daemon.lock` let a second daemon in: the lock is on the spool directory now,
+    /// and the owner notices and writes its lock file again.
+    #[test]
+    fn moving_or_rewriting_the_lock_file_lets_no_second_owner_in_and_is_noticed() {
+        let dir = tempfile::tempdir().unwrap();
+        let first = Spool::open(dir.path()).unwrap().lock().unwrap();
+        assert_eq!(first.check_ownership(), Ok(()));
+        let lock = dir.path().join("daemon.lock");
+        fs::rename(&lock, dir.path().join("moved.lock")).unwrap();
+        let err = Spool::open(dir.path()).unwrap().lock().unwrap_err();
+        assert!(matches!(err, SpoolError::Locked { .. }), "{err}");
+        let Err(Tamper::LockFile(what)) = first.check_ownership() else {
+            panic!("not noticed")
+        };
+        assert!(
+            what.contains("was moved away or removed") && what.contains("written again"),
+            "{what}"
+        );
+        assert_eq!(first.check_ownership(), Ok(()));
+        fs::write(&lock, "1\n").unwrap();
+        assert!(
+            matches!(first.check_ownership(), Err(Tamper::LockFile(w)) if w.contains("was rewritten"))
+        );
+        fs::remove_file(&lock).unwrap();
+        fs::write(&lock, format!("{}\n", std::process::id())).unwrap();
+        assert!(
+            matches!(first.check_ownership(), Err(Tamper::LockFile(w)) if w.contains("was replaced"))
+        );
+        // Someone removed the lock file; a second daemon is still refused.
+        fs::remove_file(&lock).unwrap();
+        assert!(Spool::open(dir.path()).unwrap().lock().is_err());
+        // The spool directory itself moved: the daemon can only give up.
+        fs::rename(dir.path(), dir.path().with_extension("moved")).unwrap();
+        assert!(matches!(first.check_ownership(), Err(Tamper::SpoolGone(_))));
+        fs::rename(dir.path().with_extension("moved"), dir.path()).unwrap();
+    }
+
+    /// On a full disk no new file can be made: the end of a running job is written into
+    /// the room its record kept, so the job is not labelled a crash at the next start.
+    #[test]
+    fn a_running_record_can_be_ended_in_place() {
+        let dir = tempfile::tempdir().unwrap();
+        let spool = Spool::open(dir.path()).unwrap();
+        spool.submit(spec("a"), at(0)).unwrap();
+        let owned = spool.clone().lock().unwrap();
+        let a = owned.next_queued().unwrap().0.unwrap();
+        let running = owned.start(&a, Path::new("/runs/a"), at(1)).unwrap();
+        let path = dir.path().join("running/00000001.json");
+        let len = fs::metadata(&path).unwrap().len();
+        let ended = JobRecord {
+            state: JobState::Failed,
+            reason: capped_reason(Some("é".repeat(5000))),
+            ..running
+        };
+        let bytes = spool.to_json(&ended, &path, 0).unwrap();
+        overwrite_in_place(&path, &bytes).unwrap();
+        assert_eq!(fs::metadata(&path).unwrap().len(), len);
+        assert_eq!(states(&spool), [(1, "a".into(), JobState::Failed)]);
+        let recovery = owned.recover(at(2)).unwrap();
+        assert!(recovery.interrupted.is_empty());
+        assert!(dir.path().join("failed/00000001.json").is_file());
+    }
+
     #[test]
     fn stale_temp_files_are_removed_at_recovery() {
         let dir = tempfile::tempdir().unwrap();
         let spool = Spool::open(dir.path()).unwrap();
-        fs::write(dir.path().join("tmp/00000001.json.1.0"), "partial").unwrap();
+        let tmp = dir.path().join("queued/.00000001.json.tmp-1-0");
+        fs::write(&tmp, "partial").unwrap();
         let owned = spool.lock().unwrap();
         owned.recover(SystemTime::now()).unwrap();
-        assert!(
-            dir.path().join("tmp/00000001.json.1.0").exists(),
-            "fresh: may be a submit in progress"
-        );
+        assert!(tmp.exists(), "fresh: may be a submit in progress");
         owned
             .recover(SystemTime::now() + Duration::from_secs(3600))
             .unwrap();
-        assert!(!dir.path().join("tmp/00000001.json.1.0").exists());
+        assert!(!tmp.exists());
     }
 }

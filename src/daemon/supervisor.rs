@@ -1,34 +1,47 @@
 //! The supervisor: the daemon's one main loop.
 //!
 //! On start it recovers the spool (a job left `running` by a crash becomes
-//! `interrupted`, never re-run), checks the links and says READY. Then, one job
-//! at a time, oldest first: validate the job under the configuration in force
-//! (`rejected` if it no longer fits), wait while free disk space is under
+//! `interrupted`, never re-run), checks the links and says READY. After an
+//! unclean end (a job left running, or a previous daemon that never said
+//! "stopped") it reads the stage before anything else and, off its safe tilt,
+//! moves it there or waits for an operator (`daemon.after_crash`), saying so in
+//! the journal, STATUS and `daemon.json`. Then, one job at a time, oldest
+//! first: validate the job under the configuration in force (`rejected` if it
+//! does not fit), wait while free disk space is under
 //! `daemon.min_free_gib` (the job stays queued; STATUS says why), check the
 //! links (on failure wait with capped exponential backoff, the job stays
 //! queued), create the run directory, mark the job `running`, run it, record
-//! its final state and reason.
+//! its final state and reason. A final state that cannot be written (a full
+//! disk) is kept and written again later; the daemon does not exit for it, nor
+//! for anything found in the spool.
 //!
 //! Control arrives as [`Control`] messages (the binary turns SIGTERM/SIGINT and
 //! SIGHUP into them): a stop cancels the running job, waits for it at most
 //! `daemon.stop_timeout_s`, marks it `interrupted` and ends the loop; a reload
 //! swaps the configuration only if the new one is valid, and applies to the
 //! next job. WATCHDOG=1 is sent from this loop only, so a stuck loop stops the
-//! pings and systemd restarts the service. Time is tokio's (a paused clock in tests).
+//! pings and systemd restarts the service; so does a spool directory that was
+//! moved away. A tampered `daemon.lock` is written again and reported, never a
+//! reason to stop pinging. Time is tokio's (a paused clock in tests).
 
-use std::path::{Path, PathBuf};
+use std::future::Future;
 use std::time::{Duration, SystemTime};
 
 use tokio::sync::mpsc;
 use tokio::time::{Instant, Interval, MissedTickBehavior};
 use tracing::{error, info, warn};
 
-use super::config::{DaemonConfig, GIB};
+use super::config::{AfterCrash, DaemonConfig, GIB};
 use super::disk::{DiskSpace, Statvfs};
 use super::notify::{Notice, Notifier};
 use super::runner::{JobContext, JobOutcome, JobRunner, cancel_pair, progress_channel};
-use super::spool::{DaemonStatus, JobId, JobRecord, JobState, OwnedSpool, SpoolError, Unreadable};
+use super::spool::{
+    DaemonStatus, JobId, JobRecord, JobState, OwnedSpool, SpoolError, StageCheck, Tamper,
+    Unreadable,
+};
 use super::utc;
+use crate::acquisition::RunDir;
+use crate::acquisition::run_dir::printable;
 use crate::config::Config;
 
 /// A request to the supervisor.
@@ -95,6 +108,26 @@ struct Core {
     waiting_for_disk: bool,
     unhealthy_logged: bool,
     status_write_failed: bool,
+    /// What the daemon wants a human to know (tampering), kept in `daemon.json`.
+    warnings: Vec<String>,
+    /// The stage check after the last unclean end.
+    stage_check: Option<StageCheck>,
+    /// The acknowledgement file was cleared when the wait for an operator began.
+    hold_started: bool,
+    /// An operator acknowledged the wait: the stage may be moved.
+    acknowledged: bool,
+    /// A job's final state that could not be written yet (a full disk).
+    pending_finish: Option<PendingFinish>,
+    /// `daemon.json` must be written again even if the STATUS line is unchanged.
+    publish_due: bool,
+}
+
+/// A job's end, waiting to be written into the spool.
+struct PendingFinish {
+    record: JobRecord,
+    state: JobState,
+    reason: Option<String>,
+    at: SystemTime,
 }
 
 impl<R: JobRunner> Supervisor<R> {
@@ -130,6 +163,12 @@ impl<R: JobRunner> Supervisor<R> {
                 waiting_for_disk: false,
                 unhealthy_logged: false,
                 status_write_failed: false,
+                warnings: Vec::new(),
+                stage_check: None,
+                hold_started: false,
+                acknowledged: false,
+                pending_finish: None,
+                publish_due: false,
             },
         }
     }
@@ -173,12 +212,27 @@ impl<R: JobRunner> Supervisor<R> {
     /// states would be lost); [`SupervisorError::RunnerOverran`] when a job
     /// did not stop in time after a stop or stall.
     pub async fn run(mut self) -> Result<Stopped, SupervisorError> {
-        let recovery = self.core.spool.recover(SystemTime::now())?;
+        let now = SystemTime::now();
+        let previous = self.core.spool.daemon_status();
+        let recovery = self.core.spool.recover(now)?;
         for job in &recovery.interrupted {
-            warn!(job = job.id.0, name = %job.name, "{}", super::spool::CRASH_REASON);
+            warn!(job = job.id.0, name = %printable(&job.name, 64), "{}", super::spool::CRASH_REASON);
         }
         log_quarantined(&recovery.quarantined);
-        self.core.spool.write_config_snapshot(&self.core.config)?;
+        for problem in &recovery.problems {
+            error!("spool recovery: {problem}");
+        }
+        self.core.stage_check = unclean_end(previous.as_ref(), &recovery, now);
+        if let Some(check) = self.core.stage_check.as_ref().filter(|c| c.pending) {
+            warn!(
+                cause = %check.cause,
+                "the previous daemon ended uncleanly: the stage is read, and brought to its safe \
+                 tilt, before any job"
+            );
+        }
+        if let Err(e) = self.core.spool.write_config_snapshot(&self.core.config) {
+            warn!(error = %e, "cannot publish the configuration: `sdsem submit` checks against its own");
+        }
         self.core
             .set_status("starting: checking the stage and imaging links");
         // READY once the links were checked, whatever the answer: a stage that
@@ -210,6 +264,14 @@ impl<R: JobRunner> Supervisor<R> {
     /// One turn of the loop: wait, reject, or run the oldest queued job.
     /// Returns the id of a job interrupted by a stop.
     async fn step(&mut self) -> Result<Option<JobId>, SupervisorError> {
+        if !self.core.write_pending_finish() {
+            let wait = self.core.daemon().disk_recheck();
+            self.core.pause(wait).await;
+            return Ok(None);
+        }
+        if !self.stage_safe().await {
+            return Ok(None);
+        }
         let (next, quarantined) = self.core.spool.next_queued()?;
         log_quarantined(&quarantined);
         let Some(job) = next else {
@@ -230,14 +292,14 @@ impl<R: JobRunner> Supervisor<R> {
         let config = match job.job.effective_config(&self.core.config) {
             Ok(c) => c,
             Err(e) => {
-                let reason = format!("does not fit the configuration in force: {e}");
-                warn!(job = job.id.0, name = %job.name, %reason, "job rejected");
-                self.core.spool.finish(
-                    &job,
-                    JobState::Rejected,
-                    Some(reason),
-                    SystemTime::now(),
-                )?;
+                let reason = if job.job.check_shape().is_err() {
+                    format!("refused: {e}")
+                } else {
+                    format!("does not fit the configuration in force: {e}")
+                };
+                warn!(job = job.id.0, name = %printable(&job.name, 64), %reason, "job rejected");
+                self.core
+                    .end_job(&job, JobState::Rejected, Some(reason), SystemTime::now());
                 return Ok(None);
             }
         };
@@ -247,8 +309,7 @@ impl<R: JobRunner> Supervisor<R> {
             Err(DiskProblem::Unusable(reason)) => {
                 error!(job = job.id.0, name = %job.name, %reason, "job failed before it started");
                 self.core
-                    .spool
-                    .finish(&job, JobState::Failed, Some(reason), SystemTime::now())?;
+                    .end_job(&job, JobState::Failed, Some(reason), SystemTime::now());
                 return Ok(None);
             }
             Err(DiskProblem::Low(why)) => {
@@ -330,6 +391,113 @@ impl<R: JobRunner> Supervisor<R> {
         }
     }
 
+    /// After an unclean end: reads the stage and, off its safe tilt, moves it there or
+    /// waits for an operator (`daemon.after_crash`). True once the stage is known safe
+    /// (or there was no unclean end); false when the caller should come back later.
+    async fn stage_safe(&mut self) -> bool {
+        if !self.core.stage_check.as_ref().is_some_and(|c| c.pending) {
+            return true;
+        }
+        if !self.core.links_known_up()
+            && !self
+                .links_ready("after an unclean end, the stage is checked first")
+                .await
+        {
+            self.core.pause_for_backoff().await;
+            return false;
+        }
+        let config = self.core.config.clone();
+        let (safe, tolerance) = (
+            config.stage.safe_tilt_deg,
+            config.stage.tilt_tolerance_deg.max(1e-6),
+        );
+        let limit = self.core.daemon().link_check_timeout();
+        let tilt = match drive(&mut self.core, self.runner.stage_tilt(&config), limit).await {
+            Some(Ok(tilt)) => tilt,
+            result => {
+                let why = match result {
+                    Some(Err(e)) => e,
+                    _ => format!("no answer within {}", human(limit)),
+                };
+                self.core
+                    .stage_check_failed(&format!("cannot read the stage: {why}"));
+                self.core.pause_for_backoff().await;
+                return false;
+            }
+        };
+        if (tilt - safe).abs() <= tolerance {
+            self.core.stage_check_resolved(
+                tilt,
+                format!("the stage was found at its safe tilt ({tilt:.3}°)"),
+            );
+            return true;
+        }
+        let off = format!(
+            "after an unclean end the stage is at {tilt:.3}°, not at its safe tilt {safe}° \
+             (stage.safe_tilt_deg)"
+        );
+        if self.core.daemon().after_crash == AfterCrash::Wait && !self.core.acknowledged {
+            if !self.core.hold_started {
+                // Only an acknowledgement given from now on counts.
+                self.core.spool.clear_ack();
+                self.core.hold_started = true;
+                error!(
+                    tilt,
+                    safe,
+                    "{off}: no job runs until an operator checks it and runs `sdsem daemon --ack` (daemon.after_crash = \"wait\")"
+                );
+            }
+            if let Some(who) = self.core.spool.take_ack() {
+                warn!(%who, "an operator acknowledged the unclean end: the stage goes to its safe tilt");
+                self.core.acknowledged = true;
+            } else {
+                let action = format!(
+                    "waiting for an operator: {off}; check the specimen and the stage, then run \
+                     `sdsem daemon --ack` (daemon.after_crash = \"wait\")"
+                );
+                self.core.update_stage_check(Some(tilt), &action);
+                self.core.set_status(&format!("held: {action}"));
+                let wait = self.core.daemon().poll_interval();
+                self.core.pause(wait).await;
+                return false;
+            }
+        }
+        warn!(tilt, safe, "{off}: moving it there before anything else");
+        let action = format!("{off}: moving it there before anything else");
+        self.core.update_stage_check(Some(tilt), &action);
+        self.core.set_status(&action);
+        // The driver bounds the move itself; a stop leaves it daemon.stop_timeout_s.
+        match drive(
+            &mut self.core,
+            self.runner.move_to_safe_tilt(&config),
+            Duration::from_secs(24 * 3600),
+        )
+        .await
+        {
+            Some(Ok(reached)) => {
+                let what = format!(
+                    "after an unclean end the stage was at {tilt:.3}°; moved to its safe tilt \
+                     ({reached:.3}°) before any job"
+                );
+                warn!("{what}");
+                self.core.stage_check_resolved(tilt, what);
+                true
+            }
+            Some(Err(e)) => {
+                self.core
+                    .stage_check_failed(&format!("the move to the safe tilt failed: {e}"));
+                self.core.pause_for_backoff().await;
+                false
+            }
+            None => {
+                self.core.stage_check_failed(
+                    "stopped before the stage reached its safe tilt: checked again at the next start",
+                );
+                false
+            }
+        }
+    }
+
     /// Runs one job to its end and records how it ended.
     async fn run_job(
         &mut self,
@@ -339,18 +507,36 @@ impl<R: JobRunner> Supervisor<R> {
     ) -> Result<Option<JobId>, SupervisorError> {
         let label = format!("job {} {}", job.id, job.name);
         let now = SystemTime::now();
-        let run_dir = match create_run_dir(&config.run.output_dir, &job, now) {
+        let run_dir = match job
+            .job
+            .run_name()
+            .map_err(|e| e.to_string())
+            .and_then(|name| {
+                RunDir::create(&config.run.output_dir, &name, now).map_err(|e| e.to_string())
+            }) {
             Ok(dir) => dir,
             Err(reason) => {
                 error!(job = job.id.0, name = %job.name, %reason, "job failed before it started");
-                self.core
-                    .spool
-                    .finish(&job, JobState::Failed, Some(reason), now)?;
+                self.core.end_job(&job, JobState::Failed, Some(reason), now);
                 return Ok(None);
             }
         };
-        let job = self.core.spool.start(&job, &run_dir, now)?;
-        info!(job = job.id.0, name = %job.name, run_dir = %run_dir.display(), "job started");
+        let job = match self.core.spool.start(&job, run_dir.path(), now) {
+            Ok(job) => job,
+            Err(e) => {
+                let reason = format!("cannot mark the job running: {e}");
+                error!(job = job.id.0, name = %job.name, %reason, "job failed before it started");
+                let _ = std::fs::remove_dir(run_dir.path());
+                let record = JobRecord {
+                    state: self.core.spool.state_of(job.id).unwrap_or(JobState::Queued),
+                    ..job
+                };
+                self.core
+                    .end_job(&record, JobState::Failed, Some(reason), now);
+                return Ok(None);
+            }
+        };
+        info!(job = job.id.0, name = %job.name, run_dir = %run_dir.path().display(), "job started");
 
         let daemon = self.core.daemon().clone();
         let stall_timeout = daemon.stall_timeout();
@@ -425,17 +611,25 @@ impl<R: JobRunner> Supervisor<R> {
 
         let now = SystemTime::now();
         let (state, reason) = final_state(outcome.as_ref(), cancelled.as_ref(), stop_timeout);
-        let finished = self.core.spool.finish(&job, state, reason.clone(), now)?;
+        let finished = JobRecord {
+            state,
+            reason: reason.clone(),
+            ..job.clone()
+        };
+        self.core.end_job(&job, state, reason.clone(), now);
         if state != JobState::Done {
             // The runner drops links after a job that did not complete: until
             // checked again, "idle" must not claim they are up.
             self.core.links = None;
         }
+        let why = reason.as_deref().unwrap_or("");
         match state {
             JobState::Done => info!(job = job.id.0, name = %job.name, "job done"),
-            _ => {
-                warn!(job = job.id.0, name = %job.name, state = %state, reason = reason.as_deref().unwrap_or(""), "job ended")
+            // Error priority in the journal: `journalctl -u sdsem -p err` lists failed jobs.
+            JobState::Failed => {
+                error!(job = job.id.0, name = %job.name, reason = why, "job failed")
             }
+            _ => warn!(job = job.id.0, name = %job.name, state = %state, reason = why, "job ended"),
         }
         if outcome.is_none() {
             let cause = match cancelled {
@@ -517,16 +711,21 @@ impl Core {
 
     /// Says what the daemon is doing: STATUS= and `daemon.json`, on change only.
     fn set_status(&mut self, status: &str) {
-        if self.status == status {
+        if self.status == status && !self.publish_due {
             return;
         }
-        status.clone_into(&mut self.status);
-        self.notifier.notify(Notice::Status(status.to_owned()));
+        if self.status != status {
+            status.clone_into(&mut self.status);
+            self.notifier.notify(Notice::Status(status.to_owned()));
+        }
+        self.publish_due = false;
         let record = DaemonStatus {
             pid: std::process::id(),
             state: self.state.to_owned(),
             status: status.to_owned(),
             updated: utc::rfc3339(SystemTime::now()),
+            warnings: self.warnings.clone(),
+            stage_check: self.stage_check.clone(),
         };
         match self.spool.write_daemon_status(&record) {
             Ok(()) => self.status_write_failed = false,
@@ -534,11 +733,97 @@ impl Core {
                 // Not fatal (a full disk is waited out); the journal has STATUS.
                 warn!(error = %e, "cannot publish the daemon status in the spool");
                 self.status_write_failed = true;
+                self.publish_due = true;
             }
-            Err(_) => {}
+            Err(_) => self.publish_due = true,
         }
     }
 
+    /// Writes `daemon.json` again (warnings or the stage check changed).
+    fn publish(&mut self) {
+        self.publish_due = true;
+        let status = self.status.clone();
+        self.set_status(&status);
+    }
+
+    fn update_stage_check(&mut self, tilt: Option<f64>, action: &str) {
+        if let Some(check) = &mut self.stage_check
+            && (check.action != action || (tilt.is_some() && check.found_tilt_deg != tilt))
+        {
+            action.clone_into(&mut check.action);
+            if tilt.is_some() {
+                check.found_tilt_deg = tilt;
+            }
+            self.publish_due = true;
+        }
+    }
+
+    fn stage_check_resolved(&mut self, tilt: f64, action: String) {
+        info!("{action}");
+        if let Some(check) = &mut self.stage_check {
+            check.found_tilt_deg = Some(tilt);
+            check.action = action;
+            check.pending = false;
+            check.resolved = Some(utc::rfc3339(SystemTime::now()));
+        }
+        self.hold_started = false;
+        self.acknowledged = false;
+        self.publish();
+    }
+
+    /// The stage could not be checked or moved: the links are checked again, then it is retried.
+    fn stage_check_failed(&mut self, why: &str) {
+        error!("after an unclean end: {why}; no job runs until the stage is at its safe tilt");
+        self.links = None;
+        self.link_failures = self.link_failures.max(1);
+        let action = format!("{why}; retrying");
+        self.update_stage_check(None, &action);
+        self.set_status(&format!("after an unclean end: {action}"));
+    }
+
+    /// Records a job's end; when the spool cannot take it (a full disk) it is kept and
+    /// written again at the next turns, and the daemon goes on.
+    fn end_job(
+        &mut self,
+        job: &JobRecord,
+        state: JobState,
+        reason: Option<String>,
+        at: SystemTime,
+    ) {
+        self.pending_finish = Some(PendingFinish {
+            record: job.clone(),
+            state,
+            reason,
+            at,
+        });
+        self.write_pending_finish();
+    }
+
+    /// Writes the end of a job that is waiting for it; true when none is left waiting.
+    fn write_pending_finish(&mut self) -> bool {
+        let Some(p) = self.pending_finish.take() else {
+            return true;
+        };
+        match self
+            .spool
+            .finish(&p.record, p.state, p.reason.clone(), p.at)
+        {
+            Ok(_) => true,
+            Err(e) => {
+                let what = format!(
+                    "cannot record that job {} ended {}: {e}; retrying every {} \
+                     (daemon.disk_recheck_s), no other job starts meanwhile",
+                    p.record.id,
+                    p.state,
+                    human(self.daemon().disk_recheck())
+                );
+                error!("{what}");
+                self.pending_finish = Some(p);
+                self.set_status(&what);
+                false
+            }
+        }
+    }
     /// True when the last link check succeeded.
     fn links_known_up(&self) -> bool {
         matches!(self.links, Some(Ok(())))
@@ -624,28 +909,44 @@ impl Core {
         self.notifier.notify(Notice::Ready);
     }
 
-    /// WATCHDOG=1, only while the loop can still do its work: the spool is there.
+    /// WATCHDOG=1, only while the loop can still do its work: the spool is the one it
+    /// locked. A tampered `daemon.lock` is written again and reported, and pings go on.
     fn ping(&mut self) {
-        if self.spool.root().join("daemon.lock").is_file() {
-            self.unhealthy_logged = false;
-            self.notifier.notify(Notice::Watchdog);
-        } else if !self.unhealthy_logged {
-            error!(
-                spool = %self.spool.root().display(),
-                "the spool has vanished: no more watchdog pings, systemd will restart the daemon"
-            );
-            self.unhealthy_logged = true;
+        match self.spool.check_ownership() {
+            Ok(()) => {}
+            Err(Tamper::LockFile(what)) => {
+                error!(spool = %self.spool.root().display(), "{what}");
+                let note = format!("{}: {what}", utc::rfc3339(SystemTime::now()));
+                self.warnings.push(note);
+                let excess = self.warnings.len().saturating_sub(10);
+                self.warnings.drain(..excess);
+                self.publish();
+            }
+            Err(Tamper::SpoolGone(what)) => {
+                if !self.unhealthy_logged {
+                    error!("{what}: no more watchdog pings, systemd will restart the daemon");
+                    self.unhealthy_logged = true;
+                }
+                return;
+            }
         }
+        self.unhealthy_logged = false;
+        self.notifier.notify(Notice::Watchdog);
     }
 
     fn check_disk(&self, config: &Config) -> Result<(), DiskProblem> {
+        use std::os::unix::fs::DirBuilderExt;
         let dir = &config.run.output_dir;
-        std::fs::create_dir_all(dir).map_err(|e| {
-            DiskProblem::Unusable(format!(
-                "cannot create run.output_dir {}: {e}",
-                dir.display()
-            ))
-        })?;
+        std::fs::DirBuilder::new()
+            .recursive(true)
+            .mode(0o750)
+            .create(dir)
+            .map_err(|e| {
+                DiskProblem::Unusable(format!(
+                    "cannot create run.output_dir {}: {e}",
+                    dir.display()
+                ))
+            })?;
         let free = self.disk.free_bytes(dir).map_err(|e| {
             DiskProblem::Unusable(format!(
                 "cannot measure free space in {}: {e}",
@@ -666,39 +967,76 @@ impl Core {
     }
 }
 
-/// Creates `<output_dir>/<name>-<UTC time>` (with the job id appended if that
-/// exists already) and returns its absolute path.
-fn create_run_dir(output_dir: &Path, job: &JobRecord, now: SystemTime) -> Result<PathBuf, String> {
-    let base = std::path::absolute(output_dir).map_err(|e| {
-        format!(
-            "cannot resolve run.output_dir {}: {e}",
-            output_dir.display()
-        )
-    })?;
-    let stem = format!("{}-{}", job.name, utc::compact(now));
-    for name in [stem.clone(), format!("{stem}-job{}", job.id)] {
-        let dir = base.join(name);
-        match std::fs::create_dir(&dir) {
-            Ok(()) => return Ok(dir),
-            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {}
-            Err(e) => {
-                return Err(format!(
-                    "cannot create the run directory {}: {e}",
-                    dir.display()
-                ));
+/// The stage check due at this start, if the previous daemon ended uncleanly (a job found
+/// running, a status other than "stopped", a check it left pending); else the last one, kept
+/// for `sdsem status`.
+fn unclean_end(
+    previous: Option<&DaemonStatus>,
+    recovery: &super::spool::Recovery,
+    now: SystemTime,
+) -> Option<StageCheck> {
+    let cause = if let Some(job) = recovery.interrupted.first() {
+        Some(format!(
+            "job {} was running when the previous daemon ended",
+            job.id
+        ))
+    } else {
+        match previous {
+            Some(p) if p.stage_check.as_ref().is_some_and(|c| c.pending) => {
+                Some("the previous daemon stopped before the stage was checked".to_owned())
             }
+            Some(p) if p.state != "stopped" => Some(format!(
+                "the previous daemon (PID {}) ended without stopping cleanly (last seen {}: {})",
+                p.pid,
+                printable(&p.updated, 40),
+                printable(&p.status, 200)
+            )),
+            _ => None,
+        }
+    };
+    match cause {
+        Some(cause) => Some(StageCheck {
+            noticed: utc::rfc3339(now),
+            cause,
+            found_tilt_deg: None,
+            action: "the stage is read before any job".into(),
+            pending: true,
+            resolved: None,
+        }),
+        None => previous.and_then(|p| p.stage_check.clone()),
+    }
+}
+
+/// Runs `work` to its end while answering control messages and feeding the watchdog;
+/// `None` when it took longer than `limit` (or, after a stop, than `daemon.stop_timeout_s`).
+async fn drive<T>(core: &mut Core, work: impl Future<Output = T>, limit: Duration) -> Option<T> {
+    tokio::pin!(work);
+    let mut deadline = Instant::now() + limit;
+    let mut stopping = core.stop.is_some();
+    if stopping {
+        deadline = deadline.min(Instant::now() + core.daemon().stop_timeout());
+    }
+    loop {
+        tokio::select! {
+            out = &mut work => return Some(out),
+            () = tokio::time::sleep_until(deadline) => return None,
+            control = core.control.recv(), if core.control_open => {
+                if let Some(signal) = core.on_control(control) {
+                    core.begin_stop(&signal);
+                    if !stopping {
+                        stopping = true;
+                        deadline = deadline.min(Instant::now() + core.daemon().stop_timeout());
+                    }
+                }
+            }
+            () = tick(&mut core.watchdog) => core.ping(),
         }
     }
-    Err(format!(
-        "cannot create a run directory in {}: {stem} and {stem}-job{} exist",
-        base.display(),
-        job.id
-    ))
 }
 
 fn log_quarantined(quarantined: &[Unreadable]) {
     for q in quarantined {
-        error!(path = %q.path.display(), cause = %q.cause, "unreadable job record set aside");
+        error!(entry = %q.name, moved_to = %q.path.display(), cause = %q.cause, "spool entry set aside: not a job record");
     }
 }
 
@@ -762,34 +1100,5 @@ mod tests {
         assert_eq!(human(Duration::from_secs(4)), "4 s");
         assert_eq!(human(Duration::from_millis(1500)), "1.5 s");
         assert_eq!(human(Duration::from_secs(1800)), "30 min");
-    }
-
-    #[test]
-    fn run_directories_never_collide() {
-        let dir = tempfile::tempdir().unwrap();
-        let job = JobRecord {
-            id: JobId(7),
-            state: JobState::Queued,
-            name: "pollen".into(),
-            submitted: String::new(),
-            started: None,
-            finished: None,
-            run_dir: None,
-            reason: None,
-            job: super::super::job::JobSpec::parse(
-                "name = \"pollen\"\nstart_tilt = 0\nend_tilt = 5\n",
-            )
-            .unwrap(),
-        };
-        let t = SystemTime::UNIX_EPOCH + Duration::from_secs(1_740_837_909);
-        let a = create_run_dir(dir.path(), &job, t).unwrap();
-        let b = create_run_dir(dir.path(), &job, t).unwrap();
-        assert!(a.ends_with("pollen-20250301T140509Z"));
-        assert!(b.ends_with("pollen-20250301T140509Z-job7"));
-        assert!(
-            create_run_dir(dir.path(), &job, t)
-                .unwrap_err()
-                .contains("exist")
-        );
     }
 }

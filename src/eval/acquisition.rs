@@ -29,7 +29,7 @@ use anyhow::Context;
 use serde::Serialize;
 
 use super::EvalOptions;
-use crate::acquisition::{JobReport, Outcome, RunHooks, create_run_dir, job::files, run_job};
+use crate::acquisition::{JobReport, Outcome, RunDir, RunHooks, RunName, job::files, run_job};
 use crate::config::Config;
 use crate::record::{self, FrameInfo, topics};
 use crate::stage::{IoOutcome, StageAxis, StageEvent, StageIo, StageState};
@@ -393,7 +393,8 @@ async fn run_on_simulator(mut config: Config) -> anyhow::Result<SimRun> {
     sim.stage_endpoint().clone_into(&mut config.stage.endpoint);
     sim.sem_endpoint().clone_into(&mut config.imaging.endpoint);
     let before = sim.stage_snapshot().commands;
-    let run_dir = create_run_dir(&config.run.output_dir, &config.run.name)?;
+    let name = RunName::new(&config.run.name)?;
+    let run_dir = RunDir::create(&config.run.output_dir, &name, std::time::SystemTime::now())?;
     let started = Instant::now();
     // The run's log events go into its record, as with `sdsem acquire`.
     let hooks = RunHooks {

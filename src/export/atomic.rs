@@ -1,29 +1,156 @@
-//! Atomic file writes: temporary file in the target's directory, sync, rename.
+//! The one atomic file writer of sdsem: a temporary file created exclusively in the target's
+//! directory (`O_CREAT|O_EXCL|O_NOFOLLOW`: never through a link, never over another file),
+//! filled, synced, renamed to the target, and the directory synced.
 //!
-//! A reader sees either the previous file or the complete new one — never a partial
-//! file that looks valid. On failure the temporary file is removed.
+//! A reader sees either the previous file or the complete new one — never a partial file that
+//! looks valid. On failure the temporary file is removed. The rename replaces the target's
+//! directory entry ([`Existing::Replace`]; a link there is replaced, not followed) or refuses
+//! an existing one ([`Existing::Refuse`], `RENAME_NOREPLACE`), as for files that must be new.
+//! Exports, micrographs, run directories and the daemon's spool all write through it.
 
-use std::fs::{self, File, OpenOptions};
+use std::ffi::OsStr;
+use std::fs::File;
 use std::io::{self, BufWriter, Write};
-use std::path::{Path, PathBuf};
+use std::os::fd::{AsFd, BorrowedFd, OwnedFd};
+use std::os::unix::ffi::OsStrExt;
+use std::path::Path;
 use std::sync::atomic::{AtomicU64, Ordering};
+
+use rustix::fs::{AtFlags, Mode, OFlags, RenameFlags};
 
 use super::ExportError;
 
 static COUNTER: AtomicU64 = AtomicU64::new(0);
 
-/// The temporary path beside `path`: `.NAME.tmp-PID-N`, hidden and unique per process.
-fn temp_path(path: &Path) -> PathBuf {
-    let name = path
-        .file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_else(|| "output".to_owned());
-    let n = COUNTER.fetch_add(1, Ordering::Relaxed);
-    path.with_file_name(format!(".{name}.tmp-{}-{n}", std::process::id()))
+/// What the writer does when the target name exists already.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Existing {
+    /// Replace it (its directory entry: a link is replaced, not followed).
+    Replace,
+    /// Fail with `AlreadyExists` and leave it alone.
+    Refuse,
 }
 
-/// Writes `path` atomically: `write` fills a buffered temporary file, which is flushed,
-/// synced and renamed over `path`; the directory is synced too where the OS allows it.
+/// Opens a directory to write in (following the links of the caller's own path).
+///
+/// # Errors
+/// The system's error when `dir` is not a directory that can be opened.
+pub fn open_dir(dir: &Path) -> io::Result<OwnedFd> {
+    let dir = if dir.as_os_str().is_empty() {
+        Path::new(".")
+    } else {
+        dir
+    };
+    Ok(rustix::fs::open(
+        dir,
+        OFlags::RDONLY | OFlags::DIRECTORY | OFlags::CLOEXEC,
+        Mode::empty(),
+    )?)
+}
+
+/// Creates `name` in `dir` exclusively and without following a link: a new, empty file.
+/// `mode` is applied as given (whatever the umask) when set, else 0666 less the umask.
+///
+/// # Errors
+/// `AlreadyExists` when anything (a file, a link, a directory) has that name; the system's error otherwise.
+pub fn create_new_at(dir: BorrowedFd<'_>, name: &OsStr, mode: Option<u32>) -> io::Result<File> {
+    check_single_component(name)?;
+    let fd = rustix::fs::openat(
+        dir,
+        name,
+        OFlags::WRONLY | OFlags::CREATE | OFlags::EXCL | OFlags::NOFOLLOW | OFlags::CLOEXEC,
+        Mode::from_raw_mode(0o666),
+    )?;
+    if let Some(mode) = mode {
+        rustix::fs::fchmod(&fd, Mode::from_raw_mode(mode))?;
+    }
+    Ok(File::from(fd))
+}
+
+/// The atomic write of `name` in the open directory `dir`: see the [module documentation](self).
+///
+/// # Errors
+/// The system's error of the step that failed (the temporary file is removed), or the error
+/// `write` returns; `AlreadyExists` for an existing target with [`Existing::Refuse`].
+pub fn write_atomic_at<F>(
+    dir: BorrowedFd<'_>,
+    name: &OsStr,
+    existing: Existing,
+    mode: Option<u32>,
+    write: F,
+) -> io::Result<()>
+where
+    F: FnOnce(&mut BufWriter<File>) -> io::Result<()>,
+{
+    check_single_component(name)?;
+    let mut tmp = b".".to_vec();
+    tmp.extend_from_slice(name.as_bytes());
+    tmp.extend_from_slice(
+        format!(
+            ".tmp-{}-{}",
+            std::process::id(),
+            COUNTER.fetch_add(1, Ordering::Relaxed)
+        )
+        .as_bytes(),
+    );
+    let tmp = OsStr::from_bytes(&tmp);
+    let file = create_new_at(dir, tmp, mode)?;
+    let result = (|| {
+        let mut out = BufWriter::with_capacity(1 << 20, file);
+        write(&mut out)?;
+        let file = out.into_inner().map_err(io::IntoInnerError::into_error)?;
+        file.sync_all()?;
+        drop(file);
+        match existing {
+            Existing::Replace => rustix::fs::renameat(dir, tmp, dir, name),
+            Existing::Refuse => {
+                rustix::fs::renameat_with(dir, tmp, dir, name, RenameFlags::NOREPLACE)
+            }
+        }
+        .map_err(io::Error::from)
+    })();
+    if let Err(e) = result {
+        let _ = rustix::fs::unlinkat(dir, tmp, AtFlags::empty());
+        return Err(e);
+    }
+    // Make the rename itself durable.
+    rustix::fs::fsync(dir)?;
+    Ok(())
+}
+
+/// A name inside a directory: one path component.
+fn check_single_component(name: &OsStr) -> io::Result<()> {
+    let bytes = name.as_bytes();
+    if bytes.is_empty() || bytes.contains(&b'/') || bytes == b"." || bytes == b".." {
+        return Err(io::Error::new(
+            io::ErrorKind::InvalidInput,
+            format!("{name:?} is not a file name"),
+        ));
+    }
+    Ok(())
+}
+
+/// [`write_atomic_at`] for a path: its directory is opened as the path says.
+fn write_path<F>(path: &Path, existing: Existing, write: F) -> Result<(), ExportError>
+where
+    F: FnOnce(&mut BufWriter<File>) -> io::Result<()>,
+{
+    let to_error = |source: io::Error| ExportError::Write {
+        path: path.to_path_buf(),
+        source,
+    };
+    let name = path.file_name().ok_or_else(|| {
+        to_error(io::Error::new(
+            io::ErrorKind::InvalidInput,
+            "the path names no file",
+        ))
+    })?;
+    let dir = open_dir(path.parent().unwrap_or(Path::new("."))).map_err(to_error)?;
+    write_atomic_at(dir.as_fd(), name, existing, None, write).map_err(to_error)
+}
+
+/// Writes `path` atomically, replacing what is there: `write` fills a buffered temporary
+/// file, which is flushed, synced and renamed over `path`; the directory is synced too.
 ///
 /// # Errors
 /// [`ExportError::Write`] naming `path` when any step fails (the temporary file is removed),
@@ -32,36 +159,7 @@ pub fn write_atomic<F>(path: &Path, write: F) -> Result<(), ExportError>
 where
     F: FnOnce(&mut BufWriter<File>) -> io::Result<()>,
 {
-    let tmp = temp_path(path);
-    let to_error = |source: io::Error| ExportError::Write {
-        path: path.to_path_buf(),
-        source,
-    };
-    let result = (|| {
-        let file = OpenOptions::new().write(true).create_new(true).open(&tmp)?;
-        let mut out = BufWriter::with_capacity(1 << 20, file);
-        write(&mut out)?;
-        let file = out.into_inner().map_err(io::IntoInnerError::into_error)?;
-        file.sync_all()?;
-        drop(file);
-        fs::rename(&tmp, path)
-    })();
-    if let Err(e) = result {
-        let _ = fs::remove_file(&tmp);
-        return Err(to_error(e));
-    }
-    // Make the rename itself durable; not every platform lets a directory be opened.
-    if let Some(dir) = path.parent() {
-        let dir = if dir.as_os_str().is_empty() {
-            Path::new(".")
-        } else {
-            dir
-        };
-        if let Ok(d) = File::open(dir) {
-            let _ = d.sync_all();
-        }
-    }
-    Ok(())
+    write_path(path, Existing::Replace, write)
 }
 
 /// Writes `bytes` to `path` atomically.
@@ -72,8 +170,22 @@ pub fn write_bytes_atomic(path: &Path, bytes: &[u8]) -> Result<(), ExportError> 
     write_atomic(path, |w| w.write_all(bytes))
 }
 
+/// Writes a file that must be new: as [`write_atomic`], but an existing `path` (file, link or
+/// directory) is left alone and the write fails with `AlreadyExists`.
+///
+/// # Errors
+/// As [`write_atomic`].
+pub fn write_new_atomic<F>(path: &Path, write: F) -> Result<(), ExportError>
+where
+    F: FnOnce(&mut BufWriter<File>) -> io::Result<()>,
+{
+    write_path(path, Existing::Refuse, write)
+}
+
 #[cfg(test)]
 mod tests {
+    use std::fs;
+
     use super::*;
 
     #[test]
@@ -108,5 +220,50 @@ mod tests {
         let path = dir.path().join("no/such/dir/out.bin");
         let err = write_bytes_atomic(&path, b"x").unwrap_err();
         assert!(err.to_string().contains("no/such/dir/out.bin"), "{err}");
+    }
+
+    #[test]
+    fn a_link_at_the_target_is_never_followed() {
+        let dir = tempfile::tempdir().unwrap();
+        let victim = dir.path().join("victim");
+        fs::write(&victim, b"precious").unwrap();
+        let link = dir.path().join("out.bin");
+        std::os::unix::fs::symlink(&victim, &link).unwrap();
+        // Must be new: the link is an existing entry, left alone.
+        let err = write_new_atomic(&link, |w| w.write_all(b"evil")).unwrap_err();
+        let ExportError::Write { source, .. } = &err else {
+            panic!("{err}")
+        };
+        assert_eq!(source.kind(), io::ErrorKind::AlreadyExists, "{err}");
+        assert!(fs::symlink_metadata(&link).unwrap().is_symlink());
+        // Replace: the link itself is replaced by the file; its target is untouched.
+        write_bytes_atomic(&link, b"new").unwrap();
+        assert_eq!(fs::read(&victim).unwrap(), b"precious");
+        assert!(fs::symlink_metadata(&link).unwrap().is_file());
+        assert_eq!(fs::read(&link).unwrap(), b"new");
+    }
+
+    #[test]
+    fn exclusive_creation_refuses_links_and_existing_files() {
+        let dir = tempfile::tempdir().unwrap();
+        let fd = open_dir(dir.path()).unwrap();
+        fs::write(dir.path().join("taken"), b"x").unwrap();
+        std::os::unix::fs::symlink("/dev/null", dir.path().join("link")).unwrap();
+        for name in ["taken", "link"] {
+            let err = create_new_at(fd.as_fd(), OsStr::new(name), None).unwrap_err();
+            assert_eq!(err.kind(), io::ErrorKind::AlreadyExists, "{name}");
+        }
+        for name in ["", "a/b", ".."] {
+            let err = create_new_at(fd.as_fd(), OsStr::new(name), None).unwrap_err();
+            assert_eq!(err.kind(), io::ErrorKind::InvalidInput, "{name:?}");
+        }
+        let mut f = create_new_at(fd.as_fd(), OsStr::new("fresh"), Some(0o640)).unwrap();
+        f.write_all(b"ok").unwrap();
+        use std::os::unix::fs::PermissionsExt;
+        let mode = fs::metadata(dir.path().join("fresh"))
+            .unwrap()
+            .permissions()
+            .mode();
+        assert_eq!(mode & 0o777, 0o640);
     }
 }

@@ -393,6 +393,27 @@ pub fn write_micrograph_tiff(
     Ok(())
 }
 
+/// [`write_micrograph_tiff`]'s encoding into any seekable writer (e.g. a file created
+/// exclusively in a run directory).
+///
+/// # Errors
+/// The encoder's error.
+pub fn encode_micrograph_tiff<W: std::io::Write + std::io::Seek>(
+    out: W,
+    image: &Image,
+    tags: &MicrographTags,
+    depth: SampleDepth,
+) -> tiff::TiffResult<()> {
+    if image.is_empty() {
+        return Err(tiff::TiffError::FormatError(
+            tiff::TiffFormatError::InvalidDimensions(0, 0),
+        ));
+    }
+    let description = description(tags);
+    let zeiss = zeiss_block(tags.pixel_size_um, tags.tilt_deg);
+    encode_micrograph(out, image, tags, depth, &description, &zeiss)
+}
+
 fn encode_micrograph<W: std::io::Write + std::io::Seek>(
     out: W,
     image: &Image,

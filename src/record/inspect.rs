@@ -330,29 +330,13 @@ fn human_bytes(bytes: u64) -> String {
     }
 }
 
-/// `YYYY-MM-DD hh:mm:ss.mmm UTC` from ns since the Unix epoch (proleptic Gregorian).
+/// `YYYY-MM-DD hh:mm:ss.mmm UTC` from ns since the Unix epoch.
 #[must_use]
 pub fn utc_time(ns: u64) -> String {
-    let secs = ns / 1_000_000_000;
-    let millis = (ns % 1_000_000_000) / 1_000_000;
-    let days = (secs / 86_400) as i64;
-    let rem = secs % 86_400;
-    // Civil date from days since 1970-01-01 (H. Hinnant's algorithm).
-    let z = days + 719_468;
-    let era = z.div_euclid(146_097);
-    let doe = z.rem_euclid(146_097);
-    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
-    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
-    let mp = (5 * doy + 2) / 153;
-    let day = doy - (153 * mp + 2) / 5 + 1;
-    let month = if mp < 10 { mp + 3 } else { mp - 9 };
-    let year = yoe + era * 400 + i64::from(month <= 2);
-    format!(
-        "{year:04}-{month:02}-{day:02} {:02}:{:02}:{:02}.{millis:03} UTC",
-        rem / 3600,
-        (rem / 60) % 60,
-        rem % 60
-    )
+    jiff::Timestamp::from_nanosecond(i128::from(ns))
+        .unwrap_or(jiff::Timestamp::MAX)
+        .strftime("%Y-%m-%d %H:%M:%S%.3f UTC")
+        .to_string()
 }
 
 #[cfg(test)]

@@ -440,6 +440,19 @@ impl Recorder {
             path: path.clone(),
             source,
         })?;
+        Self::with_file(path, file, options)
+    }
+
+    /// Records into `file`, opened by the caller (e.g. created exclusively in a run
+    /// directory); `path` names it in messages.
+    ///
+    /// # Errors
+    /// As [`Recorder::create`], but for the file's creation.
+    pub fn with_file(
+        path: PathBuf,
+        file: File,
+        options: RecorderOptions,
+    ) -> Result<Self, RecordError> {
         let sink = NoSeek::new(BufWriter::with_capacity(
             1 << 20,
             FileSink {

@@ -12,6 +12,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
+use sdsem::acquisition::RunDir;
 use sdsem::config::Config;
 use sdsem::daemon::disk::DiskSpace;
 use sdsem::daemon::{JobContext, JobOutcome, JobRecord, JobRunner, Notice, Notifier};
@@ -51,6 +52,16 @@ pub enum Event {
         at: Instant,
         outcome: JobOutcome,
     },
+    /// The stage's tilt was read (after an unclean end).
+    StageRead {
+        at: Instant,
+        tilt: f64,
+    },
+    /// The stage was moved from `from` to its safe tilt.
+    SafeMove {
+        at: Instant,
+        from: f64,
+    },
 }
 
 #[derive(Debug, Default)]
@@ -59,6 +70,10 @@ pub struct Script {
     pub jobs: HashMap<String, Behaviour>,
     /// Results of the next link checks; once empty, checks succeed.
     pub link_checks: VecDeque<Result<(), String>>,
+    /// The stage's tilt, degrees; a move to the safe tilt sets it.
+    pub tilt: f64,
+    /// How long a move to the safe tilt takes.
+    pub safe_move: Duration,
 }
 
 #[derive(Debug, Clone, Default)]
@@ -120,20 +135,48 @@ impl JobRunner for FakeRunner {
         result
     }
 
+    async fn stage_tilt(&mut self, _config: &Config) -> Result<f64, String> {
+        let tilt = self.script.lock().unwrap().tilt;
+        self.log(Event::StageRead {
+            at: Instant::now(),
+            tilt,
+        });
+        Ok(tilt)
+    }
+
+    async fn move_to_safe_tilt(&mut self, config: &Config) -> Result<f64, String> {
+        let (from, duration) = {
+            let s = self.script.lock().unwrap();
+            (s.tilt, s.safe_move)
+        };
+        tokio::time::sleep(duration).await;
+        self.script.lock().unwrap().tilt = config.stage.safe_tilt_deg;
+        self.log(Event::SafeMove {
+            at: Instant::now(),
+            from,
+        });
+        Ok(config.stage.safe_tilt_deg)
+    }
+
     async fn run(
         &mut self,
         job: &JobRecord,
         _config: &Config,
-        run_dir: &Path,
+        run_dir: &RunDir,
         ctx: JobContext,
     ) -> JobOutcome {
         self.log(Event::Started {
             name: job.name.clone(),
             at: Instant::now(),
-            run_dir: run_dir.to_owned(),
+            run_dir: run_dir.path().to_owned(),
         });
         // What a real run leaves: its record, in its own directory.
-        std::fs::write(run_dir.join("run.mcap"), job.name.as_bytes()).unwrap();
+        use std::io::Write;
+        run_dir
+            .create_file("run.mcap")
+            .unwrap()
+            .write_all(job.name.as_bytes())
+            .unwrap();
         let behaviour = self
             .script
             .lock()
