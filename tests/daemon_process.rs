@@ -273,6 +273,236 @@ fn daemon_process_signals_exclusivity_and_crash_recovery() {
     assert_eq!(json["daemon"]["alive"], false);
 }
 
+/// Every entry that once blocked, crashed or fooled the daemon, dropped into `queued/`
+/// of a running daemon: it sets each aside with its reason, runs the valid job behind
+/// them, keeps feeding the watchdog and answering SIGTERM; `status` prints the names
+/// escaped and cut short.
+#[test]
+fn hostile_spool_entries_never_block_or_stop_the_daemon() {
+    use rustix::process::Signal;
+    use std::os::unix::fs::PermissionsExt;
+    let dir = tempfile::tempdir().unwrap();
+    let spool = dir.path().join("spool");
+    let config = dir.path().join("sdsem.toml");
+    std::fs::write(
+        &config,
+        format!(
+            "[run]\noutput_dir = {:?}\n[daemon]\nspool_dir = {:?}\nmin_free_gib = 0\npoll_interval_s = 0.1\n",
+            dir.path().join("runs"),
+            spool
+        ),
+    )
+    .unwrap();
+    let spool_arg = spool.to_str().unwrap();
+    let mut daemon = fake_daemon(dir.path(), &config, "hostile");
+    daemon.expect(Duration::from_secs(30), |l| l == "STATUS=idle, 0 queued");
+
+    let q = spool.join("queued");
+    std::fs::create_dir(q.join("00000201.json")).unwrap();
+    rustix::fs::mknodat(
+        rustix::fs::CWD,
+        &q.join("00000202.json"),
+        rustix::fs::FileType::Fifo,
+        rustix::fs::Mode::from_raw_mode(0o666),
+        0,
+    )
+    .unwrap();
+    std::os::unix::fs::symlink("/dev/zero", q.join("00000203.json")).unwrap();
+    std::fs::write(q.join("00000204.json"), "x").unwrap();
+    // Unreadable for the daemon's user (root reads it anyway: then it is garbage).
+    std::fs::set_permissions(q.join("00000204.json"), std::fs::Permissions::from_mode(0)).unwrap();
+    std::fs::write(q.join("00000205.json"), "{\"id\": 205, \"garbage\": [").unwrap();
+    std::fs::write(q.join("00000206.json"), vec![b'{'; 1 << 20]).unwrap();
+    let evil = format!("\u{1b}[2J\u{1b}]0;pwned\u{7}{}\n.json", "A".repeat(200));
+    std::fs::write(q.join(&evil), "{}").unwrap();
+    let quick = write_job(
+        dir.path(),
+        "quick.toml",
+        "name = \"quick\"\nstart_tilt = 0\nend_tilt = 7\n",
+    );
+    let out = sdsem(&["submit", &quick, "--spool", spool_arg]);
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    assert!(
+        text(&out.stdout).starts_with("queued job 207 (quick)"),
+        "{}",
+        text(&out.stdout)
+    );
+
+    let done = daemon_support::process::wait_final(&spool, 207, Duration::from_secs(30));
+    assert_eq!(done.state, JobState::Done, "{}", daemon.log());
+    // Still alive, still pinging, still answering.
+    let seen = daemon.seen.len();
+    daemon.expect_after(seen, Duration::from_secs(5), |l| l == "WATCHDOG=1");
+    assert!(daemon.child.try_wait().unwrap().is_none());
+
+    let out = sdsem(&["status", "--spool", spool_arg]);
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    let shown = text(&out.stdout);
+    assert!(
+        !shown.contains('\u{1b}') && !shown.contains('\u{7}'),
+        "{shown:?}"
+    );
+    for (name, cause) in [
+        ("00000201.json", "it is a directory, not a regular file"),
+        ("00000202.json", "it is a FIFO, not a regular file"),
+        (
+            "00000203.json",
+            "it is a symbolic link, which is never followed",
+        ),
+        ("00000206.json", "it is larger than 262144 bytes"),
+        ("\\u{1b}[2J\\u{1b}]0;pwned\\u{7}AAAA", "not named <id>.json"),
+    ] {
+        assert!(
+            shown.lines().any(|l| l.contains(name) && l.contains(cause)),
+            "{name}: {shown}"
+        );
+    }
+    assert!(
+        shown.contains("set aside in") && shown.contains("(7 in all)"),
+        "{shown}"
+    );
+    assert!(shown.contains("…(+"), "the long name is cut short: {shown}");
+    let json = sdsem(&["status", "--spool", spool_arg, "--json"]);
+    let json: serde_json::Value = serde_json::from_slice(&json.stdout).unwrap();
+    assert_eq!(json["set_aside_total"], 7);
+
+    daemon.signal(Signal::TERM);
+    let (status, took) = daemon.wait_exit(Duration::from_secs(15));
+    assert!(status.success(), "{}", daemon.log());
+    assert!(took < Duration::from_secs(5), "{took:?}");
+}
+
+/// `mv daemon.lock` once let a second daemon in and both ran jobs: the lock is held on
+/// the spool directory, the second daemon is refused, the first notices and says so.
+#[test]
+fn a_moved_lock_file_lets_no_second_daemon_in() {
+    use rustix::process::Signal;
+    let dir = tempfile::tempdir().unwrap();
+    let spool = dir.path().join("spool");
+    let config = dir.path().join("sdsem.toml");
+    std::fs::write(
+        &config,
+        format!(
+            "[run]\noutput_dir = {:?}\n[daemon]\nspool_dir = {:?}\nmin_free_gib = 0\npoll_interval_s = 0.1\n",
+            dir.path().join("runs"),
+            spool
+        ),
+    )
+    .unwrap();
+    let mut first = fake_daemon(dir.path(), &config, "first");
+    first.expect(Duration::from_secs(30), |l| l == "READY=1");
+    std::fs::rename(spool.join("daemon.lock"), dir.path().join("stolen.lock")).unwrap();
+    let mut second = fake_daemon(dir.path(), &config, "second");
+    let (status, _) = second.wait_exit(Duration::from_secs(30));
+    assert!(!status.success());
+    // Its PID is in daemon.lock, gone or written again by the first daemon by then.
+    let refused = second.log();
+    let first_pid = format!("(PID {})", first.child.id());
+    assert!(
+        refused.contains("in use by another sdsem daemon")
+            && (refused.contains(&first_pid) || refused.contains("(PID unknown)")),
+        "{refused}"
+    );
+    // Noticed within a watchdog period (1 s here), said in the log and in `status`.
+    let end = std::time::Instant::now() + Duration::from_secs(10);
+    let json = loop {
+        let out = sdsem(&["status", "--spool", spool.to_str().unwrap(), "--json"]);
+        let json: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+        if json["daemon"]["warnings"]
+            .as_array()
+            .is_some_and(|w| !w.is_empty())
+        {
+            break json;
+        }
+        assert!(
+            std::time::Instant::now() < end,
+            "not noticed: {json}\n{}",
+            first.log()
+        );
+        std::thread::sleep(Duration::from_millis(100));
+    };
+    let warning = json["daemon"]["warnings"][0].as_str().unwrap();
+    assert!(
+        warning.contains("daemon.lock was moved away or removed"),
+        "{warning}"
+    );
+    assert!(
+        first.log().contains("still owns the spool"),
+        "{}",
+        first.log()
+    );
+    let pid = std::fs::read_to_string(spool.join("daemon.lock")).unwrap();
+    assert_eq!(pid.trim(), first.child.id().to_string());
+    first.signal(Signal::TERM);
+    assert!(first.wait_exit(Duration::from_secs(15)).0.success());
+}
+
+/// `submit /dev/zero` read until out of memory; a 100 MB name was echoed whole.
+#[test]
+fn submit_refuses_special_files_and_huge_names_at_once() {
+    let dir = tempfile::tempdir().unwrap();
+    let spool = dir.path().join("spool");
+    let spool_arg = spool.to_str().unwrap();
+    let t0 = std::time::Instant::now();
+    let out = sdsem(&["submit", "/dev/zero", "--spool", spool_arg]);
+    assert!(!out.status.success());
+    assert_eq!(
+        text(&out.stderr).trim(),
+        "error: job /dev/zero refused, nothing queued: cannot read job file /dev/zero: it is a \
+         character device, not a regular file"
+    );
+    let fifo = dir.path().join("job.fifo");
+    rustix::fs::mknodat(
+        rustix::fs::CWD,
+        &fifo,
+        rustix::fs::FileType::Fifo,
+        rustix::fs::Mode::from_raw_mode(0o644),
+        0,
+    )
+    .unwrap();
+    let out = sdsem(&["submit", fifo.to_str().unwrap(), "--spool", spool_arg]);
+    assert!(text(&out.stderr).contains("it is a FIFO, not a regular file"));
+    assert!(t0.elapsed() < Duration::from_secs(10), "{:?}", t0.elapsed());
+    let huge = write_job(
+        dir.path(),
+        "huge.toml",
+        &format!(
+            "name = \"{}\"\nstart_tilt = 0\nend_tilt = 5\n",
+            "n".repeat(60_000)
+        ),
+    );
+    let out = sdsem(&["submit", &huge, "--spool", spool_arg]);
+    assert!(!out.status.success());
+    let err = text(&out.stderr);
+    assert!(
+        err.len() < 600 && err.contains("is too long"),
+        "{} bytes: {err:.300}",
+        err.len()
+    );
+    // With the journal as stderr, the error line has error priority.
+    let out = Command::new(env!("CARGO_BIN_EXE_sdsem"))
+        .args(["submit", "/dev/zero", "--spool", spool_arg])
+        .stderr(std::fs::File::create(dir.path().join("err.log")).unwrap())
+        .env(
+            "JOURNAL_STREAM",
+            journal_stream(&dir.path().join("err.log")),
+        )
+        .status()
+        .unwrap();
+    assert!(!out.success());
+    let logged = std::fs::read_to_string(dir.path().join("err.log")).unwrap();
+    assert!(
+        logged.starts_with("<3>error: job /dev/zero refused"),
+        "{logged}"
+    );
+}
+
+fn journal_stream(path: &std::path::Path) -> String {
+    use std::os::unix::fs::MetadataExt;
+    let m = std::fs::metadata(path).unwrap();
+    format!("{}:{}", m.dev(), m.ino())
+}
+
 /// The unit's promises that the daemon's code relies on.
 #[test]
 fn the_service_unit_keeps_the_daemons_promises() {
@@ -307,6 +537,21 @@ fn the_service_unit_keeps_the_daemons_promises() {
     assert!(values("SupplementaryGroups").contains(&"dialout".to_owned()));
     assert_eq!(one("ProtectSystem"), "strict");
     assert_eq!(one("StateDirectory"), "sdsem");
+    // Bounded, and documented as the daemon sets its modes under this umask.
+    assert!(!one("MemoryMax").is_empty() && !one("TasksMax").is_empty());
+    let readme =
+        std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/systemd/README.md")).unwrap();
+    assert_eq!(one("UMask"), "0007");
+    assert!(
+        readme.contains("(`UMask=0007`)"),
+        "systemd/README.md names another umask"
+    );
+    for (path, mode) in [("`spool/`", "0750"), ("`spool/queued/`", "1770 (sticky)")] {
+        assert!(
+            readme.contains(&format!("| {path} | {mode} |")),
+            "systemd/README.md: {path} {mode}"
+        );
+    }
 }
 
 /// `systemd/verify.sh`: `systemd-analyze verify` prints nothing for the units,

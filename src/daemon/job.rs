@@ -87,10 +87,11 @@ pub struct JobSpec {
 /// Why a job cannot run. Each variant names the job key at fault and what is accepted.
 #[derive(Debug, thiserror::Error)]
 pub enum JobError {
-    #[error("cannot read job file {}: {source}", path.display())]
+    /// The cause is in the message, not a `source` (a one-line `{:#}` would print it twice).
+    #[error("cannot read job file {}: {cause}", path.display())]
     Read {
         path: PathBuf,
-        source: super::untrusted::UntrustedError,
+        cause: super::untrusted::UntrustedError,
     },
     #[error("not a valid job file: {message}")]
     Syntax { message: String },
@@ -152,10 +153,10 @@ impl JobSpec {
     /// # Errors
     /// [`JobError`] naming the file's problem.
     pub fn load(path: &Path) -> Result<Self, JobError> {
-        let bytes = read_capped(path, Links::Follow, MAX_JOB_FILE_BYTES).map_err(|source| {
+        let bytes = read_capped(path, Links::Follow, MAX_JOB_FILE_BYTES).map_err(|cause| {
             JobError::Read {
                 path: path.to_owned(),
-                source,
+                cause,
             }
         })?;
         let text = String::from_utf8(bytes).map_err(|e| JobError::Syntax {

@@ -96,11 +96,16 @@ impl Daemon {
             }
         });
         let stderr = dir.join(format!("daemon-{tag}.log"));
+        let log = std::fs::File::create(&stderr).unwrap();
+        // As systemd does: $JOURNAL_STREAM names stderr, so the daemon writes `<N>` priorities.
+        let meta = std::os::unix::fs::MetadataExt::dev(&log.metadata().unwrap());
+        let ino = std::os::unix::fs::MetadataExt::ino(&log.metadata().unwrap());
         let child = command
+            .env("JOURNAL_STREAM", format!("{meta}:{ino}"))
             .env("NOTIFY_SOCKET", &socket)
             .env("WATCHDOG_USEC", "1000000")
             .stdout(Stdio::null())
-            .stderr(std::fs::File::create(&stderr).unwrap())
+            .stderr(log)
             .spawn()
             .unwrap();
         Self {
