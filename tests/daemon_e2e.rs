@@ -478,3 +478,248 @@ fn sigterm_and_kill_mid_job_then_replay_of_a_daemon_run() {
         text(&out.stdout)
     );
 }
+
+/// A STATUS line's text, without the `STATUS=`.
+fn status_of(line: &str) -> &str {
+    line.strip_prefix("STATUS=").unwrap_or(line)
+}
+
+/// After kill -9 mid-move the restarted daemon said READY and "idle" with the stage left
+/// at 14°: now it reads the stage first, says so, and moves it to its safe tilt before
+/// any job (`after_crash = "move"`), or holds until `sdsem daemon --ack` (`"wait"`).
+#[test]
+fn after_kill_mid_move_the_stage_is_made_safe_before_the_next_job() {
+    let dir = tempfile::tempdir().unwrap();
+    let spool = dir.path().join("spool");
+    let (stage_port, sem_port) = (free_port(), free_port());
+    let sim = start_simulator(stage_port, sem_port);
+    let config_path = dir.path().join("sdsem.toml");
+    let write_config = |after_crash: &str| {
+        let text = daemon_config(
+            dir.path(),
+            &format!("endpoint = \"tcp://127.0.0.1:{stage_port}\""),
+            &format!("endpoint = \"tcp://127.0.0.1:{sem_port}\""),
+        );
+        std::fs::write(
+            &config_path,
+            format!("{text}after_crash = \"{after_crash}\"\n"),
+        )
+        .unwrap();
+    };
+    write_config("move");
+    let job_file = |name: &str, end: u32| {
+        write_job(
+            dir.path(),
+            &format!("{name}.toml"),
+            &format!("name = \"{name}\"\nstart_tilt = 0\nend_tilt = {end}\n"),
+        )
+    };
+    submit(&job_file("long", 60), &spool);
+    submit(&job_file("quick", 2), &spool);
+
+    let mut daemon = Daemon::sdsem(dir.path(), &config_path, "cut");
+    daemon.expect(Duration::from_secs(60), |l| {
+        l.starts_with("STATUS=running job 1 long: step 6/")
+    });
+    daemon.signal(Signal::KILL);
+    daemon.wait_exit(Duration::from_secs(5));
+    let left_at = sim.stage_snapshot().pose.tilt_deg;
+    assert!(left_at > 3.0, "the kill left the stage at {left_at}°");
+
+    let mut daemon = Daemon::sdsem(dir.path(), &config_path, "move");
+    let said = daemon.expect(Duration::from_secs(60), |l| {
+        status_of(l).starts_with("after an unclean end the stage is at")
+    });
+    println!("{said}");
+    let quick = wait_final(&spool, 2, Duration::from_secs(60));
+    assert_eq!(
+        quick.state,
+        JobState::Done,
+        "{:?}\n{}",
+        quick.reason,
+        daemon.log()
+    );
+    let log = daemon.log();
+    let moved = log
+        .find("moved to its safe tilt")
+        .unwrap_or_else(|| panic!("{log}"));
+    let started = log.find("job started").unwrap();
+    assert!(moved < started, "{log}");
+    // Under the journal: a warning, with its priority.
+    assert!(
+        log.lines()
+            .any(|l| l.starts_with("<4>") && l.contains("moved to its safe tilt")),
+        "{log}"
+    );
+    let out = sdsem(&["status", "--spool", spool.to_str().unwrap(), "--json"]);
+    let json: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let check = &json["daemon"]["stage_check"];
+    assert_eq!(check["pending"], false, "{check}");
+    assert!(check["found_tilt_deg"].as_f64().unwrap() > 3.0, "{check}");
+    assert!(
+        check["cause"]
+            .as_str()
+            .unwrap()
+            .contains("job 1 was running")
+    );
+    let out = sdsem(&["status", "--spool", spool.to_str().unwrap()]);
+    assert!(
+        text(&out.stdout).contains("stage check after an unclean end"),
+        "{}",
+        text(&out.stdout)
+    );
+    daemon.signal(Signal::TERM);
+    assert!(daemon.wait_exit(Duration::from_secs(15)).0.success());
+
+    // "wait": nothing runs until an operator acknowledges.
+    write_config("wait");
+    submit(&job_file("long2", 60), &spool);
+    submit(&job_file("quick2", 2), &spool);
+    let mut daemon = Daemon::sdsem(dir.path(), &config_path, "cut2");
+    daemon.expect(Duration::from_secs(60), |l| {
+        l.starts_with("STATUS=running job 3 long2: step 6/")
+    });
+    daemon.signal(Signal::KILL);
+    daemon.wait_exit(Duration::from_secs(5));
+    let mut daemon = Daemon::sdsem(dir.path(), &config_path, "wait");
+    daemon.expect(Duration::from_secs(60), |l| {
+        status_of(l).starts_with("held: waiting for an operator")
+    });
+    std::thread::sleep(Duration::from_secs(1));
+    assert_eq!(state_of(&spool, 4).unwrap().0, JobState::Queued);
+    assert!(
+        sim.stage_snapshot().pose.tilt_deg > 3.0,
+        "moved without an operator"
+    );
+    let out = sdsem(&["daemon", "--ack", "--spool", spool.to_str().unwrap()]);
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    assert!(
+        text(&out.stdout).starts_with("acknowledged"),
+        "{}",
+        text(&out.stdout)
+    );
+    let quick2 = wait_final(&spool, 4, Duration::from_secs(60));
+    assert_eq!(
+        quick2.state,
+        JobState::Done,
+        "{:?}\n{}",
+        quick2.reason,
+        daemon.log()
+    );
+    assert!(
+        daemon.log().contains("an operator acknowledged"),
+        "{}",
+        daemon.log()
+    );
+    daemon.signal(Signal::TERM);
+    assert!(daemon.wait_exit(Duration::from_secs(15)).0.success());
+    drop(sim);
+}
+
+/// A disk that filled while the record was written made the daemon exit 1 at every
+/// restart, and the job was labelled "crash or power cut". On an 8 MiB tmpfs (in a user
+/// and mount namespace of its own, `unshare -rm`): the job fails with the real reason,
+/// its record is cut cleanly, the daemon goes on and runs the next job once space is back.
+#[test]
+fn a_full_disk_fails_the_job_with_the_real_reason_and_the_daemon_goes_on() {
+    let probe = Command::new("unshare")
+        .args(["-rm", "sh", "-c", "mount -t tmpfs -o size=1m tmpfs /mnt"])
+        .output();
+    if !probe.is_ok_and(|o| o.status.success()) {
+        eprintln!("unshare -rm with a tmpfs mount is not available here: full-disk test skipped");
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let disk = dir.path().join("disk");
+    std::fs::create_dir(&disk).unwrap();
+    let (stage_port, sem_port) = (free_port(), free_port());
+    let sim = start_simulator(stage_port, sem_port);
+    let config_path = dir.path().join("sdsem.toml");
+    let text = daemon_config(
+        &disk,
+        &format!("endpoint = \"tcp://127.0.0.1:{stage_port}\""),
+        &format!("endpoint = \"tcp://127.0.0.1:{sem_port}\""),
+    );
+    std::fs::write(&config_path, text).unwrap();
+    let mut command = Command::new("unshare");
+    command
+        .args([
+            "-rm",
+            "sh",
+            "-c",
+            "mount -t tmpfs -o size=8m tmpfs \"$0\" && exec \"$@\"",
+        ])
+        .arg(&disk)
+        .arg(env!("CARGO_BIN_EXE_sdsem"))
+        .args(["--log-format", "text", "daemon", "--config"])
+        .arg(&config_path)
+        .env("RUST_LOG", "info");
+    let mut daemon = Daemon::spawn(command, dir.path(), "disk");
+    daemon.expect(Duration::from_secs(30), |l| l == "READY=1");
+    // The tmpfs is the daemon's: seen through its root.
+    let inside = PathBuf::from(format!("/proc/{}/root", daemon.child.id()))
+        .join(disk.strip_prefix("/").unwrap());
+    let spool = inside.join("spool");
+    let job_file = |name: &str, end: u32| {
+        write_job(
+            dir.path(),
+            &format!("{name}.toml"),
+            &format!("name = \"{name}\"\nstart_tilt = 0\nend_tilt = {end}\n"),
+        )
+    };
+    submit(&job_file("long", 60), &spool);
+    daemon.expect(Duration::from_secs(60), |l| {
+        l.starts_with("STATUS=running job 1 long: step 4/")
+    });
+    // Fill the disk.
+    let filler = inside.join("filler");
+    let mut f = std::fs::File::create(&filler).unwrap();
+    let chunk = vec![0u8; 64 * 1024];
+    while std::io::Write::write_all(&mut f, &chunk).is_ok() {}
+    drop(f);
+
+    let failed = wait_final(&spool, 1, Duration::from_secs(60));
+    assert_eq!(
+        failed.state,
+        JobState::Failed,
+        "{:?}\n{}",
+        failed.reason,
+        daemon.log()
+    );
+    let reason = failed.reason.unwrap();
+    println!("job 1 failed: {reason}");
+    assert!(reason.contains("No space left on device"), "{reason}");
+    assert!(!reason.contains("crash or power cut"), "{reason}");
+    assert!(
+        daemon.child.try_wait().unwrap().is_none(),
+        "{}",
+        daemon.log()
+    );
+    let log = daemon.log();
+    assert!(
+        log.lines()
+            .any(|l| l.starts_with("<3>") && l.contains("job failed")),
+        "{log}"
+    );
+    let run_dir = PathBuf::from(format!("/proc/{}/root", daemon.child.id()))
+        .join(failed.run_dir.unwrap().strip_prefix("/").unwrap());
+    let record = run_dir.join("run.mcap");
+    let summary = record::read_summary(&record).unwrap();
+    assert!(summary.message_count(topics::SEM_FRAME) >= 3, "{summary:?}");
+
+    // Space is back: the next job runs.
+    std::fs::remove_file(&filler).unwrap();
+    submit(&job_file("quick", 2), &spool);
+    let done = wait_final(&spool, 2, Duration::from_secs(60));
+    assert_eq!(
+        done.state,
+        JobState::Done,
+        "{:?}\n{}",
+        done.reason,
+        daemon.log()
+    );
+    daemon.signal(Signal::TERM);
+    let (status, _) = daemon.wait_exit(Duration::from_secs(15));
+    assert!(status.success(), "{}", daemon.log());
+    drop(sim);
+}
