@@ -130,12 +130,15 @@ impl JobId {
         format!("{:08}.json", self.0)
     }
 
+    /// The id of a record's file name, which must be the canonical one (`00000010.json`,
+    /// not `0000010.json`): one file name per id.
     fn from_file_name(name: &OsStr) -> Option<Self> {
         let digits = name.as_bytes().strip_suffix(b".json")?;
         if digits.is_empty() || digits.len() > 20 || !digits.iter().all(u8::is_ascii_digit) {
             return None;
         }
-        std::str::from_utf8(digits).ok()?.parse().ok().map(Self)
+        let id = Self(std::str::from_utf8(digits).ok()?.parse().ok()?);
+        (id.file_name().as_bytes() == name.as_bytes()).then_some(id)
     }
 }
 
@@ -1251,6 +1254,17 @@ impl OwnedSpool {
                 }
             };
             if record.state == JobState::Queued {
+                if let Some(other) = JobState::ALL[1..]
+                    .iter()
+                    .find(|s| fs::symlink_metadata(self.record_path(**s, record.id)).is_ok())
+                {
+                    let cause = format!(
+                        "job {} exists already ({other}): an id is never reused",
+                        record.id
+                    );
+                    set_aside.push(self.set_aside(JobState::Queued, &entry.name, &cause, now));
+                    continue;
+                }
                 if !utc::is_rfc3339(&record.submitted) {
                     let cause = "its submission time is not an RFC 3339 UTC time";
                     set_aside.push(self.set_aside(JobState::Queued, &entry.name, cause, now));
@@ -1707,6 +1721,30 @@ mod tests {
     }
 
     #[test]
+    fn a_done_job_cannot_be_queued_again_nor_an_id_spelt_twice() {
+        let dir = tempfile::tempdir().unwrap();
+        let spool = Spool::open(dir.path()).unwrap();
+        spool.submit(spec("a"), at(0)).unwrap();
+        let owned = spool.clone().lock().unwrap();
+        let a = owned.next_queued().unwrap().0.unwrap();
+        let text = fs::read(dir.path().join("queued/00000001.json")).unwrap();
+        let running = owned.start(&a, Path::new("/runs/a"), at(1)).unwrap();
+        owned.finish(&running, JobState::Done, None, at(2)).unwrap();
+        // Its record, put back into queued/, and again under another spelling of its id.
+        fs::write(dir.path().join("queued/00000001.json"), &text).unwrap();
+        fs::write(dir.path().join("queued/0000001.json"), &text).unwrap();
+        let (next, set_aside) = owned.next_queued().unwrap();
+        assert!(next.is_none());
+        let causes: Vec<&str> = set_aside.iter().map(|u| u.cause.as_str()).collect();
+        assert!(causes.contains(&"not named <id>.json"), "{causes:?}");
+        assert!(
+            causes.contains(&"job 1 exists already (done): an id is never reused"),
+            "{causes:?}"
+        );
+        assert_eq!(states(&spool), [(1, "a".into(), JobState::Done)]);
+    }
+
+    #[test]
     fn a_queued_record_cannot_carry_a_start_or_a_reason() {
         let dir = tempfile::tempdir().unwrap();
         let spool = Spool::open(dir.path()).unwrap();
@@ -1824,8 +1862,10 @@ mod tests {
         assert!(
             matches!(first.check_ownership(), Err(Tamper::LockFile(w)) if w.contains("was rewritten"))
         );
-        fs::remove_file(&lock).unwrap();
-        fs::write(&lock, format!("{}\n", std::process::id())).unwrap();
+        // Another file with the right PID, renamed over it.
+        let other = dir.path().join("other");
+        fs::write(&other, format!("{}\n", std::process::id())).unwrap();
+        fs::rename(&other, &lock).unwrap();
         assert!(
             matches!(first.check_ownership(), Err(Tamper::LockFile(w)) if w.contains("was replaced"))
         );
