@@ -264,6 +264,8 @@ impl<R: JobRunner> Supervisor<R> {
     /// One turn of the loop: wait, reject, or run the oldest queued job.
     /// Returns the id of a job interrupted by a stop.
     async fn step(&mut self) -> Result<Option<JobId>, SupervisorError> {
+        // Also without a watchdog: tampering is noticed at every turn.
+        self.core.check_ownership();
         if !self.core.write_pending_finish() {
             let wait = self.core.daemon().disk_recheck();
             self.core.pause(wait).await;
@@ -912,6 +914,14 @@ impl Core {
     /// WATCHDOG=1, only while the loop can still do its work: the spool is the one it
     /// locked. A tampered `daemon.lock` is written again and reported, and pings go on.
     fn ping(&mut self) {
+        if self.check_ownership() {
+            self.notifier.notify(Notice::Watchdog);
+        }
+    }
+
+    /// Checks the spool is still the one locked and `daemon.lock` still ours (writing it
+    /// again and reporting it if not); false when the spool directory itself is gone.
+    fn check_ownership(&mut self) -> bool {
         match self.spool.check_ownership() {
             Ok(()) => {}
             Err(Tamper::LockFile(what)) => {
@@ -927,11 +937,11 @@ impl Core {
                     error!("{what}: no more watchdog pings, systemd will restart the daemon");
                     self.unhealthy_logged = true;
                 }
-                return;
+                return false;
             }
         }
         self.unhealthy_logged = false;
-        self.notifier.notify(Notice::Watchdog);
+        true
     }
 
     fn check_disk(&self, config: &Config) -> Result<(), DiskProblem> {

@@ -23,7 +23,9 @@
 //!   no job started twice, the job that was running marked `interrupted` at
 //!   the next start, every record readable with every frame it holds, and
 //!   the frames the simulator served in the round against those readable (a
-//!   frame in flight at the kill may be lost, nothing before it).
+//!   frame in flight at the kill may be lost, nothing before it). A kill in mid-job leaves
+//!   the stage tilted (the simulator lives on): the next start must read it and bring it
+//!   to its safe tilt before any job starts.
 //!
 //! Time is the wall clock here: these are evaluations of real processes.
 
@@ -135,11 +137,28 @@ pub struct SoakReport {
     pub samples: Vec<ProcessSample>,
     pub daemon_exit_code: Option<i32>,
     pub daemon_stop_s: f64,
+    pub attacks: AttackFigures,
     pub problems: Vec<String>,
     pub work_dir: Option<PathBuf>,
 }
 
-/// The figures of `sdsem eval kill`.
+/// What the hostile group member did to the spool during the soak, and what became of it.
+#[derive(Debug, Clone, Copy, Default, Serialize)]
+pub struct AttackFigures {
+    /// Entries placed in `queued/` that are not records (directory, FIFO, link, …).
+    pub entries_placed: usize,
+    /// Of those, set aside in `quarantine/` with a reason.
+    pub entries_set_aside: usize,
+    /// Forged records placed straight into `queued/` (around `sdsem submit`).
+    pub forged_records: usize,
+    /// Of those, rejected with a reason (never run).
+    pub forged_rejected: usize,
+    /// Times `daemon.lock` was moved away, and times the daemon reported it.
+    pub lock_file_moved: usize,
+    pub lock_tampering_reported: usize,
+    /// Directories created outside the output directory (must be 0).
+    pub escaped_run_dirs: usize,
+}
 #[derive(Debug, Clone, Serialize)]
 pub struct KillReport {
     pub rounds: usize,
@@ -167,6 +186,12 @@ pub struct KillReport {
     /// Largest number of frames served in one round but not readable.
     pub max_frames_lost_per_kill: u64,
     pub jobs_done: usize,
+    /// Kills in mid-job that left the stage off its safe tilt.
+    pub kills_leaving_stage_tilted: usize,
+    /// Of those, stage checks at the next start that moved it to its safe tilt.
+    pub stage_made_safe_at_next_start: usize,
+    /// Jobs started while the stage check after an unclean end was pending (must be 0).
+    pub jobs_started_before_stage_check: usize,
     pub final_stop_exit_code: Option<i32>,
     pub problems: Vec<String>,
     pub work_dir: Option<PathBuf>,
@@ -471,6 +496,13 @@ impl Instruments {
         self.running.is_some()
     }
 
+    /// The simulated stage's tilt now (0 when switched off).
+    fn stage_tilt(&self) -> f64 {
+        self.running
+            .as_ref()
+            .map_or(0.0, |sim| sim.stage_snapshot().pose.tilt_deg)
+    }
+
     /// Frames served so far, by every simulator switched on.
     fn frames_served(&self) -> u64 {
         self.frames_before
@@ -479,6 +511,121 @@ impl Instruments {
                 .as_ref()
                 .and_then(SimHandle::last_frame)
                 .unwrap_or(0)
+    }
+}
+
+/// The hostile group member of the soak: what it placed in the spool.
+#[derive(Default)]
+struct Attacker {
+    rounds: usize,
+    /// Entries that are not records, by the name `sdsem status` shows.
+    entries: Vec<String>,
+    forged: Vec<u64>,
+    locks_moved: usize,
+}
+
+impl Attacker {
+    /// One round: entries that once blocked, crashed or fooled the daemon, dropped into
+    /// `queued/` under the names of jobs already ended (so they are at the head of the
+    /// queue), forged records under fresh ids, and `daemon.lock` moved away.
+    fn attack(&mut self, rig: &Rig, ended: &[u64], template: &JobRecord) -> anyhow::Result<()> {
+        use std::os::unix::fs::PermissionsExt;
+        self.rounds += 1;
+        let round = self.rounds;
+        let q = rig.spool.join("queued");
+        let mut free = ended.iter().rev().map(|id| format!("{id:08}.json"));
+        let mut place = |make: &dyn Fn(&Path) -> std::io::Result<()>| -> anyhow::Result<()> {
+            if let Some(name) = free.next() {
+                make(&q.join(&name))?;
+                self.entries.push(name);
+            }
+            Ok(())
+        };
+        place(&|p| std::fs::create_dir(p))?;
+        place(&|p| {
+            rustix::fs::mknodat(
+                rustix::fs::CWD,
+                p,
+                rustix::fs::FileType::Fifo,
+                rustix::fs::Mode::from_raw_mode(0o666),
+                0,
+            )
+            .map_err(Into::into)
+        })?;
+        place(&|p| std::os::unix::fs::symlink("/dev/zero", p))?;
+        place(&|p| {
+            std::fs::write(p, "x")?;
+            std::fs::set_permissions(p, std::fs::Permissions::from_mode(0))
+        })?;
+        place(&|p| std::fs::write(p, vec![b'{'; 300 * 1024]))?;
+        place(&|p| std::fs::write(p, "{\"id\": 1, \"state\": "))?;
+        let evil = format!("\u{1b}[2J\u{1b}]0;pwned-{round}\u{7}\n.json");
+        std::fs::write(q.join(&evil), "{}")?;
+        self.entries
+            .push(crate::acquisition::run_dir::printable(&evil, 120));
+        let edits: [&dyn Fn(&mut serde_json::Value); 3] = [
+            &|v| {
+                v["name"] = "../../pub/evil".into();
+                v["job"]["name"] = "../../pub/evil".into();
+            },
+            &|v| v["job"]["step"] = 1e-9.into(),
+            &|v| {
+                v["job"]["capture"] = serde_json::json!({"tracking": {"max_correction_um": 500.0}});
+            },
+        ];
+        for (k, edit) in edits.iter().enumerate() {
+            let id = 1_000_000 + 10 * round as u64 + k as u64;
+            let mut v = serde_json::to_value(template)?;
+            v["id"] = id.into();
+            edit(&mut v);
+            std::fs::write(q.join(format!("{id:08}.json")), v.to_string())?;
+            self.forged.push(id);
+        }
+        if std::fs::rename(
+            rig.spool.join("daemon.lock"),
+            rig.dir.join(format!("stolen-{round}.lock")),
+        )
+        .is_ok()
+        {
+            self.locks_moved += 1;
+        }
+        Ok(())
+    }
+
+    /// What became of the attacks, from the spool at the end.
+    fn figures(
+        &self,
+        listing: &crate::daemon::spool::Listing,
+        status: Option<&crate::daemon::spool::DaemonStatus>,
+    ) -> AttackFigures {
+        let set_aside: std::collections::HashSet<&str> =
+            listing.set_aside.iter().map(|u| u.name.as_str()).collect();
+        let forged: Vec<&JobRecord> = listing
+            .jobs
+            .iter()
+            .filter(|j| self.forged.contains(&j.id.0))
+            .collect();
+        AttackFigures {
+            entries_placed: self.entries.len(),
+            entries_set_aside: self
+                .entries
+                .iter()
+                .filter(|n| set_aside.contains(n.as_str()))
+                .count(),
+            forged_records: self.forged.len(),
+            forged_rejected: forged
+                .iter()
+                .filter(|j| j.state == JobState::Rejected && j.reason.is_some())
+                .count(),
+            lock_file_moved: self.locks_moved,
+            lock_tampering_reported: status.map_or(0, |s| {
+                s.warnings
+                    .iter()
+                    .filter(|w| w.contains("daemon.lock"))
+                    .count()
+            }),
+            escaped_run_dirs: forged.iter().filter(|j| j.run_dir.is_some()).count(),
+        }
     }
 }
 
@@ -562,6 +709,14 @@ fn soak(opts: &SoakOptions) -> anyhow::Result<SoakReport> {
     );
 
     let checkpoints = checkpoints(opts.jobs);
+    let last_id = submitted.last().map_or(0, |j| j.id.0);
+    // Five attacks on the spool, spread over the soak.
+    let mut attack_at: Vec<usize> = (1..=5)
+        .map(|k| k * opts.jobs / 6)
+        .filter(|&k| k > 0)
+        .collect();
+    attack_at.dedup();
+    let mut attacker = Attacker::default();
     let mut samples = Vec::new();
     let mut problems = Vec::new();
     let mut running: Option<(u64, Instant)> = None;
@@ -606,10 +761,14 @@ fn soak(opts: &SoakOptions) -> anyhow::Result<SoakReport> {
             instruments.faults.operator_restarts += 1;
             on_at = Some(now + Duration::from_millis(300));
         }
-        let (jobs, unreadable) = rig.jobs()?;
-        if unreadable > 0 {
-            problems.push(format!("{unreadable} unreadable job records in the spool"));
-        }
+        // Hostile entries are seen as unreadable until the daemon sets them aside: only
+        // what is left at the end counts. The forged records are not the soak's jobs.
+        let (mut jobs, _) = rig.jobs()?;
+        let forged_final = jobs
+            .iter()
+            .filter(|j| attacker.forged.contains(&j.id.0) && j.state.is_final())
+            .count();
+        jobs.retain(|j| j.id.0 <= last_id);
         let current = jobs.iter().find(|j| j.state == JobState::Running);
         match (current, running) {
             (Some(job), Some((id, since))) if job.id.0 == id => {
@@ -661,7 +820,16 @@ fn soak(opts: &SoakOptions) -> anyhow::Result<SoakReport> {
             }
         }
         finals_seen = finals;
-        if finals == submitted.len() {
+        if attack_at.first().is_some_and(|&k| finals >= k) {
+            attack_at.remove(0);
+            let ended: Vec<u64> = jobs
+                .iter()
+                .filter(|j| j.state.is_final())
+                .map(|j| j.id.0)
+                .collect();
+            attacker.attack(&rig, &ended, &submitted[0])?;
+        }
+        if finals == submitted.len() && forged_final == attacker.forged.len() {
             break;
         }
         if now > deadline {
@@ -679,7 +847,28 @@ fn soak(opts: &SoakOptions) -> anyhow::Result<SoakReport> {
     }
     instruments.off();
 
-    let (jobs, _) = rig.jobs()?;
+    let spool = Spool::existing(&rig.spool)?;
+    let listing = spool.list()?;
+    let attacks = attacker.figures(&listing, spool.daemon_status().as_ref());
+    if !listing.unreadable.is_empty() {
+        problems.push(format!(
+            "{} entries of the spool were never set aside: {:?}",
+            listing.unreadable.len(),
+            listing.unreadable
+        ));
+    }
+    if attacks.entries_set_aside != attacks.entries_placed
+        || attacks.forged_rejected != attacks.forged_records
+        || attacks.lock_tampering_reported != attacks.lock_file_moved
+        || attacks.escaped_run_dirs > 0
+    {
+        problems.push(format!("attacks on the spool not all handled: {attacks:?}"));
+    }
+    let jobs: Vec<JobRecord> = listing
+        .jobs
+        .into_iter()
+        .filter(|j| j.id.0 <= last_id)
+        .collect();
     let mut states = BTreeMap::new();
     let mut reasons = BTreeMap::new();
     let (mut without_final, mut without_reason) = (0, 0);
@@ -736,9 +925,33 @@ fn soak(opts: &SoakOptions) -> anyhow::Result<SoakReport> {
         samples,
         daemon_exit_code: exit_code,
         daemon_stop_s,
+        attacks,
         problems,
         work_dir: rig.finish(),
     })
+}
+
+/// The start of the line-part saying the stage was moved to its safe tilt after an unclean end.
+const MOVED: &str = "moved to its safe tilt (";
+/// ... or that it was found there.
+const FOUND: &str = "found at its safe tilt (";
+
+/// Where a daemon's log says its stage check after an unclean end ended, if it did.
+fn stage_check_line(log: &str) -> Option<usize> {
+    [log.find(MOVED), log.find(FOUND)]
+        .into_iter()
+        .flatten()
+        .min()
+}
+
+/// Jobs a daemon started, by its log, before its stage check after an unclean end ended
+/// (all of them when the check never ended); 0 after a clean end.
+fn started_before_stage_check(log: &str) -> usize {
+    if !log.contains("ended uncleanly") {
+        return 0;
+    }
+    let end = stage_check_line(log).unwrap_or(log.len());
+    log[..end].matches("job started").count()
 }
 
 /// True when a record holds nothing at all: missing, or empty.
@@ -802,6 +1015,20 @@ fn format_soak(r: &SoakReport) -> String {
             p.after_jobs, p.open_fds
         );
     }
+    let a = &r.attacks;
+    let _ = writeln!(
+        s,
+        "spool attacks: {} hostile entries, {} set aside with a reason; {} forged records, {} \
+         rejected with a reason; daemon.lock moved {} times, reported {}; run directories \
+         outside the output directory {}",
+        a.entries_placed,
+        a.entries_set_aside,
+        a.forged_records,
+        a.forged_rejected,
+        a.lock_file_moved,
+        a.lock_tampering_reported,
+        a.escaped_run_dirs
+    );
     let _ = writeln!(
         s,
         "SIGTERM at the end: exit {:?} after {:.2} s",
@@ -866,6 +1093,9 @@ fn kill(opts: &KillOptions) -> anyhow::Result<KillReport> {
         frames_readable: 0,
         max_frames_lost_per_kill: 0,
         jobs_done: 0,
+        kills_leaving_stage_tilted: 0,
+        stage_made_safe_at_next_start: 0,
+        jobs_started_before_stage_check: 0,
         final_stop_exit_code: None,
         problems: Vec::new(),
         work_dir: None,
@@ -875,6 +1105,7 @@ fn kill(opts: &KillOptions) -> anyhow::Result<KillReport> {
     let mut cut: Vec<u64> = Vec::new();
     let mut readable_frames: BTreeMap<u64, u64> = BTreeMap::new();
     let mut reported = std::collections::BTreeSet::new();
+    let mut left_tilted: Option<usize> = None;
 
     for round in 1..=opts.rounds + 1 {
         let last = round > opts.rounds;
@@ -892,6 +1123,29 @@ fn kill(opts: &KillOptions) -> anyhow::Result<KillReport> {
                     break;
                 }
                 std::thread::sleep(TICK);
+            }
+        }
+        // A kill that left the stage tilted: the stage is read and moved before any job.
+        let log_path = rig.dir.join(format!("daemon-{round:02}.log"));
+        if left_tilted.take().is_some() {
+            let t = Instant::now();
+            let resolved = loop {
+                let log = std::fs::read_to_string(&log_path).unwrap_or_default();
+                if let Some(at) = stage_check_line(&log) {
+                    break Some(log[at..].starts_with(MOVED));
+                }
+                if t.elapsed() > Duration::from_secs(20) {
+                    break None;
+                }
+                std::thread::sleep(TICK);
+            };
+            match resolved {
+                Some(true) => report.stage_made_safe_at_next_start += 1,
+                other => report.problems.push(format!(
+                    "round {round}: the stage left tilted by the last kill was not moved to its \
+                     safe tilt at this start ({other:?}; the stage is at {:.3}°)",
+                    instruments.stage_tilt()
+                )),
             }
         }
         let (jobs, _) = rig.jobs()?;
@@ -932,8 +1186,22 @@ fn kill(opts: &KillOptions) -> anyhow::Result<KillReport> {
             } else {
                 report.kills_idle += 1;
             }
+            // The simulator lives on: a move in flight ends where it was going.
+            std::thread::sleep(Duration::from_millis(300));
+            if instruments.stage_tilt().abs() > 0.05 {
+                report.kills_leaving_stage_tilted += 1;
+                left_tilted = Some(round);
+            }
         }
 
+        let early =
+            started_before_stage_check(&std::fs::read_to_string(&log_path).unwrap_or_default());
+        if early > 0 {
+            report.jobs_started_before_stage_check += early;
+            report.problems.push(format!(
+                "round {round}: {early} job(s) started before the stage check after an unclean end"
+            ));
+        }
         let (jobs, damaged) = rig.jobs()?;
         report.spool_records_damaged += damaged;
         for id in &ids {
@@ -1048,6 +1316,14 @@ fn format_kill(r: &KillReport) -> String {
         "frames served by the simulator {}, readable in the records {}; at most {} lost per kill",
         r.frames_served, r.frames_readable, r.max_frames_lost_per_kill
     );
+    let _ = writeln!(
+        s,
+        "kills leaving the stage tilted {}, moved to its safe tilt at the next start {}; jobs \
+         started before the stage check {}",
+        r.kills_leaving_stage_tilted,
+        r.stage_made_safe_at_next_start,
+        r.jobs_started_before_stage_check
+    );
     let _ = writeln!(s, "final SIGTERM: exit {:?}", r.final_stop_exit_code);
     write_problems(&mut s, &r.problems, r.work_dir.as_deref());
     s
@@ -1056,7 +1332,12 @@ fn format_kill(r: &KillReport) -> String {
 /// True when the figures meet the issue's targets.
 #[must_use]
 pub fn soak_passed(r: &SoakReport) -> bool {
+    let a = &r.attacks;
     r.problems.is_empty()
+        && a.entries_set_aside == a.entries_placed
+        && a.forged_rejected == a.forged_records
+        && a.lock_tampering_reported == a.lock_file_moved
+        && a.escaped_run_dirs == 0
         && r.stuck_jobs == 0
         && r.jobs_without_final_state == 0
         && r.failures_without_reason == 0
@@ -1073,6 +1354,8 @@ pub fn kill_passed(r: &KillReport) -> bool {
         && r.records == r.records_readable
         && r.marked_interrupted_at_next_start == r.jobs_cut_by_a_kill
         && r.max_frames_lost_per_kill <= 1
+        && r.stage_made_safe_at_next_start == r.kills_leaving_stage_tilted
+        && r.jobs_started_before_stage_check == 0
 }
 
 #[cfg(test)]
