@@ -301,7 +301,7 @@ fn hostile_spool_entries_never_block_or_stop_the_daemon() {
     std::fs::create_dir(q.join("00000201.json")).unwrap();
     rustix::fs::mknodat(
         rustix::fs::CWD,
-        &q.join("00000202.json"),
+        q.join("00000202.json"),
         rustix::fs::FileType::Fifo,
         rustix::fs::Mode::from_raw_mode(0o666),
         0,
@@ -310,7 +310,11 @@ fn hostile_spool_entries_never_block_or_stop_the_daemon() {
     std::os::unix::fs::symlink("/dev/zero", q.join("00000203.json")).unwrap();
     std::fs::write(q.join("00000204.json"), "x").unwrap();
     // Unreadable for the daemon's user (root reads it anyway: then it is garbage).
-    std::fs::set_permissions(q.join("00000204.json"), std::fs::Permissions::from_mode(0)).unwrap();
+    std::fs::set_permissions(
+        q.join("00000204.json"),
+        std::fs::Permissions::from_mode(0o000),
+    )
+    .unwrap();
     std::fs::write(q.join("00000205.json"), "{\"id\": 205, \"garbage\": [").unwrap();
     std::fs::write(q.join("00000206.json"), vec![b'{'; 1 << 20]).unwrap();
     let evil = format!("\u{1b}[2J\u{1b}]0;pwned\u{7}{}\n.json", "A".repeat(200));

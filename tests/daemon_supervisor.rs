@@ -707,7 +707,7 @@ async fn a_record_written_around_submit_gets_the_same_check_and_is_rejected() {
     let rig = Rig::new(Script::default());
     let good = rig.submit("good");
     let queued = rig.spool.root().join("queued");
-    let mut forged = |id: u64, edit: &dyn Fn(&mut serde_json::Value)| {
+    let forged = |id: u64, edit: &dyn Fn(&mut serde_json::Value)| {
         let mut v = serde_json::to_value(&good).unwrap();
         v["id"] = id.into();
         edit(&mut v);

@@ -85,9 +85,8 @@ impl std::fmt::Display for RunName {
 #[must_use]
 pub fn printable(text: &str, max_chars: usize) -> String {
     let mut out = String::new();
-    let mut shown = 0;
     for (i, c) in text.chars().enumerate() {
-        if shown >= max_chars {
+        if i >= max_chars {
             let rest = text.chars().count() - i;
             out.push_str(&format!("…(+{rest} characters)"));
             break;
@@ -98,7 +97,6 @@ pub fn printable(text: &str, max_chars: usize) -> String {
         } else {
             out.push(c);
         }
-        shown += 1;
     }
     out
 }

@@ -1635,7 +1635,7 @@ mod tests {
         fs::create_dir(q.join("00000001.json")).unwrap();
         rustix::fs::mknodat(
             rustix::fs::CWD,
-            &q.join("00000002.json"),
+            q.join("00000002.json"),
             rustix::fs::FileType::Fifo,
             Mode::from_raw_mode(0o644),
             0,

@@ -555,7 +555,7 @@ impl Attacker {
         place(&|p| std::os::unix::fs::symlink("/dev/zero", p))?;
         place(&|p| {
             std::fs::write(p, "x")?;
-            std::fs::set_permissions(p, std::fs::Permissions::from_mode(0))
+            std::fs::set_permissions(p, std::fs::Permissions::from_mode(0o000))
         })?;
         place(&|p| std::fs::write(p, vec![b'{'; 300 * 1024]))?;
         place(&|p| std::fs::write(p, "{\"id\": 1, \"state\": "))?;
