@@ -248,6 +248,16 @@ impl Config {
                 t.gain
             )));
         }
+        if self.imaging.protocol == crate::imaging::ImagingProtocol::WatchFolder
+            && self.run.reconstruct
+            && self.reconstruction.tilt_axis_deg.is_none()
+        {
+            return Err(ConfigError::Rule(
+                "imaging.protocol = \"watch-folder\": stored micrographs do not record the tilt axis; \
+                 set reconstruction.tilt_axis_deg (the direction of the stage tilt axis in the image)"
+                    .into(),
+            ));
+        }
         if self.run.name.trim().is_empty() || self.run.name.contains('/') {
             return Err(ConfigError::Rule(format!(
                 "run.name = {:?} must be a non-empty name without '/'",

@@ -11,7 +11,7 @@ use tracing::{error, info, warn};
 
 use super::cancel::Cancel;
 use super::machine::{Action, Event, FrameRole, Outcome, Series, Tracked};
-use crate::imaging::{Frame, FrameSource, ImagingConfig, Pixels as FramePixels};
+use crate::imaging::{Frame, FrameSource, GrabContext, ImagingConfig, Pixels as FramePixels};
 use crate::record::{self, Entry, FrameInfo, Pixels, RecorderHandle, topics};
 use crate::stage::{StageDriver, StagePosition};
 use crate::vision::Image;
@@ -267,7 +267,12 @@ impl RunState {
         ));
         let request = ctx.imaging_config.request(role);
         let t0 = Instant::now();
-        let grabbed = cancellable(cancel, ctx.imaging.grab(request)).await;
+        // The verified position lets a file-based source check the tilt its file records.
+        let context = GrabContext {
+            stage: self.position,
+            trigger: None,
+        };
+        let grabbed = cancellable(cancel, ctx.imaging.grab_with(request, context)).await;
         let grab_s = t0.elapsed().as_secs_f64();
         let frame = match grabbed {
             Err(reason) => return Event::Cancelled { reason },
@@ -429,6 +434,7 @@ impl RunState {
             height: h,
             tilt_axis_deg: Some(frame.meta.tilt_axis_deg),
             drift_px: self.pending_drift.take(),
+            file: frame.origin.clone(),
         };
         let image = Entry::image(
             topics::SEM_FRAME,

@@ -1118,6 +1118,7 @@ mod tests {
             height,
             tilt_axis_deg: None,
             drift_px: None,
+            file: None,
         }
     }
 
