@@ -34,6 +34,7 @@ use crate::walk::WalkParams;
 /// | `time_scale` | 1 | real seconds per simulated second: 0.01 runs motion, settling and scans 100× faster than real time; 1 is real time |
 /// | `stage` | see [`StageSimConfig`] | the PI GCS stage controller |
 /// | `sem` | see [`SemSimConfig`] | the SEM imaging server |
+/// | `folder` | none | the SEM's store folder, see [`crate::FolderSimConfig`] |
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct SimConfig {
@@ -47,6 +48,9 @@ pub struct SimConfig {
     pub stage: StageSimConfig,
     /// The simulated SEM's imaging server.
     pub sem: SemSimConfig,
+    /// The SEM's store folder, when micrographs are also stored as vendor TIFFs.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub folder: Option<crate::FolderSimConfig>,
 }
 
 impl Default for SimConfig {
@@ -56,6 +60,7 @@ impl Default for SimConfig {
             time_scale: 1.0,
             stage: StageSimConfig::default(),
             sem: SemSimConfig::default(),
+            folder: None,
         }
     }
 }
@@ -81,6 +86,11 @@ impl SimConfig {
             .seed
             .get_or_insert_with(|| derive_seed(self.seed, "stage"));
         c.sem = self.sem.resolved(self.seed);
+        if let Some(folder) = &mut c.folder {
+            folder
+                .seed
+                .get_or_insert_with(|| derive_seed(self.seed, "folder"));
+        }
         c
     }
 }
@@ -404,7 +414,10 @@ impl SimConfig {
     pub fn validate(&self) -> Result<(), SimError> {
         positive("time_scale", self.time_scale)?;
         self.stage.validate()?;
-        self.sem.validate()
+        self.sem.validate()?;
+        self.folder
+            .as_ref()
+            .map_or(Ok(()), crate::FolderSimConfig::validate)
     }
 }
 

@@ -23,6 +23,7 @@
 
 pub mod clock;
 pub mod config;
+pub mod folder_writer;
 pub mod pose;
 pub mod render;
 pub mod scene;
@@ -32,11 +33,13 @@ pub mod simulator;
 pub mod stage;
 mod stage_link;
 pub mod stage_model;
+pub mod vendor_tiff;
 pub mod walk;
 
 pub use config::{
     FaultConfig, FaultTrigger, SemSimConfig, SimConfig, SimEndpoint, StageSimConfig, derive_seed,
 };
+pub use folder_writer::{FolderSimConfig, FolderWriter, StoreRequests, StoredFile};
 pub use sem::{FrameRecord, SimSem};
 pub use simulator::{ServiceEndpoint, SimHandle, Simulator};
 pub use stage::SimStage;

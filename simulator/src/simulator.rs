@@ -12,6 +12,7 @@ use tracing::{info, warn};
 use crate::SimError;
 use crate::clock::{Clock, ScaledClock};
 use crate::config::{SimConfig, SimEndpoint};
+use crate::folder_writer::{self, FolderWriter, StoreRequests};
 use crate::pose::PoseSource;
 use crate::scene::Scene;
 use crate::sem::{FrameRecord, SimSem};
@@ -105,9 +106,10 @@ impl Simulator {
             stage: Arc::clone(&stage),
             sem: Arc::clone(&sem),
             sem_addr: SocketAddr::from(([127, 0, 0, 1], 0)),
-            clock,
+            clock: Arc::clone(&clock),
             stop: Arc::clone(&stop),
             config: config.clone(),
+            folder: None,
         };
         // On an error below, dropping `handle` stops what already runs.
         let server = match &config.stage.endpoint {
@@ -122,9 +124,16 @@ impl Simulator {
                 reason: "the SEM imaging link is TCP only".into(),
             });
         };
-        let server = sem_server::serve_tcp(sem_addr, sem, Arc::clone(&stop))?;
+        let server = sem_server::serve_tcp(sem_addr, Arc::clone(&sem), Arc::clone(&stop))?;
         handle.sem_addr = server.wake.unwrap_or(sem_addr);
         handle.add("sem", server);
+        if let Some(folder) = &config.folder {
+            let seed = folder.seed.unwrap_or(config.seed);
+            let writer = Arc::new(FolderWriter::new(folder, seed, sem, clock)?);
+            let (requests, server) = folder_writer::serve(Arc::clone(&writer), Arc::clone(&stop))?;
+            handle.folder = Some((writer, requests));
+            handle.add("folder", server);
+        }
         info!(
             seed = config.seed,
             time_scale = config.time_scale,
@@ -146,6 +155,8 @@ pub struct SimHandle {
     clock: Arc<dyn Clock>,
     stop: Arc<AtomicBool>,
     config: SimConfig,
+    /// The store folder's writer and its request line, when configured.
+    folder: Option<(Arc<FolderWriter>, StoreRequests)>,
 }
 
 impl SimHandle {
@@ -164,7 +175,7 @@ impl SimHandle {
             .map_or("", |e| e.address.as_str())
     }
 
-    /// Every endpoint served: `stage`, then `sem`.
+    /// Every endpoint served: `stage`, then `sem`, then `folder` (its path) when configured.
     pub fn endpoints(&self) -> &[ServiceEndpoint] {
         &self.endpoints
     }
@@ -213,6 +224,17 @@ impl SimHandle {
     /// The stage as the SEM sees it.
     pub fn pose_source(&self) -> Arc<dyn PoseSource> {
         Arc::clone(&self.stage) as Arc<dyn PoseSource>
+    }
+
+    /// The SEM's store folder, when configured: what it stored, and its settings.
+    pub fn folder(&self) -> Option<&Arc<FolderWriter>> {
+        self.folder.as_ref().map(|(w, _)| w)
+    }
+
+    /// A line to ask the store folder for one micrograph now (the RemCon32 `FREC` / `MAC n`
+    /// hook), when configured.
+    pub fn store_requests(&self) -> Option<StoreRequests> {
+        self.folder.as_ref().map(|(_, r)| r.clone())
     }
 
     /// The simulated SEM.
