@@ -171,6 +171,10 @@ impl Instruments {
         let sim = sdsem_sim::Simulator::spawn(sim_config.clone())?;
         stage.endpoint = sim.stage_endpoint().to_owned();
         imaging.endpoint = sim.sem_endpoint().to_owned();
+        if let Some(folder) = sim.folder() {
+            // The simulated SEM's store folder is the one to watch.
+            imaging.watch_dir = folder.dir().to_owned();
+        }
         info!(
             stage = %stage.endpoint,
             sem = %imaging.endpoint,

@@ -87,6 +87,21 @@ pub struct Unfinished {
 }
 
 impl Unfinished {
+    /// Adds what `other` lists and `self` does not yet.
+    fn absorb(&mut self, other: &Self) {
+        fn add<T: Clone + PartialEq>(to: &mut Vec<T>, from: &[T]) {
+            for x in from {
+                if !to.contains(x) {
+                    to.push(x.clone());
+                }
+            }
+        }
+        add(&mut self.changing, &other.changing);
+        add(&mut self.not_whole, &other.not_whole);
+        add(&mut self.without_sidecar, &other.without_sidecar);
+        add(&mut self.skipped, &other.skipped);
+    }
+
     /// One clause per kind, or "" when nothing new was seen.
     #[must_use]
     pub fn describe(&self) -> String {
@@ -178,7 +193,8 @@ pub struct ArrivalRules {
 
 impl ArrivalRules {
     fn is_image(&self, name: &str) -> bool {
-        !self.ignore.iter().any(|p| p.matches(name)) && self.patterns.iter().any(|p| p.matches(name))
+        !self.ignore.iter().any(|p| p.matches(name))
+            && self.patterns.iter().any(|p| p.matches(name))
     }
 
     fn sidecar_name(&self, image: &str) -> Option<String> {
@@ -212,6 +228,8 @@ pub struct Arrivals {
     noticed: HashSet<(String, u64)>,
     began: Duration,
     last: Unfinished,
+    /// Everything the current wait has seen so far (each name once per kind).
+    seen: Unfinished,
 }
 
 impl Arrivals {
@@ -226,6 +244,7 @@ impl Arrivals {
             noticed: HashSet::new(),
             began: Duration::ZERO,
             last: Unfinished::default(),
+            seen: Unfinished::default(),
         }
     }
 
@@ -245,6 +264,7 @@ impl Arrivals {
         self.not_whole.clear();
         self.began = now;
         self.last = Unfinished::default();
+        self.seen = Unfinished::default();
     }
 
     fn is_new(&self, key: &FileKey) -> bool {
@@ -278,7 +298,12 @@ impl Arrivals {
     }
 
     /// Looks at one listing taken at `now`; `notices` receives what to log (each once).
-    pub fn poll(&mut self, now: Duration, listing: &[ListedEntry], notices: &mut Vec<Notice>) -> Poll {
+    pub fn poll(
+        &mut self,
+        now: Duration,
+        listing: &[ListedEntry],
+        notices: &mut Vec<Notice>,
+    ) -> Poll {
         let mut unfinished = Unfinished::default();
         let mut ready: Vec<Candidate> = Vec::new();
         let mut stable_files: BTreeMap<String, (FileKey, bool)> = BTreeMap::new();
@@ -338,7 +363,11 @@ impl Arrivals {
             let sidecar = match self.rules.sidecar_name(&e.name) {
                 None => None,
                 Some(side) => match stable_files.get(&side) {
-                    Some((skey, true)) if skey.len > 0 && skey.len <= self.rules.max_bytes && self.is_new(skey) => {
+                    Some((skey, true))
+                        if skey.len > 0
+                            && skey.len <= self.rules.max_bytes
+                            && self.is_new(skey) =>
+                    {
                         Some(skey.clone())
                     }
                     _ => {
@@ -352,6 +381,7 @@ impl Arrivals {
                 sidecar,
             });
         }
+        self.seen.absorb(&unfinished);
         // The oldest first, then by name: the order the SEM stored them.
         ready.sort_by(|a, b| {
             (a.image.mtime_ns, &a.image.name).cmp(&(b.image.mtime_ns, &b.image.name))
@@ -387,10 +417,17 @@ impl Arrivals {
         self.not_whole.remove(&candidate.image.name.to_lowercase());
     }
 
-    /// What the current wait has seen that was not (yet) a micrograph.
+    /// What the last listing showed that was not (yet) a micrograph.
     #[must_use]
     pub fn unfinished(&self) -> &Unfinished {
         &self.last
+    }
+
+    /// Everything the current (or last) wait saw that was not yet a micrograph: e.g. the
+    /// micrograph itself while it was still being written.
+    #[must_use]
+    pub fn seen(&self) -> &Unfinished {
+        &self.seen
     }
 }
 

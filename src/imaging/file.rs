@@ -680,7 +680,9 @@ mod tests {
 
     /// An 8-bit grey TIFF whose row y holds the value y, with `tag` = `text`.
     fn rows_tiff(path: &Path, w: u32, h: u32, tag: u16, text: &str) {
-        let data: Vec<u8> = (0..h).flat_map(|y| std::iter::repeat_n(y as u8, w as usize)).collect();
+        let data: Vec<u8> = (0..h)
+            .flat_map(|y| std::iter::repeat_n(y as u8, w as usize))
+            .collect();
         let mut file = std::fs::File::create(path).unwrap();
         let mut enc = TiffEncoder::new(&mut file).unwrap();
         let mut img = enc.new_image::<Gray8>(w, h).unwrap();

@@ -269,16 +269,26 @@ pub(crate) fn check_whole(bytes: &[u8]) -> Result<(), String> {
             let inline_ok = field_type_size(e.field_type)
                 .and_then(|s| s.checked_mul(e.count))
                 .is_some_and(|len| len <= if tiff.big_tiff { 8 } else { 4 });
-            if !inline_ok && field_type_size(e.field_type).is_some() && tiff.value_bytes(e.tag).is_none() {
-                return Err(format!("tag {} of directory {index} ends beyond the file", e.tag));
+            if !inline_ok
+                && field_type_size(e.field_type).is_some()
+                && tiff.value_bytes(e.tag).is_none()
+            {
+                return Err(format!(
+                    "tag {} of directory {index} ends beyond the file",
+                    e.tag
+                ));
             }
         }
         for (offsets_tag, counts_tag, what) in [(273, 279, "strip"), (324, 325, "tile")] {
-            let (Some(offsets), counts) = (tiff.unsigned_values_wide(offsets_tag), tiff.unsigned_values_wide(counts_tag)) else {
+            let (Some(offsets), counts) = (
+                tiff.unsigned_values_wide(offsets_tag),
+                tiff.unsigned_values_wide(counts_tag),
+            ) else {
                 continue;
             };
-            let counts =
-                counts.ok_or_else(|| format!("directory {index} has {what} offsets but no byte counts"))?;
+            let counts = counts.ok_or_else(|| {
+                format!("directory {index} has {what} offsets but no byte counts")
+            })?;
             if counts.len() != offsets.len() {
                 return Err(format!(
                     "directory {index}: {} {what} offsets for {} byte counts",
@@ -288,7 +298,9 @@ pub(crate) fn check_whole(bytes: &[u8]) -> Result<(), String> {
             }
             for (i, (&o, &c)) in offsets.iter().zip(&counts).enumerate() {
                 if o.checked_add(c).is_none_or(|end| end > bytes.len() as u64) {
-                    return Err(format!("{what} {i} of directory {index} ends beyond the file"));
+                    return Err(format!(
+                        "{what} {i} of directory {index} ends beyond the file"
+                    ));
                 }
             }
         }
@@ -399,7 +411,15 @@ mod tests {
         check_whole(&bytes).unwrap();
         // The encoder writes pixels first and the directory last, as vendors do: every
         // shorter prefix must be refused, whatever the cut hits.
-        for cut in [0, 3, 8, 100, bytes.len() / 2, bytes.len() - 40, bytes.len() - 1] {
+        for cut in [
+            0,
+            3,
+            8,
+            100,
+            bytes.len() / 2,
+            bytes.len() - 40,
+            bytes.len() - 1,
+        ] {
             assert!(check_whole(&bytes[..cut]).is_err(), "cut at {cut} accepted");
         }
     }

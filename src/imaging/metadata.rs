@@ -101,7 +101,10 @@ impl SemMetadata {
     #[must_use]
     pub fn kept_size(&self, width: usize, height: usize) -> Option<(usize, usize)> {
         let (w, h) = match self.image_area? {
-            ImageArea::Size { width: w, height: h } => (w, h),
+            ImageArea::Size {
+                width: w,
+                height: h,
+            } => (w, h),
             ImageArea::StripRows(rows) => (width, height.checked_sub(rows)?),
         };
         (w > 0 && h > 0 && w <= width && h <= height && (w, h) != (width, height)).then_some((w, h))
@@ -260,7 +263,9 @@ pub fn parse_zeiss(bytes: &[u8]) -> SemMetadata {
         tilt_deg,
         dwell_us: positive(raw.get("Dwell Time").and_then(|v| parse_time_us(v))),
         field_width_um: None,
-        image_area: raw.get("Store resolution").and_then(|v| size_pair(v, &['*'])),
+        image_area: raw
+            .get("Store resolution")
+            .and_then(|v| size_pair(v, &['*'])),
         raw,
     }
 }
@@ -301,7 +306,10 @@ pub fn parse_fei(bytes: &[u8]) -> SemMetadata {
     let pixel_m = number(&raw, "Scan.PixelWidth").or_else(|| number(&raw, "EScan.PixelWidth"));
     let tilt_rad = number(&raw, "Stage.StageT");
     let dwell_s = number(&raw, "Scan.Dwelltime").or_else(|| number(&raw, "EScan.Dwell"));
-    let area = match (number(&raw, "Image.ResolutionX"), number(&raw, "Image.ResolutionY")) {
+    let area = match (
+        number(&raw, "Image.ResolutionX"),
+        number(&raw, "Image.ResolutionY"),
+    ) {
         // Whole numbers of pixels, as FEI writes them.
         #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
         (Some(w), Some(h)) if w >= 1.0 && h >= 1.0 && w.fract() == 0.0 && h.fract() == 0.0 => {
@@ -444,7 +452,8 @@ pub fn parse_jeol(bytes: &[u8]) -> Option<SemMetadata> {
     for line in text.lines().map(str::trim).filter(|l| !l.is_empty()) {
         let rest = line.strip_prefix('$')?.trim_start_matches('$');
         let (key, value) = rest.split_once(' ').unwrap_or((rest, ""));
-        raw.entry(key.to_owned()).or_insert_with(|| value.trim().to_owned());
+        raw.entry(key.to_owned())
+            .or_insert_with(|| value.trim().to_owned());
     }
     if !raw.contains_key("CM_FORMAT") && !raw.contains_key("CM_VERSION") {
         return None;
@@ -454,7 +463,10 @@ pub fn parse_jeol(bytes: &[u8]) -> Option<SemMetadata> {
         let first = tokens.next()?;
         // "1.067 0.800mm": the first number takes the unit of the second.
         parse_length_um(first).or_else(|| {
-            let unit = tokens.next().and_then(|t| number_and_unit(t)).map_or("mm", |(_, u)| u);
+            let unit = tokens
+                .next()
+                .and_then(|t| number_and_unit(t))
+                .map_or("mm", |(_, u)| u);
             parse_length_um(&format!("{first} {unit}"))
         })
     });
@@ -671,13 +683,21 @@ DataSize=1280x960\r\nPixelSize=24.8\r\nStagePositionX=12500000\r\nStagePositionT
 
     #[test]
     fn info_bars_and_dwell_of_each_vendor() {
-        let z = parse_zeiss(b"AP_DWELL\r\nDwell Time = 50 ns\r\nDP_STORE\r\nStore resolution = 1024 * 768\r\n");
+        let z = parse_zeiss(
+            b"AP_DWELL\r\nDwell Time = 50 ns\r\nDP_STORE\r\nStore resolution = 1024 * 768\r\n",
+        );
         assert_eq!(z.dwell_us, Some(0.05));
         assert_eq!(z.kept_size(1024, 768), None, "no bar stored");
         assert_eq!(z.kept_size(1024, 884), Some((1024, 768)), "data zone below");
-        assert_eq!(z.kept_size(768, 1024), None, "rotated after storing: left alone");
+        assert_eq!(
+            z.kept_size(768, 1024),
+            None,
+            "rotated after storing: left alone"
+        );
 
-        let f = parse_fei(b"[Image]\r\nResolutionX=1536\r\nResolutionY=1024\r\n[Scan]\r\nDwelltime=1e-006\r\n");
+        let f = parse_fei(
+            b"[Image]\r\nResolutionX=1536\r\nResolutionY=1024\r\n[Scan]\r\nDwelltime=1e-006\r\n",
+        );
         assert_eq!(f.kept_size(1536, 1092), Some((1536, 1024)));
         assert!((f.dwell_us.unwrap() - 1.0).abs() < 1e-12);
 
@@ -710,18 +730,26 @@ $CM_STAGE_POS 5.483 0.831 8.5 -0.0 0.0 0.000\n$CM_FULL_SIZE 1280 960\n$CM_TITLE 
         assert!((m.field_width_um.unwrap() - 2560.0).abs() < 1e-9);
         assert_eq!(m.raw["SM_WD"], "9.07");
         assert_eq!(m.raw["CM_TITLE"], "");
-        assert_eq!(m.tilt_deg, None, "the stage field's layout varies: not read");
+        assert_eq!(
+            m.tilt_deg, None,
+            "the stage field's layout varies: not read"
+        );
         assert_eq!(m.kept_size(1280, 1024), Some((1280, 960)));
         for fov in ["1.067mm 0.800mm", "1.067 0.800mm"] {
             let t = format!("$CM_FORMAT JEOL/EO\n$CM_MAG 120\n$CM_FIELD_OF_VIEW {fov}\n");
             let m = parse_jeol(t.as_bytes()).unwrap();
             assert!((m.field_width_um.unwrap() - 1067.0).abs() < 1e-9, "{fov}");
         }
-        assert!(parse_jeol(b"$SOMETHING else\n").is_none(), "not a JEOL header");
+        assert!(
+            parse_jeol(b"$SOMETHING else\n").is_none(),
+            "not a JEOL header"
+        );
         assert!(parse_jeol(b"notes\n$CM_FORMAT JEOL\n").is_none());
         assert_eq!(parse_sidecar(text).unwrap().vendor, Some(SemVendor::Jeol));
         assert_eq!(
-            parse_sidecar(b"[SemImageFile]\r\nPixelSize=1\r\n").unwrap().vendor,
+            parse_sidecar(b"[SemImageFile]\r\nPixelSize=1\r\n")
+                .unwrap()
+                .vendor,
             Some(SemVendor::Hitachi)
         );
     }

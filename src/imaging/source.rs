@@ -47,7 +47,11 @@ pub trait FrameSource: Send {
 
     /// [`FrameSource::grab`] with what the acquisition knows (stage position) and offers
     /// (a trigger). Sources that need neither keep this default.
-    fn grab_with<'a>(&'a mut self, request: GrabRequest, context: GrabContext<'a>) -> GrabFuture<'a> {
+    fn grab_with<'a>(
+        &'a mut self,
+        request: GrabRequest,
+        context: GrabContext<'a>,
+    ) -> GrabFuture<'a> {
         let _ = context;
         self.grab(request)
     }
@@ -62,7 +66,11 @@ impl<S: FrameSource + ?Sized> FrameSource for Box<S> {
         (**self).grab(request)
     }
 
-    fn grab_with<'a>(&'a mut self, request: GrabRequest, context: GrabContext<'a>) -> GrabFuture<'a> {
+    fn grab_with<'a>(
+        &'a mut self,
+        request: GrabRequest,
+        context: GrabContext<'a>,
+    ) -> GrabFuture<'a> {
         (**self).grab_with(request, context)
     }
 

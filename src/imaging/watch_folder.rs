@@ -24,8 +24,7 @@ use super::file_tiff::check_whole;
 use super::metadata::{SemMetadata, parse_sidecar};
 use super::source::{GrabContext, IdentifyFuture};
 use super::{
-    Frame, FrameFile, FrameSource, GrabFuture, ImagingConfig, ImagingError, ImagingProtocol,
-    Pixels,
+    Frame, FrameFile, FrameSource, GrabFuture, ImagingConfig, ImagingError, ImagingProtocol, Pixels,
 };
 use crate::vision::Image;
 
@@ -93,6 +92,13 @@ impl WatchFolderSource {
         Ok((source, id))
     }
 
+    /// What the last wait saw before its micrograph was ready (files still being written,
+    /// incomplete TIFFs, files skipped).
+    #[must_use]
+    pub fn last_wait(&self) -> &super::arrival::Unfinished {
+        self.arrivals.seen()
+    }
+
     /// The folder watched.
     #[must_use]
     pub fn dir(&self) -> &Path {
@@ -105,10 +111,7 @@ impl WatchFolderSource {
 
     async fn describe(&self) -> Result<String, ImagingError> {
         let listing = self.list().await?;
-        let files = listing
-            .iter()
-            .filter(|e| e.kind == EntryKind::File)
-            .count();
+        let files = listing.iter().filter(|e| e.kind == EntryKind::File).count();
         Ok(format!(
             "watch folder {} ({files} files now)",
             self.dir().display()
@@ -136,11 +139,9 @@ impl WatchFolderSource {
         self.arrivals.begin(self.now(), &listing);
         let command = self.cfg.trigger.trim().to_owned();
         if !command.is_empty() {
-            let trigger = context
-                .trigger
-                .ok_or_else(|| ImagingError::NoTriggerLink {
-                    command: command.clone(),
-                })?;
+            let trigger = context.trigger.ok_or_else(|| ImagingError::NoTriggerLink {
+                command: command.clone(),
+            })?;
             trigger
                 .trigger(&command)
                 .await
@@ -200,6 +201,10 @@ impl WatchFolderSource {
                 Poll::Ready(candidate) => {
                     if let Some(stored) = self.read_candidate(&candidate).await? {
                         self.arrivals.used(&candidate);
+                        let name = &candidate.image.name;
+                        if self.arrivals.seen().changing.contains(name) {
+                            info!(file = %name, "{name} was seen while still being written: read once it held still");
+                        }
                         return self.frame(stored, request, context.stage);
                     }
                 }
@@ -294,12 +299,13 @@ impl WatchFolderSource {
         self.frames += 1;
         let end_ns = u64::try_from(mtime_ns.max(0)).unwrap_or(u64::MAX);
         let dwell_us = meta.dwell_us.unwrap_or(0.0);
-        #[allow(clippy::cast_precision_loss, clippy::cast_possible_truncation, clippy::cast_sign_loss)]
+        #[allow(
+            clippy::cast_precision_loss,
+            clippy::cast_possible_truncation,
+            clippy::cast_sign_loss
+        )]
         let scan_ns = (dwell_us * 1e3 * (m.stored_size.0 * m.stored_size.1) as f64) as u64;
-        let tilt_deg = stage
-            .map(|s| s.tilt_deg)
-            .or(meta.tilt_deg)
-            .unwrap_or(0.0);
+        let tilt_deg = stage.map(|s| s.tilt_deg).or(meta.tilt_deg).unwrap_or(0.0);
         #[allow(clippy::cast_precision_loss)]
         let frame_meta = FrameMeta {
             frame: self.frames,
@@ -353,7 +359,11 @@ impl FrameSource for WatchFolderSource {
         Box::pin(self.wait_for_frame(request, GrabContext::default()))
     }
 
-    fn grab_with<'a>(&'a mut self, request: GrabRequest, context: GrabContext<'a>) -> GrabFuture<'a> {
+    fn grab_with<'a>(
+        &'a mut self,
+        request: GrabRequest,
+        context: GrabContext<'a>,
+    ) -> GrabFuture<'a> {
         Box::pin(self.wait_for_frame(request, context))
     }
 
@@ -400,10 +410,12 @@ fn list_dir(dir: &Path) -> std::io::Result<Vec<ListedEntry>> {
         } else {
             EntryKind::Special
         };
-        let mtime_ns = meta.modified().map_or(0, |m| match m.duration_since(UNIX_EPOCH) {
-            Ok(d) => i128::try_from(d.as_nanos()).unwrap_or(i128::MAX),
-            Err(e) => -i128::try_from(e.duration().as_nanos()).unwrap_or(i128::MAX),
-        });
+        let mtime_ns = meta
+            .modified()
+            .map_or(0, |m| match m.duration_since(UNIX_EPOCH) {
+                Ok(d) => i128::try_from(d.as_nanos()).unwrap_or(i128::MAX),
+                Err(e) => -i128::try_from(e.duration().as_nanos()).unwrap_or(i128::MAX),
+            });
         out.push(ListedEntry {
             name,
             kind,
@@ -442,7 +454,9 @@ fn read_capped(path: &Path, max: u64) -> std::io::Result<Vec<u8>> {
     let mut bytes = Vec::with_capacity(usize::try_from(meta.len()).unwrap_or(0));
     file.take(max + 1).read_to_end(&mut bytes)?;
     if bytes.len() as u64 > max {
-        return Err(std::io::Error::other(format!("grew above the cap of {max} bytes")));
+        return Err(std::io::Error::other(format!(
+            "grew above the cap of {max} bytes"
+        )));
     }
     Ok(bytes)
 }

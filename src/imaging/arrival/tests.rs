@@ -5,7 +5,10 @@ const POLL: Duration = Duration::from_millis(250);
 fn rules() -> ArrivalRules {
     ArrivalRules {
         patterns: vec![Pattern::new("*.tif"), Pattern::new("*.tiff")],
-        ignore: ["~*", ".*", "*.tmp", "*.part"].iter().map(|p| Pattern::new(p)).collect(),
+        ignore: ["~*", ".*", "*.tmp", "*.part"]
+            .iter()
+            .map(|p| Pattern::new(p))
+            .collect(),
         sidecar_ext: None,
         stable_polls: 3,
         stable_window: Duration::from_secs(1),
@@ -78,14 +81,26 @@ fn a_growing_file_is_ready_only_after_holding_still() {
     let mut t = Duration::ZERO;
     for (i, len) in [100u64, 300, 500].iter().enumerate() {
         t = POLL * (i as u32 + 1);
-        assert_eq!(a.poll(t, &[file("img.tif", *len, i as i128)], &mut notices), Poll::Wait);
+        assert_eq!(
+            a.poll(t, &[file("img.tif", *len, i as i128)], &mut notices),
+            Poll::Wait
+        );
     }
     assert_eq!(a.unfinished().changing, vec!["img.tif".to_owned()]);
+    assert_eq!(
+        a.seen().changing,
+        vec!["img.tif".to_owned()],
+        "once, however many listings"
+    );
     // Complete from here on: 3 listings and 1 s unchanged.
     let done = [file("img.tif", 600, 9)];
     let (at, p) = poll_until(&mut a, t + POLL, 20, &done, &mut notices);
     assert_eq!(ready_name(&p), "img.tif");
-    assert_eq!(at, t + POLL + Duration::from_secs(1), "ready after the whole window");
+    assert_eq!(
+        at,
+        t + POLL + Duration::from_secs(1),
+        "ready after the whole window"
+    );
     assert!(notices.is_empty());
 }
 
@@ -98,7 +113,10 @@ fn the_stability_window_and_the_poll_count_both_hold() {
     let f = [file("a.tif", 10, 1)];
     assert_eq!(a.poll(Duration::from_secs(5), &f, &mut n), Poll::Wait);
     assert_eq!(a.poll(Duration::from_secs(6), &f, &mut n), Poll::Wait);
-    assert!(matches!(a.poll(Duration::from_secs(7), &f, &mut n), Poll::Ready(_)));
+    assert!(matches!(
+        a.poll(Duration::from_secs(7), &f, &mut n),
+        Poll::Ready(_)
+    ));
 }
 
 #[test]
@@ -139,8 +157,15 @@ fn links_and_special_files_are_reported_once_and_never_read() {
         ],
         "each once"
     );
-    assert_eq!(u.skipped, vec!["link.tif".to_owned(), "fifo.tif".to_owned()]);
-    assert!(u.describe().contains("skipped: link.tif, fifo.tif"), "{}", u.describe());
+    assert_eq!(
+        u.skipped,
+        vec!["link.tif".to_owned(), "fifo.tif".to_owned()]
+    );
+    assert!(
+        u.describe().contains("skipped: link.tif, fifo.tif"),
+        "{}",
+        u.describe()
+    );
 }
 
 #[test]
@@ -148,7 +173,13 @@ fn an_oversized_file_is_skipped_with_a_notice() {
     let mut a = Arrivals::new(rules());
     let mut n = Vec::new();
     a.begin(Duration::ZERO, &[]);
-    let (_, p) = poll_until(&mut a, Duration::ZERO, 60, &[file("huge.tif", 1001, 1)], &mut n);
+    let (_, p) = poll_until(
+        &mut a,
+        Duration::ZERO,
+        60,
+        &[file("huge.tif", 1001, 1)],
+        &mut n,
+    );
     assert!(matches!(p, Poll::TimedOut(_)));
     assert_eq!(
         n,
@@ -187,24 +218,45 @@ fn nothing_is_used_twice_but_rewritten_files_count_again() {
     let mut n = Vec::new();
     // A stale file from before the start is never the new micrograph.
     let stale = file("img_001.tif", 50, 1);
-    a.begin(Duration::ZERO, &[stale.clone()]);
-    let (_, p) = poll_until(&mut a, Duration::ZERO, 41, &[stale.clone()], &mut n);
-    assert!(matches!(p, Poll::TimedOut(ref u) if u.describe().is_empty()), "{p:?}");
+    a.begin(Duration::ZERO, std::slice::from_ref(&stale));
+    let (_, p) = poll_until(
+        &mut a,
+        Duration::ZERO,
+        41,
+        std::slice::from_ref(&stale),
+        &mut n,
+    );
+    assert!(
+        matches!(p, Poll::TimedOut(ref u) if u.describe().is_empty()),
+        "{p:?}"
+    );
 
     // A new one is used; once used, it is not offered again, even in a later wait that
     // began before it existed.
-    a.begin(Duration::from_secs(20), &[stale.clone()]);
+    a.begin(Duration::from_secs(20), std::slice::from_ref(&stale));
     let new = file("img_002.tif", 60, 2);
-    let (_, p) = poll_until(&mut a, Duration::from_secs(20), 20, &[stale.clone(), new.clone()], &mut n);
+    let (_, p) = poll_until(
+        &mut a,
+        Duration::from_secs(20),
+        20,
+        &[stale.clone(), new.clone()],
+        &mut n,
+    );
     let Poll::Ready(c) = p else { panic!("{p:?}") };
     assert_eq!(c.image.name, "img_002.tif");
     a.used(&c);
-    a.begin(Duration::from_secs(40), &[stale.clone()]);
-    let (_, p) = poll_until(&mut a, Duration::from_secs(40), 41, &[stale.clone(), new], &mut n);
+    a.begin(Duration::from_secs(40), std::slice::from_ref(&stale));
+    let (_, p) = poll_until(
+        &mut a,
+        Duration::from_secs(40),
+        41,
+        &[stale.clone(), new],
+        &mut n,
+    );
     assert!(matches!(p, Poll::TimedOut(_)), "{p:?}");
 
     // Overwritten in place (the counter restarted): same name, new mtime and size → new.
-    a.begin(Duration::from_secs(60), &[stale.clone()]);
+    a.begin(Duration::from_secs(60), std::slice::from_ref(&stale));
     let rewritten = file("img_001.tif", 50, 3);
     let (_, p) = poll_until(&mut a, Duration::from_secs(60), 20, &[rewritten], &mut n);
     assert_eq!(ready_name(&p), "img_001.tif");
@@ -233,7 +285,10 @@ fn a_broken_tiff_waits_for_another_window_and_is_named_at_the_timeout() {
     assert_eq!(a.poll(at + POLL, &f, &mut n), Poll::Wait);
     assert_eq!(
         a.unfinished().not_whole,
-        vec![("img.tif".to_owned(), "strip 3 ends beyond the file".to_owned())]
+        vec![(
+            "img.tif".to_owned(),
+            "strip 3 ends beyond the file".to_owned()
+        )]
     );
     let (again, p) = poll_until(&mut a, at + POLL, 20, &f, &mut n);
     assert_eq!(ready_name(&p), "img.tif");
@@ -251,9 +306,15 @@ fn an_image_with_a_sidecar_waits_for_both() {
     let mut n = Vec::new();
     // An old sidecar of the same stem (a restarted counter) does not count.
     let old_side = file("IMG.TXT", 20, 1);
-    a.begin(Duration::ZERO, &[old_side.clone()]);
+    a.begin(Duration::ZERO, std::slice::from_ref(&old_side));
     let image = file("img.tif", 100, 2);
-    let (_, p) = poll_until(&mut a, Duration::ZERO, 20, &[image.clone(), old_side], &mut n);
+    let (_, p) = poll_until(
+        &mut a,
+        Duration::ZERO,
+        20,
+        &[image.clone(), old_side],
+        &mut n,
+    );
     assert_eq!(p, Poll::Wait);
     assert_eq!(a.unfinished().without_sidecar, vec!["img.tif".to_owned()]);
     // The new sidecar arrives, and holds still: both go together.

@@ -3,8 +3,8 @@ use std::sync::{Arc, Mutex};
 use sdsem_protocol::sem::Bits;
 
 use super::*;
-use crate::imaging::{Trigger, TriggerFuture};
 use crate::imaging::file::{MicrographTags, SampleDepth, write_micrograph_tiff};
+use crate::imaging::{Trigger, TriggerFuture};
 use crate::stage::StagePosition;
 
 /// Quick settings: 5 ms polls, stable over 3 polls and 40 ms, 2 s timeout.
@@ -72,7 +72,10 @@ async fn a_file_written_slowly_is_read_once_complete() {
     let mut cfg = config(dir.path());
     cfg.trigger = "FREC".into();
     let (mut source, id) = WatchFolderSource::connect(cfg, Some(90.0)).await.unwrap();
-    assert!(id.contains("watch folder") && id.contains("0 files"), "{id}");
+    assert!(
+        id.contains("watch folder") && id.contains("0 files"),
+        "{id}"
+    );
     let bytes = micrograph_bytes(64, 48, 3.0, 0.05);
     let path = dir.path().join("img_001.tif");
     let sent = Arc::new(Mutex::new(Vec::new()));
@@ -173,7 +176,10 @@ async fn a_trigger_without_a_link_to_carry_it_is_refused() {
         .await
         .unwrap_err()
         .to_string();
-    assert!(err.contains("\"FREC\"") && err.contains("remcon32"), "{err}");
+    assert!(
+        err.contains("\"FREC\"") && err.contains("remcon32"),
+        "{err}"
+    );
 }
 
 #[tokio::test]
@@ -249,7 +255,14 @@ async fn a_large_tracking_frame_is_averaged_down_and_says_so() {
     assert_eq!((frame.width, frame.height), (25, 15));
     assert!((frame.meta.pixel_size_um - 0.2).abs() < 1e-12);
     let origin = frame.origin.unwrap();
-    assert_eq!((origin.stored_width, origin.stored_height, origin.downsampled), (100, 60, 4));
+    assert_eq!(
+        (
+            origin.stored_width,
+            origin.stored_height,
+            origin.downsampled
+        ),
+        (100, 60, 4)
+    );
 }
 
 #[test]
