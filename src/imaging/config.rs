@@ -63,6 +63,7 @@ impl ImagingProtocol {
 /// | `watch_stable_polls` | 3 | watch-folder: …and over at least this many listings |
 /// | `watch_timeout_s` | 300 | watch-folder: longest wait for one new micrograph |
 /// | `watch_max_file_mb` | 1024 | watch-folder: larger files are never read |
+/// | `watch_check_tilt` | true | watch-folder: compare the tilt a file records with the stage's (false for a tilt stage the SEM does not know) |
 /// | `tilt_tolerance_deg` | 0.5 | watch-folder: a file recording a tilt this far from the stage's is refused |
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -83,6 +84,7 @@ pub struct ImagingConfig {
     pub watch_stable_polls: u32,
     pub watch_timeout_s: f64,
     pub watch_max_file_mb: u64,
+    pub watch_check_tilt: bool,
     pub tilt_tolerance_deg: f64,
 }
 
@@ -113,6 +115,7 @@ impl Default for ImagingConfig {
             watch_stable_polls: 3,
             watch_timeout_s: 300.0,
             watch_max_file_mb: 1024,
+            watch_check_tilt: true,
             tilt_tolerance_deg: 0.5,
         }
     }

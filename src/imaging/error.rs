@@ -87,7 +87,7 @@ pub enum ImagingError {
         seen: String,
     },
     #[error(
-        "{file} records a stage tilt of {recorded_deg}° but the stage is at {stage_deg}° (more than imaging.tilt_tolerance_deg = {tolerance_deg}° apart): refused, not used; is it a late file of another step, or is the SEM storing another stage's tilt?"
+        "{file} records a stage tilt of {recorded_deg}° but the stage is at {stage_deg}° (more than imaging.tilt_tolerance_deg = {tolerance_deg}° apart): refused, not used; is it a late file of another step? (with a tilt stage the SEM does not know, set imaging.watch_check_tilt = false)"
     )]
     WrongTilt {
         file: PathBuf,

@@ -255,7 +255,8 @@ impl WatchFolderSource {
             mtime_ns,
         } = stored;
         let meta = &m.metadata;
-        if let (Some(recorded), Some(stage)) = (meta.tilt_deg, stage)
+        if let (true, Some(recorded), Some(stage)) =
+            (self.cfg.watch_check_tilt, meta.tilt_deg, stage)
             && (recorded - stage.tilt_deg).abs() > self.cfg.tilt_tolerance_deg
         {
             return Err(ImagingError::WrongTilt {
@@ -265,8 +266,8 @@ impl WatchFolderSource {
                 tolerance_deg: self.cfg.tilt_tolerance_deg,
             });
         }
-        if meta.tilt_deg.is_none() {
-            warn!(file = %m.path.display(), "the file records no stage tilt: the stage's is used");
+        if self.cfg.watch_check_tilt && meta.tilt_deg.is_none() {
+            warn!(file = %m.path.display(), "the file records no stage tilt to check: the stage's is used");
         }
         let pixel = meta
             .pixel_size_um

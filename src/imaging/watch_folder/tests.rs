@@ -163,6 +163,26 @@ async fn a_wrong_tilt_is_refused_naming_both_tilts() {
         text.contains("late.tif") && text.contains("5°") && text.contains("4°"),
         "{text}"
     );
+
+    // An aftermarket tilt stage: the file records the SEM's own stage, not the series'
+    // tilt; with the check off the frame is used and still says what the file recorded.
+    let bytes = micrograph_bytes(32, 24, 0.0, 0.1);
+    let path = dir.path().join("own_stage.tif");
+    let mut trigger = FakeTrigger {
+        sent: Arc::default(),
+        on_trigger: Box::new(move || std::fs::write(&path, &bytes).unwrap()),
+    };
+    source.cfg.watch_check_tilt = false;
+    let context = GrabContext {
+        stage: at_tilt(6.0),
+        trigger: Some(&mut trigger),
+    };
+    let frame = source
+        .grab_with(request(Role::Right, 32, 24), context)
+        .await
+        .unwrap();
+    assert_eq!(frame.meta.tilt_deg, 6.0);
+    assert_eq!(frame.origin.unwrap().recorded_tilt_deg, Some(0.0));
 }
 
 #[tokio::test]
