@@ -7,14 +7,13 @@ use std::sync::{Arc, Mutex, PoisonError};
 
 use tracing::info;
 
+use super::stage_trigger::carries_sem_commands;
 use crate::config::Config;
 use crate::imaging::{
     FrameSource, ImagingConfig, ImagingError, ImagingProtocol, SemLinkClient, WatchFolderSource,
 };
 use crate::record::RecorderHandle;
-use crate::stage::{
-    StageConfig, StageDriver, StageError, StageIo, StageLink, StageObserver, StageState,
-};
+use crate::stage::{StageConfig, StageDriver, StageError, StageIo, StageObserver, StageState};
 
 /// Why the instruments cannot be reached.
 #[derive(Debug, thiserror::Error)]
@@ -84,7 +83,7 @@ impl StageObserver for RunObserver {
 
 /// The connected instruments.
 pub struct Instruments {
-    pub stage: StageDriver<StageLink>,
+    pub stage: StageDriver,
     /// The frame source `imaging.protocol` chose.
     pub imaging: Box<dyn FrameSource>,
     /// Identification strings, for the record.
@@ -118,8 +117,9 @@ impl Instruments {
         let (stage_config, imaging_config, simulator) = Self::endpoints(config)?;
         if imaging_config.protocol == ImagingProtocol::WatchFolder
             && !imaging_config.trigger.trim().is_empty()
+            && !carries_sem_commands(stage_config.protocol)
         {
-            // No stage driver here can carry an SEM command: refused before anything moves.
+            // Refused before anything is opened or moved.
             return Err(ImagingError::NoTriggerLink {
                 command: imaging_config.trigger.trim().to_owned(),
             }

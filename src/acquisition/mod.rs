@@ -7,6 +7,7 @@ pub mod job;
 pub mod machine;
 pub mod plan;
 pub mod runner;
+pub mod stage_trigger;
 
 pub use cancel::{Cancel, CancelHandle, cancel_pair};
 pub use instruments::{Instruments, InstrumentsError, RunObserver};

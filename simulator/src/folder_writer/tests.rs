@@ -175,3 +175,59 @@ fn settings_are_checked() {
             .contains("folder.prefix")
     );
 }
+
+#[test]
+fn remcon_frec_over_the_stage_link_stores_a_micrograph() {
+    use std::io::{BufRead, BufReader};
+
+    use crate::config::{SimConfig, SimStageProtocol};
+
+    let dir = tempfile::tempdir().unwrap();
+    let mut c = SimConfig {
+        seed: 4,
+        time_scale: 0.01,
+        ..SimConfig::default()
+    };
+    c.stage.protocol = SimStageProtocol::Remcon32;
+    c.sem.scene.kind = SceneKind::Grid;
+    c.sem.scene.field_um = 40.0;
+    c.sem.optics.width = 128;
+    c.sem.optics.height = 96;
+    c.folder = Some(FolderSimConfig {
+        vendor: Vendor::Fei,
+        ..config(dir.path())
+    });
+    let sim = crate::Simulator::spawn(c).unwrap();
+    assert!(
+        sim.endpoint_lines()
+            .contains(&format!("folder {}", dir.path().display()))
+    );
+    let addr = sim
+        .stage_endpoint()
+        .strip_prefix("tcp://")
+        .unwrap()
+        .to_owned();
+    let stream = std::net::TcpStream::connect(addr).unwrap();
+    stream
+        .set_read_timeout(Some(Duration::from_secs(10)))
+        .unwrap();
+    let mut reader = BufReader::new(stream.try_clone().unwrap());
+    (&stream).write_all(b"FREC\r").unwrap();
+    let mut lines = [String::new(), String::new()];
+    for line in &mut lines {
+        reader.read_line(line).unwrap();
+    }
+    assert_eq!(lines, ["@\r\n", ">\r\n"], "accepted, then done");
+    let folder = sim.folder().unwrap();
+    let start = std::time::Instant::now();
+    while folder.stored().is_empty() && start.elapsed() < Duration::from_secs(10) {
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    let stored = folder.stored();
+    assert_eq!(stored.len(), 1, "one FREC, one micrograph");
+    assert_eq!(stored[0].path, dir.path().join("image_0001.tif"));
+    assert!(
+        sim.frame(stored[0].frame).is_some(),
+        "the same SEM's frame: ground truth known"
+    );
+}
