@@ -238,7 +238,15 @@ impl Config {
         self.stage
             .validate()
             .map_err(|e| ConfigError::Rule(e.to_string()))?;
-        self.imaging
+        // The in-process simulator's store folder stands in for an unset watch_dir, as its
+        // endpoints do for the configured ones.
+        let mut imaging = self.imaging.clone();
+        if let Some(folder) = self.simulator.as_ref().and_then(|s| s.folder.as_ref())
+            && imaging.watch_dir.as_os_str().is_empty()
+        {
+            imaging.watch_dir.clone_from(&folder.dir);
+        }
+        imaging
             .validate()
             .map_err(|e| ConfigError::Rule(e.to_string()))?;
         let t = &self.tracking;

@@ -218,3 +218,82 @@ async fn fei_files_lose_their_data_bar() {
 async fn tescan_files_lose_their_info_strip() {
     series(Vendor::Tescan).await;
 }
+
+/// `sdsem acquire` refuses a watch-folder configuration it cannot run, in one line naming
+/// the key and the remedy, before any stage command.
+#[test]
+fn unusable_watch_folder_configurations_are_refused_in_one_line() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    let config = dir.path().join("watch.toml");
+    std::fs::write(
+        &config,
+        format!(
+            r#"[run]
+output_dir = "{runs}"
+reconstruct = false
+
+[stage]
+axis_x = "X"
+axis_y = "Y"
+axis_tilt = "T"
+
+[imaging]
+protocol = "watch-folder"
+
+[simulator]
+time_scale = 0.01
+
+[simulator.sem.scene]
+field_um = 40.0
+
+[simulator.folder]
+dir = "{store}"
+"#,
+            runs = dir.path().join("runs").display(),
+            store = store.display()
+        ),
+    )
+    .unwrap();
+    let cases: [(&str, &[&str], &[&str]); 3] = [
+        (
+            "a trigger a PI stage cannot carry",
+            &["imaging.trigger=FREC"],
+            &["\"FREC\"", "stage.protocol = \"remcon32\""],
+        ),
+        (
+            "no tilt axis to reconstruct with",
+            &["run.reconstruct=true"],
+            &["reconstruction.tilt_axis_deg"],
+        ),
+        (
+            "a one-shot stability",
+            &["imaging.watch_stable_polls=1"],
+            &["imaging.watch_stable_polls"],
+        ),
+    ];
+    for (what, sets, needles) in cases {
+        let mut args = vec![
+            "acquire".to_owned(),
+            "--config".to_owned(),
+            config.display().to_string(),
+        ];
+        for s in sets {
+            args.extend(["--set".to_owned(), (*s).to_owned()]);
+        }
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_sdsem"))
+            .args(&args)
+            .stdin(std::process::Stdio::null())
+            .output()
+            .unwrap();
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success(), "{what}: accepted");
+        let last = stderr.lines().last().unwrap_or_default();
+        for needle in needles {
+            assert!(
+                last.contains(needle),
+                "{what}: {needle:?} not in {stderr:?}"
+            );
+        }
+    }
+}
