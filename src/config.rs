@@ -238,7 +238,15 @@ impl Config {
         self.stage
             .validate()
             .map_err(|e| ConfigError::Rule(e.to_string()))?;
-        self.imaging
+        // The in-process simulator's store folder stands in for an unset watch_dir, as its
+        // endpoints do for the configured ones.
+        let mut imaging = self.imaging.clone();
+        if let Some(folder) = self.simulator.as_ref().and_then(|s| s.folder.as_ref())
+            && imaging.watch_dir.as_os_str().is_empty()
+        {
+            imaging.watch_dir.clone_from(&folder.dir);
+        }
+        imaging
             .validate()
             .map_err(|e| ConfigError::Rule(e.to_string()))?;
         let t = &self.tracking;
@@ -247,6 +255,16 @@ impl Config {
                 "tracking.gain = {} must lie in (0, 1]",
                 t.gain
             )));
+        }
+        if self.imaging.protocol == crate::imaging::ImagingProtocol::WatchFolder
+            && self.run.reconstruct
+            && self.reconstruction.tilt_axis_deg.is_none()
+        {
+            return Err(ConfigError::Rule(
+                "imaging.protocol = \"watch-folder\": stored micrographs do not record the tilt axis; \
+                 set reconstruction.tilt_axis_deg (the direction of the stage tilt axis in the image)"
+                    .into(),
+            ));
         }
         if self.run.name.trim().is_empty() || self.run.name.contains('/') {
             return Err(ConfigError::Rule(format!(

@@ -5,7 +5,9 @@
 //! drift apart:
 //!
 //! - [`gcs`]: the PI GCS 2.0 subset spoken by the stage controller.
+//! - [`remcon`]: Zeiss SmartSEM RemCon32, the SEM's own stage (and store triggers).
 //! - [`sem`]: the line protocol of the SEM imaging link.
 
 pub mod gcs;
+pub mod remcon;
 pub mod sem;

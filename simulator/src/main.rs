@@ -1,7 +1,8 @@
 //! `sdsem-sim` binary: build a [`SimConfig`] from an optional TOML file and the
 //! flags, start the stage controller and the SEM imaging server, print one
 //! machine-readable line per endpoint on stdout (`stage tcp://127.0.0.1:40123`,
-//! `sem tcp://127.0.0.1:40124`), then serve until killed or until stdin closes.
+//! `sem tcp://127.0.0.1:40124`, `folder /path` with a store folder), then serve
+//! until killed or until stdin closes.
 
 use std::io::{IsTerminal, Read, Write};
 use std::net::SocketAddr;
@@ -11,23 +12,36 @@ use anyhow::Context;
 use clap::Parser;
 use sdsem_protocol::gcs::AxisId;
 use sdsem_sim::scene::SceneKind;
-use sdsem_sim::{FaultTrigger, SimConfig, SimEndpoint, Simulator};
+use sdsem_sim::{FaultTrigger, SimConfig, SimEndpoint, SimStageProtocol, Simulator};
 
 const PROTOCOLS: &str = "\
 OUTPUT
   Once both instruments listen, one line per service on stdout:
     stage tcp://127.0.0.1:PORT      (or: stage /dev/pts/N with --stage-pty)
     sem tcp://127.0.0.1:PORT
+    folder /PATH                    (with a store folder: --store-dir or [folder])
   Logs go to stderr (RUST_LOG filters them). The simulator stops when killed
   or when its stdin, if a pipe or a terminal, closes.
 
-STAGE LINK (PI GCS 2.0 subset; ASCII lines ending in LF)
+STAGE LINK, --stage-protocol pi-gcs (the default; PI GCS 2.0 subset; ASCII lines ending in LF)
   Axes X, Y (µm) and T (tilt, °); --axis-names renames them.
   MOV|MVR <axis> <value> ...   SVO <axis> 0|1 ...   FRF [axes]   STP
   POS? ONT? SVO? FRF? TMN? TMX? [axes]   ERR?   *IDN?
   Single bytes: 0x05 motion bitmap, 0x07 ready (0xB1), 0x18 stop all.
   Commands do not answer: ask ERR? after one. Multi-axis replies end each
   line but the last with \" \\n\". Motion has finite speed, then settles.
+
+STAGE LINK with --stage-protocol remcon32 (Zeiss SmartSEM RemCon32; ASCII,
+  requests end in CR, LF or CR LF; replies are two lines ending in CR LF)
+  @ (accepted) or # (invalid) at once, then >data (done) or *NNN (failed).
+  C95? -> x y z t r m moving (mm, mm, mm, deg, deg, mm, 1.0 = moving)
+  C95 x y z t r m (all axes, absolute; returns before the move ends)
+  STG? STG x y z  IST? (type init, 0 = initialised)  ABO  VER?  PIX? (nm)
+  MAG?  FREC (store a photo)  MAC n (run macro REMCONn)  PHN? (photo count)
+  Unknown words: @ then *600; wrong value count to C95/STG: # alone;
+  targets beyond the limits: *603; an empty line (null command): no reply.
+  Faults as for GCS; a stale on-target flag is a moving flag set late, a move
+  error answers *613.
 
 SEM LINK (TCP; one request line, one reply header line, maybe a payload)
   *IDN?                                  -> IDN <vendor>,<model>,<serial>,<version>
@@ -41,6 +55,14 @@ SEM LINK (TCP; one request line, one reply header line, maybe a payload)
   metadata with the scan's wall-clock start and end) and takes w*h*dwell of
   simulated time. Samples are row-major little-endian, x right, y down.
 
+STORE FOLDER (the SEM's own software storing micrographs, VENDORS 4)
+  With --store-dir (or a [folder] table) the SEM also stores micrographs as
+  vendor TIFFs (zeiss: tag 34118; fei: tag 34682 and a data bar; tescan: tag
+  50431 and an info strip), scanned where the stage is, named PREFIX0001.tif,
+  PREFIX0002.tif, ...: every --store-every simulated seconds, and on request.
+  Faults in [folder]: write_s/write_chunks (slow, partial files),
+  temp_then_rename, stale_file, wrong_tilt (a recorded tilt that is off).
+
 TIME
   --time-scale is real seconds per simulated second: 0.01 makes moves,
   settling and scans 100x faster than real time. Late replies (a fault) are
@@ -48,8 +70,8 @@ TIME
 
 CONFIGURATION FILE
   --config FILE reads a TOML SimConfig: keys seed, time_scale and tables
-  [stage] (with [stage.faults]) and [sem] (with [sem.scene], [sem.optics],
-  [sem.walk], [sem.shading], [sem.noise]). A file with a [simulator] table
+  [stage] (with [stage.faults]), [sem] (with [sem.scene], [sem.optics],
+  [sem.walk], [sem.shading], [sem.noise]) and [folder]. A file with a [simulator] table
   (sdsem's configuration) is read from that table. Flags override the file.";
 
 /// Stage-and-SEM simulator for sdsem: a PI GCS 2.0 stage controller (axes X, Y
@@ -69,6 +91,9 @@ struct Args {
     /// Serve the stage controller on a new pseudo-terminal (its path is printed).
     #[arg(long)]
     stage_pty: bool,
+    /// The stage's language: pi-gcs (the default) or remcon32 (Zeiss SmartSEM RemCon32).
+    #[arg(long, value_name = "PROTOCOL")]
+    stage_protocol: Option<SimStageProtocol>,
     /// Serve the SEM imaging link on TCP at this address (`127.0.0.1:0` picks a free port; the default).
     #[arg(long, value_name = "ADDR")]
     sem_tcp: Option<String>,
@@ -263,6 +288,16 @@ struct Args {
     #[arg(long, value_name = "N", help_heading = "Stage faults")]
     disconnect_after: Option<u64>,
 
+    /// Also store micrographs as vendor TIFFs in this folder (created if missing).
+    #[arg(long, value_name = "DIR", help_heading = "Store folder")]
+    store_dir: Option<PathBuf>,
+    /// File format of the stored micrographs: zeiss, fei or tescan (default zeiss).
+    #[arg(long, value_name = "VENDOR", help_heading = "Store folder")]
+    store_vendor: Option<sdsem_sim::vendor_tiff::Vendor>,
+    /// Store one micrograph every S simulated seconds (default 0: only on request).
+    #[arg(long, value_name = "S", help_heading = "Store folder")]
+    store_every: Option<f64>,
+
     /// Serve until killed, whatever stdin does.
     #[arg(long)]
     ignore_stdin: bool,
@@ -333,6 +368,7 @@ impl Args {
         if self.stage_pty {
             c.stage.endpoint = SimEndpoint::Pty;
         }
+        set(&mut c.stage.protocol, self.stage_protocol);
         if let Some(addr) = &self.sem_tcp {
             c.sem.endpoint = tcp_endpoint("--sem-tcp", addr)?;
         }
@@ -393,6 +429,18 @@ impl Args {
         set(&mut f.move_error_code, self.move_error_code);
         if self.disconnect_after.is_some() {
             f.disconnect_after_commands = self.disconnect_after;
+        }
+        if let Some(dir) = self.store_dir {
+            c.folder.get_or_insert_with(Default::default).dir = dir;
+        }
+        if self.store_vendor.is_some() || self.store_every.is_some() {
+            let Some(folder) = c.folder.as_mut() else {
+                anyhow::bail!(
+                    "--store-vendor and --store-every need --store-dir (or a [folder] table)"
+                );
+            };
+            set(&mut folder.vendor, self.store_vendor);
+            set(&mut folder.every_s, self.store_every);
         }
         c.validate()?;
         Ok(c)

@@ -11,14 +11,17 @@ use tracing::{info, warn};
 
 use crate::SimError;
 use crate::clock::{Clock, ScaledClock};
-use crate::config::{SimConfig, SimEndpoint};
+use crate::config::{SimConfig, SimEndpoint, SimStageProtocol};
+use crate::folder_writer::{self, FolderWriter, StoreRequests};
 use crate::pose::PoseSource;
+use crate::remcon::RemconStage;
 use crate::scene::Scene;
 use crate::sem::{FrameRecord, SimSem};
 use crate::sem_server;
 use crate::stage::SimStage;
-use crate::stage_link::{serve_pty, serve_tcp};
+use crate::stage_link::{SessionFactory, gcs_sessions, serve_pty, serve_tcp};
 use crate::stage_model::StageSnapshot;
+use crate::store::StoreTrigger;
 
 /// One endpoint the simulator serves, e.g. `stage` at `tcp://127.0.0.1:40123`.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -105,14 +108,32 @@ impl Simulator {
             stage: Arc::clone(&stage),
             sem: Arc::clone(&sem),
             sem_addr: SocketAddr::from(([127, 0, 0, 1], 0)),
-            clock,
+            clock: Arc::clone(&clock),
             stop: Arc::clone(&stop),
             config: config.clone(),
+            folder: None,
+            store: Arc::new(StoreTrigger::default()),
+        };
+        let sessions: SessionFactory = match config.stage.protocol {
+            SimStageProtocol::PiGcs => gcs_sessions(stage),
+            SimStageProtocol::Remcon32 => {
+                // PIX? is the full field width / 1024 [SF]; MAG? by this
+                // simulator's own convention: a 100 mm wide display.
+                let o = &config.sem.optics;
+                let field_um = o.pixel_size_um * o.width as f64;
+                RemconStage::sessions(Arc::new(RemconStage::new(
+                    stage,
+                    &config.stage.remcon,
+                    field_um * 1000.0 / 1024.0,
+                    100_000.0 / field_um,
+                    Arc::clone(&handle.store),
+                )))
+            }
         };
         // On an error below, dropping `handle` stops what already runs.
         let server = match &config.stage.endpoint {
-            SimEndpoint::Tcp(addr) => serve_tcp(*addr, stage, Arc::clone(&stop))?,
-            SimEndpoint::Pty => serve_pty(stage, Arc::clone(&stop))?,
+            SimEndpoint::Tcp(addr) => serve_tcp(*addr, sessions, Arc::clone(&stop))?,
+            SimEndpoint::Pty => serve_pty(&sessions, Arc::clone(&stop))?,
         };
         handle.add("stage", server);
         let SimEndpoint::Tcp(sem_addr) = config.sem.endpoint else {
@@ -122,9 +143,26 @@ impl Simulator {
                 reason: "the SEM imaging link is TCP only".into(),
             });
         };
-        let server = sem_server::serve_tcp(sem_addr, sem, Arc::clone(&stop))?;
+        let server = sem_server::serve_tcp(sem_addr, Arc::clone(&sem), Arc::clone(&stop))?;
         handle.sem_addr = server.wake.unwrap_or(sem_addr);
         handle.add("sem", server);
+        if let Some(folder) = &config.folder {
+            let seed = folder.seed.unwrap_or(config.seed);
+            let writer = Arc::new(FolderWriter::new(folder, seed, sem, clock)?);
+            let (requests, server) = folder_writer::serve(Arc::clone(&writer), Arc::clone(&stop))?;
+            // RemCon32 FREC / MAC n: the SEM stores a micrograph on its own thread; the
+            // command is done once asked, the file arrives when scanned and written.
+            let line = requests.clone();
+            handle.store.set_hook(Arc::new(move |_request| {
+                if line.store_now() {
+                    Ok(())
+                } else {
+                    Err("the store folder has stopped".into())
+                }
+            }));
+            handle.folder = Some((writer, requests));
+            handle.add("folder", server);
+        }
         info!(
             seed = config.seed,
             time_scale = config.time_scale,
@@ -146,6 +184,9 @@ pub struct SimHandle {
     clock: Arc<dyn Clock>,
     stop: Arc<AtomicBool>,
     config: SimConfig,
+    /// The store folder's writer and its request line, when configured.
+    folder: Option<(Arc<FolderWriter>, StoreRequests)>,
+    store: Arc<StoreTrigger>,
 }
 
 impl SimHandle {
@@ -164,7 +205,7 @@ impl SimHandle {
             .map_or("", |e| e.address.as_str())
     }
 
-    /// Every endpoint served: `stage`, then `sem`.
+    /// Every endpoint served: `stage`, then `sem`, then `folder` (its path) when configured.
     pub fn endpoints(&self) -> &[ServiceEndpoint] {
         &self.endpoints
     }
@@ -215,6 +256,17 @@ impl SimHandle {
         Arc::clone(&self.stage) as Arc<dyn PoseSource>
     }
 
+    /// The SEM's store folder, when configured: what it stored, and its settings.
+    pub fn folder(&self) -> Option<&Arc<FolderWriter>> {
+        self.folder.as_ref().map(|(w, _)| w)
+    }
+
+    /// A line to ask the store folder for one micrograph now (the RemCon32 `FREC` / `MAC n`
+    /// hook), when configured.
+    pub fn store_requests(&self) -> Option<StoreRequests> {
+        self.folder.as_ref().map(|(_, r)| r.clone())
+    }
+
     /// The simulated SEM.
     pub fn sem(&self) -> &Arc<SimSem> {
         &self.sem
@@ -240,6 +292,12 @@ impl SimHandle {
     /// The number of the last frame scanned, if any.
     pub fn last_frame(&self) -> Option<u64> {
         self.sem.last_frame()
+    }
+
+    /// Where "store a micrograph now" requests from the stage link (RemCon32
+    /// `FREC`, `MAC n`) go: set a hook on it (the watch-folder writer).
+    pub fn store_trigger(&self) -> &Arc<StoreTrigger> {
+        &self.store
     }
 
     /// The simulator's clock.

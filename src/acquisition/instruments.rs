@@ -1,17 +1,19 @@
-//! The instruments of a run: the stage driver, the SEM link and, when the
-//! configuration asks for it, the in-process simulator behind both. One owner
+//! The instruments of a run: the stage driver, the frame source chosen by
+//! `imaging.protocol` (the SEM link or a watched folder) and, when the
+//! configuration asks for it, the in-process simulator behind them. One owner
 //! for all three, so a run (or the daemon between runs) holds them together.
 
 use std::sync::{Arc, Mutex, PoisonError};
 
 use tracing::info;
 
+use super::stage_trigger::carries_sem_commands;
 use crate::config::Config;
-use crate::imaging::{ImagingConfig, ImagingError, SemLinkClient};
-use crate::record::RecorderHandle;
-use crate::stage::{
-    StageConfig, StageDriver, StageError, StageIo, StageLink, StageObserver, StageState,
+use crate::imaging::{
+    FrameSource, ImagingConfig, ImagingError, ImagingProtocol, SemLinkClient, WatchFolderSource,
 };
+use crate::record::RecorderHandle;
+use crate::stage::{StageConfig, StageDriver, StageError, StageIo, StageObserver, StageState};
 
 /// Why the instruments cannot be reached.
 #[derive(Debug, thiserror::Error)]
@@ -20,7 +22,7 @@ pub enum InstrumentsError {
     Simulator(sdsem_sim::SimError),
     #[error("stage: {0}")]
     Stage(StageError),
-    #[error("SEM imaging link: {0}")]
+    #[error("SEM imaging: {0}")]
     Imaging(ImagingError),
 }
 
@@ -81,8 +83,9 @@ impl StageObserver for RunObserver {
 
 /// The connected instruments.
 pub struct Instruments {
-    pub stage: StageDriver<StageLink>,
-    pub imaging: SemLinkClient,
+    pub stage: StageDriver,
+    /// The frame source `imaging.protocol` chose.
+    pub imaging: Box<dyn FrameSource>,
     /// Identification strings, for the record.
     pub stage_identity: String,
     pub sem_identity: String,
@@ -112,10 +115,21 @@ impl Instruments {
         observer: Arc<RunObserver>,
     ) -> Result<Self, InstrumentsError> {
         let (stage_config, imaging_config, simulator) = Self::endpoints(config)?;
+        if imaging_config.protocol == ImagingProtocol::WatchFolder
+            && !imaging_config.trigger.trim().is_empty()
+            && !carries_sem_commands(stage_config.protocol)
+        {
+            // Refused before anything is opened or moved.
+            return Err(ImagingError::NoTriggerLink {
+                command: imaging_config.trigger.trim().to_owned(),
+            }
+            .into());
+        }
         let dyn_observer: Arc<dyn StageObserver> = observer.clone();
         let stage = StageDriver::open(stage_config, dyn_observer).await?;
         let stage_identity = stage.identity().to_owned();
-        let (imaging, sem_identity) = SemLinkClient::connect(imaging_config).await?;
+        let (imaging, sem_identity) =
+            Self::frame_source(imaging_config, config.reconstruction.tilt_axis_deg).await?;
         info!(stage = %stage_identity, sem = %sem_identity, "instruments connected");
         Ok(Self {
             stage,
@@ -124,6 +138,23 @@ impl Instruments {
             sem_identity,
             observer,
             simulator,
+        })
+    }
+
+    /// The frame source of `imaging.protocol`, connected, with its identification.
+    async fn frame_source(
+        imaging: ImagingConfig,
+        tilt_axis_deg: Option<f64>,
+    ) -> Result<(Box<dyn FrameSource>, String), ImagingError> {
+        Ok(match imaging.protocol {
+            ImagingProtocol::SdsemLink => {
+                let (client, id) = SemLinkClient::connect(imaging).await?;
+                (Box::new(client), id)
+            }
+            ImagingProtocol::WatchFolder => {
+                let (source, id) = WatchFolderSource::connect(imaging, tilt_axis_deg).await?;
+                (Box::new(source), id)
+            }
         })
     }
 
@@ -140,6 +171,10 @@ impl Instruments {
         let sim = sdsem_sim::Simulator::spawn(sim_config.clone())?;
         stage.endpoint = sim.stage_endpoint().to_owned();
         imaging.endpoint = sim.sem_endpoint().to_owned();
+        if let Some(folder) = sim.folder() {
+            // The simulated SEM's store folder is the one to watch.
+            imaging.watch_dir = folder.dir().to_owned();
+        }
         info!(
             stage = %stage.endpoint,
             sem = %imaging.endpoint,

@@ -8,6 +8,7 @@ pub mod machine;
 pub mod plan;
 pub mod run_dir;
 pub mod runner;
+pub mod stage_trigger;
 
 pub use cancel::{Cancel, CancelHandle, cancel_pair};
 pub use instruments::{Instruments, InstrumentsError, RunObserver};

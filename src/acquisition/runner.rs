@@ -6,14 +6,14 @@
 use std::time::Instant;
 
 use serde::Serialize;
-use tokio::io::{AsyncRead, AsyncWrite};
 use tracing::{error, info, warn};
 
 use super::cancel::Cancel;
 use super::machine::{Action, Event, FrameRole, Outcome, Series, Tracked};
-use crate::imaging::{Frame, FrameSource, ImagingConfig, Pixels as FramePixels};
+use super::stage_trigger::StageTrigger;
+use crate::imaging::{Frame, FrameSource, GrabContext, ImagingConfig, Pixels as FramePixels};
 use crate::record::{self, Entry, FrameInfo, Pixels, RecorderHandle, topics};
-use crate::stage::{StageDriver, StagePosition};
+use crate::stage::{StageBackend, StageDriver, StagePosition};
 use crate::vision::Image;
 use crate::vision::registration::{PhaseCorrelationParams, phase_correlation};
 
@@ -67,7 +67,7 @@ pub struct SeriesRecord {
 }
 
 /// The instruments and the record a series works with.
-pub struct SeriesContext<'a, T> {
+pub struct SeriesContext<'a, T: StageBackend> {
     pub stage: &'a mut StageDriver<T>,
     pub imaging: &'a mut dyn FrameSource,
     pub imaging_config: &'a ImagingConfig,
@@ -85,7 +85,7 @@ pub async fn run_series<T>(
     cancel: &mut Cancel,
 ) -> SeriesRecord
 where
-    T: AsyncRead + AsyncWrite + Unpin + Send,
+    T: StageBackend,
 {
     let started = Instant::now();
     let mut run = RunState {
@@ -209,7 +209,7 @@ async fn cancellable<F: std::future::Future>(
 /// what this step exists to prevent; the driver's timeouts bound it.
 async fn return_to_safe<T>(stage: &mut StageDriver<T>, tilt_deg: f64, stop_first: bool) -> Event
 where
-    T: AsyncRead + AsyncWrite + Unpin + Send,
+    T: StageBackend,
 {
     if stop_first && let Err(e) = stage.stop().await {
         warn!("STP before returning to the safe tilt failed: {e}");
@@ -260,14 +260,21 @@ impl RunState {
         role: FrameRole,
     ) -> Event
     where
-        T: AsyncRead + AsyncWrite + Unpin + Send,
+        T: StageBackend,
     {
         (ctx.progress)(&format!(
             "step {step}: capturing the {role} frame at {tilt_deg:.3}°"
         ));
         let request = ctx.imaging_config.request(role);
         let t0 = Instant::now();
-        let grabbed = cancellable(cancel, ctx.imaging.grab(request)).await;
+        // The verified position lets a file-based source check the tilt its file records;
+        // the stage link carries its trigger (`imaging.trigger`).
+        let mut trigger = StageTrigger(&mut *ctx.stage);
+        let context = GrabContext {
+            stage: self.position,
+            trigger: Some(&mut trigger),
+        };
+        let grabbed = cancellable(cancel, ctx.imaging.grab_with(request, context)).await;
         let grab_s = t0.elapsed().as_secs_f64();
         let frame = match grabbed {
             Err(reason) => return Event::Cancelled { reason },
@@ -375,7 +382,7 @@ impl RunState {
         dy_um: f64,
     ) -> Event
     where
-        T: AsyncRead + AsyncWrite + Unpin + Send,
+        T: StageBackend,
     {
         let here = match self.position {
             Some(p) => p,
@@ -429,6 +436,7 @@ impl RunState {
             height: h,
             tilt_axis_deg: Some(frame.meta.tilt_axis_deg),
             drift_px: self.pending_drift.take(),
+            file: frame.origin.clone(),
         };
         let image = Entry::image(
             topics::SEM_FRAME,

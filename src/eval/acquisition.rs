@@ -1119,6 +1119,7 @@ mod tests {
             height,
             tilt_axis_deg: None,
             drift_px: None,
+            file: None,
         }
     }
 

@@ -1,5 +1,6 @@
-//! Settings of the SEM imaging link.
+//! Settings of the SEM imaging: which source (the sdsem imaging link or a watched folder) and how to scan.
 
+use std::path::PathBuf;
 use std::time::Duration;
 
 use sdsem_protocol::sem::{Bits, GrabRequest, Role};
@@ -20,23 +21,71 @@ pub struct ScanSettings {
     pub dwell_us: f64,
 }
 
+/// Where frames come from (`imaging.protocol`, DESIGN §7b).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum ImagingProtocol {
+    /// sdsem's own imaging line protocol over TCP ([`sdsem_protocol::sem`]).
+    #[default]
+    SdsemLink,
+    /// The SEM's software stores each micrograph as a TIFF in a folder sdsem reads (VENDORS §4).
+    WatchFolder,
+}
+
+impl ImagingProtocol {
+    /// The name as written in the configuration.
+    #[must_use]
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::SdsemLink => "sdsem-link",
+            Self::WatchFolder => "watch-folder",
+        }
+    }
+}
+
 /// How to reach the SEM and how to scan.
 ///
 /// | key | default | effect |
 /// | --- | --- | --- |
+/// | `protocol` | `sdsem-link` | where frames come from: `sdsem-link` (TCP) or `watch-folder` (TIFFs the SEM stores) |
 /// | `endpoint` | `127.0.0.1:7520` | host:port of the SEM imaging server (sdsem-sim's or a microscope adapter's) |
 /// | `micrograph` | 1280 × 960, 10 µs | the left and right micrographs (12.3 s per frame) |
 /// | `tracking` | 320 × 240, 1 µs | the quick frame after each tilt step (77 ms) |
 /// | `bits` | 16 | sample depth, 8 or 16 |
 /// | `timeout_ms` | 5000 | connecting, and waiting for a reply beyond the scan time itself |
+/// | `watch_dir` | "" | watch-folder: the folder the SEM stores its micrographs in |
+/// | `trigger` | "" | watch-folder: command sent over the stage link to store one micrograph ("" = wait) |
+/// | `watch_patterns` | `*.tif`, `*.tiff` | watch-folder: names of micrographs (case-insensitive) |
+/// | `watch_ignore` | `~*`, `.*`, `*.tmp`, `*.part` | watch-folder: temporary names never read |
+/// | `watch_sidecar` | "" | watch-folder: extension of a metadata file beside each image (`txt`: Hitachi, JEOL) |
+/// | `watch_poll_ms` | 250 | watch-folder: interval between folder listings |
+/// | `watch_stable_ms` | 2000 | watch-folder: size and mtime unchanged this long before a file is read |
+/// | `watch_stable_polls` | 3 | watch-folder: …and over at least this many listings |
+/// | `watch_timeout_s` | 300 | watch-folder: longest wait for one new micrograph |
+/// | `watch_max_file_mb` | 1024 | watch-folder: larger files are never read |
+/// | `watch_check_tilt` | true | watch-folder: compare the tilt a file records with the stage's (false for a tilt stage the SEM does not know) |
+/// | `tilt_tolerance_deg` | 0.5 | watch-folder: a file recording a tilt this far from the stage's is refused |
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct ImagingConfig {
+    pub protocol: ImagingProtocol,
     pub endpoint: String,
     pub micrograph: ScanSettings,
     pub tracking: ScanSettings,
     pub bits: u8,
     pub timeout_ms: u64,
+    pub watch_dir: PathBuf,
+    pub trigger: String,
+    pub watch_patterns: Vec<String>,
+    pub watch_ignore: Vec<String>,
+    pub watch_sidecar: String,
+    pub watch_poll_ms: u64,
+    pub watch_stable_ms: u64,
+    pub watch_stable_polls: u32,
+    pub watch_timeout_s: f64,
+    pub watch_max_file_mb: u64,
+    pub watch_check_tilt: bool,
+    pub tilt_tolerance_deg: f64,
 }
 
 impl Default for ImagingConfig {
@@ -55,6 +104,19 @@ impl Default for ImagingConfig {
             },
             bits: 16,
             timeout_ms: 5000,
+            protocol: ImagingProtocol::SdsemLink,
+            watch_dir: PathBuf::new(),
+            trigger: String::new(),
+            watch_patterns: vec!["*.tif".into(), "*.tiff".into()],
+            watch_ignore: vec!["~*".into(), ".*".into(), "*.tmp".into(), "*.part".into()],
+            watch_sidecar: String::new(),
+            watch_poll_ms: 250,
+            watch_stable_ms: 2000,
+            watch_stable_polls: 3,
+            watch_timeout_s: 300.0,
+            watch_max_file_mb: 1024,
+            watch_check_tilt: true,
+            tilt_tolerance_deg: 0.5,
         }
     }
 }
@@ -72,7 +134,9 @@ impl ImagingConfig {
                 expected,
             }
         };
-        if self.address().is_empty() || !self.address().contains(':') {
+        if self.protocol == ImagingProtocol::SdsemLink
+            && (self.address().is_empty() || !self.address().contains(':'))
+        {
             return Err(invalid(
                 "imaging.endpoint",
                 self.endpoint.clone(),
@@ -109,7 +173,91 @@ impl ImagingConfig {
                 "a positive number of milliseconds",
             ));
         }
+        if self.protocol == ImagingProtocol::WatchFolder {
+            self.validate_watch()?;
+        }
         Ok(())
+    }
+
+    /// The watch-folder keys, checked only when that source is chosen.
+    fn validate_watch(&self) -> Result<(), ImagingError> {
+        let invalid = |name: &'static str, value: String, expected: &'static str| {
+            ImagingError::InvalidConfig {
+                name,
+                value,
+                expected,
+            }
+        };
+        if self.watch_dir.as_os_str().is_empty() {
+            return Err(invalid(
+                "imaging.watch_dir",
+                String::new(),
+                "the folder the SEM stores its micrographs in (imaging.protocol = \"watch-folder\")",
+            ));
+        }
+        if self.watch_patterns.iter().all(|p| p.trim().is_empty()) {
+            return Err(invalid(
+                "imaging.watch_patterns",
+                format!("{:?}", self.watch_patterns),
+                "at least one file name pattern, e.g. [\"*.tif\"]",
+            ));
+        }
+        if self.watch_sidecar.contains(['.', '/', '\\', '*']) {
+            return Err(invalid(
+                "imaging.watch_sidecar",
+                self.watch_sidecar.clone(),
+                "an extension without dot, e.g. \"txt\", or \"\"",
+            ));
+        }
+        if self.watch_poll_ms == 0 {
+            return Err(invalid(
+                "imaging.watch_poll_ms",
+                "0".to_owned(),
+                "a positive number of milliseconds",
+            ));
+        }
+        if self.watch_stable_polls < 2 {
+            return Err(invalid(
+                "imaging.watch_stable_polls",
+                self.watch_stable_polls.to_string(),
+                "2 or more (a file must be seen unchanged at least twice)",
+            ));
+        }
+        if !(self.watch_timeout_s.is_finite() && self.watch_timeout_s > 0.0) {
+            return Err(invalid(
+                "imaging.watch_timeout_s",
+                self.watch_timeout_s.to_string(),
+                "a positive number of seconds",
+            ));
+        }
+        if self.watch_max_file_mb == 0 {
+            return Err(invalid(
+                "imaging.watch_max_file_mb",
+                "0".to_owned(),
+                "a positive number of MiB",
+            ));
+        }
+        if !(self.tilt_tolerance_deg.is_finite() && self.tilt_tolerance_deg > 0.0) {
+            return Err(invalid(
+                "imaging.tilt_tolerance_deg",
+                self.tilt_tolerance_deg.to_string(),
+                "a positive number of degrees",
+            ));
+        }
+        Ok(())
+    }
+
+    /// The settings the connection depends on: all but the per-scan ones (sizes, dwell, depth),
+    /// so a reloaded configuration that changes the source or how it is reached reconnects.
+    #[must_use]
+    pub fn link_settings(&self) -> Self {
+        let d = Self::default();
+        Self {
+            micrograph: d.micrograph,
+            tracking: d.tracking,
+            bits: d.bits,
+            ..self.clone()
+        }
     }
 
     /// The scan request for a frame of `role`: micrograph settings for left and

@@ -1,5 +1,6 @@
 //! Errors of the imaging layer.
 
+use std::path::PathBuf;
 use std::time::Duration;
 
 use sdsem_protocol::sem::ReplyError;
@@ -65,4 +66,49 @@ pub enum ImagingError {
         value: String,
         expected: &'static str,
     },
+    #[error(
+        "cannot read the watch folder {dir}: {error}; is the share mounted and readable, and is imaging.watch_dir right?"
+    )]
+    WatchFolder {
+        dir: PathBuf,
+        /// Not a `source`: the message already shows it.
+        error: std::io::Error,
+    },
+    #[error(
+        "no new micrograph in {dir} within {after:?}{}{}; is the SEM storing to that folder? is the share mounted? (raise imaging.watch_timeout_s for slow scans)",
+        if trigger.is_empty() { String::new() } else { format!(" after sending {trigger:?}") },
+        if seen.is_empty() { String::new() } else { format!(" ({seen})") }
+    )]
+    NoNewFile {
+        dir: PathBuf,
+        after: Duration,
+        trigger: String,
+        /// What was seen and not used, or "".
+        seen: String,
+    },
+    #[error(
+        "{file} records a stage tilt of {recorded_deg}° but the stage is at {stage_deg}° (more than imaging.tilt_tolerance_deg = {tolerance_deg}° apart): refused, not used; is it a late file of another step? (with a tilt stage the SEM does not know, set imaging.watch_check_tilt = false)"
+    )]
+    WrongTilt {
+        file: PathBuf,
+        recorded_deg: f64,
+        stage_deg: f64,
+        tolerance_deg: f64,
+    },
+    #[error(
+        "{file} records no pixel size (no vendor tags or sidecar that give one); have the SEM store its metadata with each image (TIFF tags, or the .txt sidecar with imaging.watch_sidecar = \"txt\")"
+    )]
+    NoPixelSize { file: PathBuf },
+    #[error("cannot use {file}: {cause}")]
+    BadFile { file: PathBuf, cause: String },
+    #[error("the SEM did not take the trigger {command:?}: {error}")]
+    Trigger {
+        command: String,
+        /// Not a `source`: the message already shows it.
+        error: super::source::TriggerError,
+    },
+    #[error(
+        "imaging.trigger = {command:?} must go over the stage link, and this stage link cannot carry it; use a stage protocol that speaks to the SEM (stage.protocol = \"remcon32\"), or set imaging.trigger = \"\" and have the SEM store each micrograph on its own"
+    )]
+    NoTriggerLink { command: String },
 }

@@ -5,7 +5,9 @@
 //! palette TIFF with a grey palette (Zeiss SmartSEM writes these), grey PNG of 8 or 16
 //! bits, and RGB(A) files whose channels are all equal (grey saved as colour; alpha must
 //! be opaque). The format is recognised by content, not by extension. Only the first image
-//! of a multi-page TIFF is read.
+//! of a multi-page TIFF is read. An info bar the vendor stored below the scan (FEI/Thermo,
+//! TESCAN; see [`super::metadata`]) is cut off, and a JEOL sidecar's field width gives the
+//! pixel size of what remains.
 
 use std::io::Cursor;
 use std::path::{Path, PathBuf};
@@ -17,8 +19,8 @@ use tiff::tags::{ResolutionUnit, Tag, Type};
 
 use super::file_tiff::{RawTiff, is_tiff, patch_u16};
 use super::metadata::{
-    SemMetadata, TAG_FEI, TAG_FEI_OLD, TAG_TESCAN, TAG_ZEISS, parse_fei, parse_hitachi,
-    parse_sdsem_description, parse_tescan, parse_zeiss, zeiss_block,
+    SemMetadata, TAG_FEI, TAG_FEI_OLD, TAG_TESCAN, TAG_ZEISS, parse_fei, parse_sdsem_description,
+    parse_sidecar, parse_tescan, parse_zeiss, zeiss_block,
 };
 use crate::export::ExportError;
 use crate::export::atomic::write_atomic;
@@ -53,9 +55,12 @@ pub struct Micrograph {
     pub bits_per_sample: u8,
     /// Pixel size, tilt and raw vendor metadata (TIFF tags and sidecar).
     pub metadata: SemMetadata,
+    /// Width and height as stored, before an info bar was cut off.
+    pub stored_size: (usize, usize),
 }
 
-/// Loads a micrograph and its SEM metadata.
+/// Loads a micrograph and its SEM metadata (with a Hitachi or JEOL `.txt` sidecar of the
+/// same stem, when there is one).
 ///
 /// # Errors
 /// [`ImageFileError`] naming the file and the cause.
@@ -65,6 +70,20 @@ pub fn load_micrograph(path: impl AsRef<Path>) -> Result<Micrograph, ImageFileEr
         path: path.to_path_buf(),
         source,
     })?;
+    let sidecar = sidecar_beside(path);
+    micrograph_from_bytes(path, bytes, sidecar)
+}
+
+/// A micrograph from the bytes of its file (named `path` in errors) and, if any, the
+/// metadata of its sidecar ([`parse_sidecar`]).
+///
+/// # Errors
+/// [`ImageFileError`] naming the file and the cause.
+pub fn micrograph_from_bytes(
+    path: &Path,
+    bytes: Vec<u8>,
+    sidecar: Option<SemMetadata>,
+) -> Result<Micrograph, ImageFileError> {
     let (image, bits_per_sample, mut metadata) = if is_tiff(&bytes) {
         let meta = RawTiff::parse(&bytes)
             .map(|t| tiff_metadata(&t))
@@ -79,18 +98,37 @@ pub fn load_micrograph(path: impl AsRef<Path>) -> Result<Micrograph, ImageFileEr
             path: path.to_path_buf(),
         });
     };
-    if let Some(sidecar) = hitachi_sidecar(path) {
+    if let Some(sidecar) = sidecar {
         metadata.merge(sidecar);
+    }
+    let stored_size = image.dimensions();
+    let image = match metadata.kept_size(stored_size.0, stored_size.1) {
+        Some((w, h)) => crop(&image, w, h),
+        None => image,
+    };
+    if metadata.pixel_size_um.is_none()
+        && let Some(field) = metadata.field_width_um
+    {
+        // JEOL: the field of view spans the scanned width.
+        #[allow(clippy::cast_precision_loss)]
+        let pixel = field / image.width() as f64;
+        metadata.pixel_size_um = Some(pixel);
     }
     Ok(Micrograph {
         path: path.to_path_buf(),
         image,
         bits_per_sample,
         metadata,
+        stored_size,
     })
 }
 
-/// Reads only the SEM metadata of a micrograph file (TIFF tags and Hitachi sidecar).
+/// The top-left `width` × `height` of `image` (both within it).
+fn crop(image: &Image, width: usize, height: usize) -> Image {
+    Image::from_fn(width, height, |x, y| image.get(x, y))
+}
+
+/// Reads only the SEM metadata of a micrograph file (TIFF tags and Hitachi or JEOL sidecar).
 ///
 /// # Errors
 /// [`ImageFileError::Read`] when the file cannot be read.
@@ -103,7 +141,7 @@ pub fn read_sem_metadata(path: impl AsRef<Path>) -> Result<SemMetadata, ImageFil
     let mut metadata = RawTiff::parse(&bytes)
         .map(|t| tiff_metadata(&t))
         .unwrap_or_default();
-    if let Some(sidecar) = hitachi_sidecar(path) {
+    if let Some(sidecar) = sidecar_beside(path) {
         metadata.merge(sidecar);
     }
     Ok(metadata)
@@ -127,8 +165,8 @@ fn tiff_metadata(tiff: &RawTiff<'_>) -> SemMetadata {
     found
 }
 
-/// The Hitachi `.txt` header beside `path` (same stem), if there is one.
-fn hitachi_sidecar(path: &Path) -> Option<SemMetadata> {
+/// The Hitachi or JEOL `.txt` header beside `path` (same stem), if there is one.
+fn sidecar_beside(path: &Path) -> Option<SemMetadata> {
     ["txt", "TXT"].iter().find_map(|ext| {
         let candidate = path.with_extension(ext);
         if candidate == path {
@@ -136,7 +174,7 @@ fn hitachi_sidecar(path: &Path) -> Option<SemMetadata> {
         }
         std::fs::read(&candidate)
             .ok()
-            .and_then(|b| parse_hitachi(&b))
+            .and_then(|b| parse_sidecar(&b))
     })
 }
 
@@ -659,6 +697,49 @@ mod tests {
         assert_eq!(m.metadata.vendor, Some(SemVendor::Hitachi));
         assert!((m.metadata.pixel_size_um.unwrap() - 0.0992).abs() < 1e-12);
         assert_eq!(m.metadata.tilt_deg, Some(10.0));
+    }
+
+    /// An 8-bit grey TIFF whose row y holds the value y, with `tag` = `text`.
+    fn rows_tiff(path: &Path, w: u32, h: u32, tag: u16, text: &str) {
+        let data: Vec<u8> = (0..h)
+            .flat_map(|y| std::iter::repeat_n(y as u8, w as usize))
+            .collect();
+        let mut file = std::fs::File::create(path).unwrap();
+        let mut enc = TiffEncoder::new(&mut file).unwrap();
+        let mut img = enc.new_image::<Gray8>(w, h).unwrap();
+        img.encoder().write_tag(Tag::Unknown(tag), text).unwrap();
+        img.write_data(&data).unwrap();
+    }
+
+    #[test]
+    fn a_data_bar_below_the_scan_is_cut_off() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("fei.tif");
+        let ini = "[Image]\r\nResolutionX=8\r\nResolutionY=4\r\n[Scan]\r\nPixelWidth=2e-08\r\n\
+[Stage]\r\nStageT=0.05235987756\r\n";
+        rows_tiff(&path, 8, 6, TAG_FEI, ini);
+        let m = load_micrograph(&path).unwrap();
+        assert_eq!(m.stored_size, (8, 6));
+        assert_eq!(m.image.dimensions(), (8, 4));
+        assert_eq!(m.image.to_u8()[8 * 3], 3, "the scan's last row is kept");
+        assert!((m.metadata.tilt_deg.unwrap() - 3.0).abs() < 1e-9);
+        assert!((m.metadata.pixel_size_um.unwrap() - 0.02).abs() < 1e-12);
+    }
+
+    #[test]
+    fn a_jeol_sidecar_gives_the_pixel_size_of_the_kept_width() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("jeol_001.tif");
+        rows_tiff(&path, 10, 8, 305, "JEOL");
+        std::fs::write(
+            dir.path().join("jeol_001.txt"),
+            "$CM_FORMAT JEOL/EO\n$CM_VERSION 1.0\n$CM_FIELD_OF_VIEW 1.000mm 0.600mm\n$CM_FULL_SIZE 10 6\n",
+        )
+        .unwrap();
+        let m = load_micrograph(&path).unwrap();
+        assert_eq!(m.metadata.vendor, Some(SemVendor::Jeol));
+        assert_eq!(m.image.dimensions(), (10, 6));
+        assert!((m.metadata.pixel_size_um.unwrap() - 100.0).abs() < 1e-9);
     }
 
     fn data_dir() -> PathBuf {

@@ -47,45 +47,68 @@ pub(crate) fn is_tiff(bytes: &[u8]) -> bool {
 impl<'a> RawTiff<'a> {
     /// Parses the header and the first directory; `None` when they are malformed.
     pub fn parse(bytes: &'a [u8]) -> Option<Self> {
+        let mut tiff = Self::header(bytes)?;
+        let ifd = tiff.first_ifd()?;
+        tiff.entries = tiff.directory(ifd)?.0;
+        Some(tiff)
+    }
+
+    /// The header alone, without a directory; `None` when it is not a TIFF header.
+    fn header(bytes: &'a [u8]) -> Option<Self> {
         if !is_tiff(bytes) {
             return None;
         }
-        let big_endian = bytes[0] == b'M';
-        let big_tiff = bytes[2] == b'+' || bytes[3] == b'+';
-        let mut tiff = Self {
+        Some(Self {
             bytes,
-            big_endian,
-            big_tiff,
+            big_endian: bytes[0] == b'M',
+            big_tiff: bytes[2] == b'+' || bytes[3] == b'+',
             entries: Vec::new(),
-        };
-        let ifd = if big_tiff {
-            tiff.u64_at(8)?
+        })
+    }
+
+    /// Offset of the first directory, from the header.
+    fn first_ifd(&self) -> Option<usize> {
+        let ifd = if self.big_tiff {
+            self.u64_at(8)?
         } else {
-            u64::from(tiff.u32_at(4)?)
+            u64::from(self.u32_at(4)?)
         };
-        let ifd = usize::try_from(ifd).ok()?;
-        let (count, first, entry_len, value_at) = if big_tiff {
-            (tiff.u64_at(ifd)?, ifd + 8, 20, 12)
+        usize::try_from(ifd).ok()
+    }
+
+    /// The entries of the directory at `ifd` and the offset of the next one (0: none; `None`
+    /// when that field lies beyond the file).
+    fn directory(&self, ifd: usize) -> Option<(Vec<RawEntry>, Option<u64>)> {
+        let (count, first, entry_len, value_at) = if self.big_tiff {
+            (self.u64_at(ifd)?, ifd.checked_add(8)?, 20, 12)
         } else {
-            (u64::from(tiff.u16_at(ifd)?), ifd + 2, 12, 8)
+            (u64::from(self.u16_at(ifd)?), ifd.checked_add(2)?, 12, 8)
         };
-        for i in 0..usize::try_from(count).ok()? {
-            let at = first.checked_add(i.checked_mul(entry_len)?)?;
-            let tag = tiff.u16_at(at)?;
-            let field_type = tiff.u16_at(at + 2)?;
-            let count = if big_tiff {
-                tiff.u64_at(at + 4)?
+        let count = usize::try_from(count).ok()?;
+        let end = first.checked_add(count.checked_mul(entry_len)?)?;
+        let next = if self.big_tiff {
+            self.u64_at(end)
+        } else {
+            self.u32_at(end).map(u64::from)
+        };
+        let mut entries = Vec::with_capacity(count);
+        for i in 0..count {
+            let at = first + i * entry_len;
+            let tag = self.u16_at(at)?;
+            let field_type = self.u16_at(at + 2)?;
+            let count = if self.big_tiff {
+                self.u64_at(at + 4)?
             } else {
-                u64::from(tiff.u32_at(at + 4)?)
+                u64::from(self.u32_at(at + 4)?)
             };
-            tiff.entries.push(RawEntry {
+            entries.push(RawEntry {
                 tag,
                 field_type,
                 count,
                 value_field: at + value_at,
             });
         }
-        Some(tiff)
+        Some((entries, next))
     }
 
     fn slice(&self, at: usize, len: usize) -> Option<&'a [u8]> {
@@ -172,6 +195,28 @@ impl<'a> RawTiff<'a> {
         Some(out)
     }
 
+    /// A SHORT, LONG or LONG8 (BigTIFF offsets) tag as integers.
+    pub fn unsigned_values_wide(&self, tag: u16) -> Option<Vec<u64>> {
+        let entry = self.entry(tag)?;
+        if entry.field_type != 16 {
+            return self.unsigned_values(tag);
+        }
+        let bytes = self.value_bytes(tag)?;
+        Some(
+            bytes
+                .chunks_exact(8)
+                .map(|b| {
+                    let b: [u8; 8] = b.try_into().unwrap_or([0; 8]);
+                    if self.big_endian {
+                        u64::from_be_bytes(b)
+                    } else {
+                        u64::from_le_bytes(b)
+                    }
+                })
+                .collect(),
+        )
+    }
+
     /// Where the (inline, SHORT) PhotometricInterpretation value sits, to patch it.
     pub fn photometric_field(&self) -> Option<(usize, u16)> {
         let entry = self.entry(262)?;
@@ -192,6 +237,80 @@ pub(crate) fn patch_u16(bytes: &mut [u8], at: usize, value: u16, big_endian: boo
     if let Some(dst) = bytes.get_mut(at..at + 2) {
         dst.copy_from_slice(&b);
     }
+}
+
+/// Most directories followed in one file (a loop or a hostile chain ends here).
+const MAX_DIRECTORIES: usize = 4096;
+
+/// Checks that a TIFF is whole: a header, a chain of directories inside the file without a
+/// loop, and in each directory every value and every strip or tile (offset + byte count)
+/// inside the file (VENDORS §4.2: a file held still can still be cut short).
+///
+/// # Errors
+/// What is missing, in a few words (for the timeout message and the log).
+pub(crate) fn check_whole(bytes: &[u8]) -> Result<(), String> {
+    let mut tiff = RawTiff::header(bytes).ok_or("no TIFF header")?;
+    let mut ifd = tiff.first_ifd().ok_or("header cut short")?;
+    if ifd == 0 {
+        return Err("no image directory yet".into());
+    }
+    let mut seen = std::collections::HashSet::new();
+    let mut index = 0usize;
+    while ifd != 0 {
+        if !seen.insert(ifd) || seen.len() > MAX_DIRECTORIES {
+            return Err(format!("directory chain loops at offset {ifd}"));
+        }
+        let (entries, next) = tiff
+            .directory(ifd)
+            .and_then(|(e, next)| Some((e, next?)))
+            .ok_or_else(|| format!("directory {index} at offset {ifd} ends beyond the file"))?;
+        tiff.entries = entries;
+        for e in &tiff.entries {
+            let inline_ok = field_type_size(e.field_type)
+                .and_then(|s| s.checked_mul(e.count))
+                .is_some_and(|len| len <= if tiff.big_tiff { 8 } else { 4 });
+            if !inline_ok
+                && field_type_size(e.field_type).is_some()
+                && tiff.value_bytes(e.tag).is_none()
+            {
+                return Err(format!(
+                    "tag {} of directory {index} ends beyond the file",
+                    e.tag
+                ));
+            }
+        }
+        for (offsets_tag, counts_tag, what) in [(273, 279, "strip"), (324, 325, "tile")] {
+            let (Some(offsets), counts) = (
+                tiff.unsigned_values_wide(offsets_tag),
+                tiff.unsigned_values_wide(counts_tag),
+            ) else {
+                continue;
+            };
+            let counts = counts.ok_or_else(|| {
+                format!("directory {index} has {what} offsets but no byte counts")
+            })?;
+            if counts.len() != offsets.len() {
+                return Err(format!(
+                    "directory {index}: {} {what} offsets for {} byte counts",
+                    offsets.len(),
+                    counts.len()
+                ));
+            }
+            for (i, (&o, &c)) in offsets.iter().zip(&counts).enumerate() {
+                if o.checked_add(c).is_none_or(|end| end > bytes.len() as u64) {
+                    return Err(format!(
+                        "{what} {i} of directory {index} ends beyond the file"
+                    ));
+                }
+            }
+        }
+        if index == 0 && tiff.entry(273).is_none() && tiff.entry(324).is_none() {
+            return Err("the first directory has no image data".into());
+        }
+        ifd = usize::try_from(next).map_err(|_| "directory offset beyond memory".to_owned())?;
+        index += 1;
+    }
+    Ok(())
 }
 
 #[cfg(test)]
@@ -273,5 +392,66 @@ mod tests {
     fn garbage_is_not_a_tiff() {
         assert!(RawTiff::parse(b"II*\0\xff\xff\xff\x7f").is_none());
         assert!(RawTiff::parse(b"GIF89a").is_none());
+    }
+
+    /// A real grey 16-bit TIFF from the `tiff` encoder, 3 strips of rows.
+    fn encoded() -> Vec<u8> {
+        use tiff::encoder::{TiffEncoder, colortype::Gray16};
+        let mut out = std::io::Cursor::new(Vec::new());
+        let mut enc = TiffEncoder::new(&mut out).unwrap();
+        let mut img = enc.new_image::<Gray16>(64, 48).unwrap();
+        img.rows_per_strip(16).unwrap();
+        img.write_data(&vec![7u16; 64 * 48]).unwrap();
+        out.into_inner()
+    }
+
+    #[test]
+    fn a_whole_tiff_passes_and_every_cut_of_it_fails() {
+        let bytes = encoded();
+        check_whole(&bytes).unwrap();
+        // The encoder writes pixels first and the directory last, as vendors do: every
+        // shorter prefix must be refused, whatever the cut hits.
+        for cut in [
+            0,
+            3,
+            8,
+            100,
+            bytes.len() / 2,
+            bytes.len() - 40,
+            bytes.len() - 1,
+        ] {
+            assert!(check_whole(&bytes[..cut]).is_err(), "cut at {cut} accepted");
+        }
+    }
+
+    #[test]
+    fn strips_beyond_the_end_are_named() {
+        let mut bytes = encoded();
+        // Keep the directory but make the data region shorter: relocate by zeroing the
+        // header's directory offset first → "no image directory yet".
+        let mut no_dir = bytes.clone();
+        no_dir[4..8].copy_from_slice(&0u32.to_le_bytes());
+        assert_eq!(check_whole(&no_dir).unwrap_err(), "no image directory yet");
+        // A strip byte count grown past the end of the file.
+        let t = RawTiff::parse(&bytes).unwrap();
+        let e = t.entry(279).unwrap();
+        let counts_at = if e.count == 1 {
+            e.value_field
+        } else {
+            t.u32_at(e.value_field).unwrap() as usize
+        };
+        bytes[counts_at..counts_at + 4].copy_from_slice(&u32::MAX.to_le_bytes());
+        let err = check_whole(&bytes).unwrap_err();
+        assert_eq!(err, "strip 0 of directory 0 ends beyond the file");
+    }
+
+    #[test]
+    fn a_directory_chain_that_loops_is_refused() {
+        let mut bytes = encoded();
+        let first = RawTiff::header(&bytes).unwrap().first_ifd().unwrap();
+        let count = u16::from_le_bytes([bytes[first], bytes[first + 1]]) as usize;
+        let next_at = first + 2 + 12 * count;
+        bytes[next_at..next_at + 4].copy_from_slice(&(first as u32).to_le_bytes());
+        assert!(check_whole(&bytes).unwrap_err().contains("loops"));
     }
 }

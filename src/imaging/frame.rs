@@ -2,6 +2,7 @@
 
 use sdsem_protocol::sem::{Bits, FrameReply};
 pub use sdsem_protocol::sem::{FrameMeta, Role};
+use serde::{Deserialize, Serialize};
 
 use crate::vision::Image;
 
@@ -48,8 +49,31 @@ pub struct Frame {
     pub meta: FrameMeta,
     /// When the client had received the whole frame, ns since the Unix epoch.
     pub received_unix_ns: u64,
+    /// The file the frame was read from (watch folder); `None` for scanned frames.
+    pub origin: Option<FrameFile>,
 }
 
+/// Where a frame read from a file came from and what was done to it (`/sem/frame_info`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FrameFile {
+    /// File name in the watched folder.
+    pub name: String,
+    /// Whose metadata the file carries (Zeiss, FEI/Thermo Fisher, Tescan, …).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub vendor: Option<String>,
+    /// The sidecar read with it (Hitachi, JEOL).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sidecar: Option<String>,
+    /// The tilt the file records, degrees (checked against the stage's).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub recorded_tilt_deg: Option<f64>,
+    /// Width and height as stored, info bar included.
+    pub stored_width: u32,
+    pub stored_height: u32,
+    /// Stored pixels averaged into one frame pixel per side (1: none), to bring a stored
+    /// micrograph down to the tracking frame size asked for.
+    pub downsampled: u32,
+}
 impl Frame {
     /// Builds a frame from a decoded `FRAME` reply.
     #[must_use]
@@ -70,6 +94,7 @@ impl Frame {
             pixels,
             meta: reply.meta,
             received_unix_ns,
+            origin: None,
         }
     }
 

@@ -7,6 +7,7 @@
 //! | FEI / Thermo Fisher | TIFF tag 34682 (older: 34680), INI text | `[Scan] PixelWidth` in m | `[Stage] StageT` in rad |
 //! | Tescan | TIFF tag 50431, blocks of `key=value` text (MAIN, SEM, …) | `[MAIN] PixelSizeX` in m | `[SEM] StageTilt` in degrees |
 //! | Hitachi | sidecar `NAME.txt`, `[SemImageFile]` section | `PixelSize=` in nm | `StagePositionT=` in degrees |
+//! | JEOL | sidecar `NAME.txt`, `$KEY value` lines | `$CM_FIELD_OF_VIEW` ÷ width, else 128 mm ÷ `$CM_MAG` ÷ width | not read (the stage field's layout varies) |
 //! | sdsem | ImageDescription JSON `{"sdsem":"micrograph",…}` (and a Zeiss-style 34118 block) | `pixel_size_um` | `tilt_deg` |
 //!
 //! Zeiss also writes `Pixel Size` (the pixel size at the scan's display resolution, e.g.
@@ -16,6 +17,12 @@
 //! u16 type, text), as Gwyddion's `tescan.c` reads them; a plain INI text is accepted
 //! too. The Hitachi tilt key `StagePositionT` follows the `StagePositionX/Y/Z/R` keys of
 //! the S-4800/SU series headers.
+//!
+//! Vendor TIFFs may hold an info bar below the scanned image: FEI/Thermo's data bar
+//! (crop to `[Image] ResolutionX × ResolutionY`), TESCAN's info strip (`[MAIN] ImageStripSize`
+//! rows at the bottom), and the store size that Zeiss (`Store resolution = 1024 * 768`),
+//! Hitachi (`DataSize=1280x960`) and JEOL (`$CM_FULL_SIZE 1280 960`) record [OD-IO]:
+//! [`SemMetadata::kept_size`] says what to keep.
 
 use std::collections::BTreeMap;
 
@@ -30,6 +37,7 @@ pub enum SemVendor {
     Fei,
     Tescan,
     Hitachi,
+    Jeol,
     /// Written by sdsem itself.
     Sdsem,
 }
@@ -42,6 +50,7 @@ impl SemVendor {
             Self::Fei => "FEI/Thermo Fisher",
             Self::Tescan => "Tescan",
             Self::Hitachi => "Hitachi",
+            Self::Jeol => "JEOL",
             Self::Sdsem => "sdsem",
         }
     }
@@ -56,8 +65,27 @@ pub struct SemMetadata {
     pub pixel_size_um: Option<f64>,
     /// Stage tilt, degrees.
     pub tilt_deg: Option<f64>,
+    /// Pixel dwell time, µs.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub dwell_us: Option<f64>,
+    /// Width of the scanned field, µm (JEOL: the pixel size follows from the image width).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub field_width_um: Option<f64>,
+    /// The part of the stored image that was scanned, when an info bar may follow it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub image_area: Option<ImageArea>,
     /// Every key-value pair found; INI keys as `Section.Key`.
     pub raw: BTreeMap<String, String>,
+}
+
+/// Which part of a stored vendor image is the scanned image (the rest is an info bar).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ImageArea {
+    /// The scan's size from the top-left corner (FEI/Thermo, Zeiss, Hitachi, JEOL).
+    Size { width: usize, height: usize },
+    /// This many rows at the bottom are an info strip (TESCAN).
+    StripRows(usize),
 }
 
 impl SemMetadata {
@@ -65,6 +93,21 @@ impl SemMetadata {
     #[must_use]
     pub fn is_empty(&self) -> bool {
         self.pixel_size_um.is_none() && self.tilt_deg.is_none()
+    }
+
+    /// The size to keep of a `width` × `height` stored image, when it holds an info bar.
+    /// `None` when the whole image is the scan, or when the recorded area does not fit
+    /// inside the image (e.g. a picture rotated after storing: nothing is cut then).
+    #[must_use]
+    pub fn kept_size(&self, width: usize, height: usize) -> Option<(usize, usize)> {
+        let (w, h) = match self.image_area? {
+            ImageArea::Size {
+                width: w,
+                height: h,
+            } => (w, h),
+            ImageArea::StripRows(rows) => (width, height.checked_sub(rows)?),
+        };
+        (w > 0 && h > 0 && w <= width && h <= height && (w, h) != (width, height)).then_some((w, h))
     }
 
     /// Fills what `self` lacks from `other` (vendor, pixel size, tilt, raw keys).
@@ -77,6 +120,15 @@ impl SemMetadata {
         }
         if self.tilt_deg.is_none() {
             self.tilt_deg = other.tilt_deg;
+        }
+        if self.dwell_us.is_none() {
+            self.dwell_us = other.dwell_us;
+        }
+        if self.field_width_um.is_none() {
+            self.field_width_um = other.field_width_um;
+        }
+        if self.image_area.is_none() {
+            self.image_area = other.image_area;
         }
         for (k, v) in other.raw {
             self.raw.entry(k).or_insert(v);
@@ -160,6 +212,28 @@ pub fn parse_angle_deg(value: &str) -> Option<f64> {
         .then_some(number)
 }
 
+/// A duration with its unit (`ns`, `µs`/`μs`/`us`, `ms`, `s`) in µs.
+#[must_use]
+pub fn parse_time_us(value: &str) -> Option<f64> {
+    let (number, unit) = number_and_unit(value)?;
+    let factor = match unit {
+        "ns" => 1e-3,
+        "µs" | "μs" | "us" => 1.0,
+        "ms" => 1e3,
+        "s" => 1e6,
+        _ => return None,
+    };
+    Some(number * factor)
+}
+
+/// Two positive integers separated by `sep` (`"1024 * 768"`, `"1280x960"`, `"1280 960"`).
+fn size_pair(value: &str, sep: &[char]) -> Option<ImageArea> {
+    let mut parts = value.split(sep).map(str::trim).filter(|p| !p.is_empty());
+    let width = parts.next()?.parse().ok()?;
+    let height = parts.next()?.parse().ok()?;
+    (parts.next().is_none() && width > 0 && height > 0).then_some(ImageArea::Size { width, height })
+}
+
 fn positive(v: Option<f64>) -> Option<f64> {
     v.filter(|v| v.is_finite() && *v > 0.0)
 }
@@ -187,6 +261,11 @@ pub fn parse_zeiss(bytes: &[u8]) -> SemMetadata {
         vendor: Some(SemVendor::Zeiss),
         pixel_size_um,
         tilt_deg,
+        dwell_us: positive(raw.get("Dwell Time").and_then(|v| parse_time_us(v))),
+        field_width_um: None,
+        image_area: raw
+            .get("Store resolution")
+            .and_then(|v| size_pair(v, &['*'])),
         raw,
     }
 }
@@ -226,10 +305,28 @@ pub fn parse_fei(bytes: &[u8]) -> SemMetadata {
     let raw = parse_ini(&decode_text(bytes));
     let pixel_m = number(&raw, "Scan.PixelWidth").or_else(|| number(&raw, "EScan.PixelWidth"));
     let tilt_rad = number(&raw, "Stage.StageT");
+    let dwell_s = number(&raw, "Scan.Dwelltime").or_else(|| number(&raw, "EScan.Dwell"));
+    let area = match (
+        number(&raw, "Image.ResolutionX"),
+        number(&raw, "Image.ResolutionY"),
+    ) {
+        // Whole numbers of pixels, as FEI writes them.
+        #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
+        (Some(w), Some(h)) if w >= 1.0 && h >= 1.0 && w.fract() == 0.0 && h.fract() == 0.0 => {
+            Some(ImageArea::Size {
+                width: w as usize,
+                height: h as usize,
+            })
+        }
+        _ => None,
+    };
     SemMetadata {
         vendor: Some(SemVendor::Fei),
         pixel_size_um: positive(pixel_m.map(|m| m * 1e6)),
         tilt_deg: tilt_rad.map(f64::to_degrees),
+        dwell_us: positive(dwell_s.map(|s| s * 1e6)),
+        field_width_um: None,
+        image_area: area,
         raw,
     }
 }
@@ -288,10 +385,18 @@ pub fn parse_tescan(bytes: &[u8], big_endian: bool) -> SemMetadata {
     }
     let pixel_m = number(&raw, "MAIN.PixelSizeX");
     let tilt = number(&raw, "SEM.StageTilt");
+    let dwell_s = number(&raw, "SEM.DwellTime").or_else(|| number(&raw, "FIB.DwellTime"));
+    let strip = raw
+        .get("MAIN.ImageStripSize")
+        .and_then(|v| v.trim().parse::<usize>().ok())
+        .filter(|&rows| rows > 0);
     SemMetadata {
         vendor: Some(SemVendor::Tescan),
         pixel_size_um: positive(pixel_m.map(|m| m * 1e6)),
         tilt_deg: tilt,
+        dwell_us: positive(dwell_s.map(|s| s * 1e6)),
+        field_width_um: None,
+        image_area: strip.map(ImageArea::StripRows),
         raw,
     }
 }
@@ -324,8 +429,67 @@ pub fn parse_hitachi(bytes: &[u8]) -> Option<SemMetadata> {
         vendor: Some(SemVendor::Hitachi),
         pixel_size_um: positive(pixel_nm.map(|nm| nm * 1e-3)),
         tilt_deg: tilt,
+        dwell_us: None,
+        field_width_um: None,
+        image_area: raw.get("DataSize").and_then(|v| size_pair(v, &['x', 'X'])),
         raw,
     })
+}
+
+/// JEOL's horizontal field at magnification 1, µm (what Odemis uses when the sidecar
+/// gives no field of view) [OD-IO].
+const JEOL_FIELD_AT_MAG_1_UM: f64 = 128_000.0;
+
+/// Parses a JEOL sidecar (`NAME.txt` beside the image: `$KEY value` lines, `$$` for some);
+/// `None` unless every line is of that form and `CM_FORMAT` or `CM_VERSION` is present.
+/// Keys are stored without their `$`s. The field of view (`$CM_FIELD_OF_VIEW 1.067mm
+/// 0.800mm`, or `1.067 0.800mm`) gives the field width; without it, 128 mm ÷ `$CM_MAG`.
+/// The pixel size is that width over the image's width, worked out by the image reader.
+#[must_use]
+pub fn parse_jeol(bytes: &[u8]) -> Option<SemMetadata> {
+    let text = decode_text(bytes);
+    let mut raw = BTreeMap::new();
+    for line in text.lines().map(str::trim).filter(|l| !l.is_empty()) {
+        let rest = line.strip_prefix('$')?.trim_start_matches('$');
+        let (key, value) = rest.split_once(' ').unwrap_or((rest, ""));
+        raw.entry(key.to_owned())
+            .or_insert_with(|| value.trim().to_owned());
+    }
+    if !raw.contains_key("CM_FORMAT") && !raw.contains_key("CM_VERSION") {
+        return None;
+    }
+    let field = raw.get("CM_FIELD_OF_VIEW").and_then(|v| {
+        let mut tokens = v.split_whitespace();
+        let first = tokens.next()?;
+        // "1.067 0.800mm": the first number takes the unit of the second.
+        parse_length_um(first).or_else(|| {
+            let unit = tokens
+                .next()
+                .and_then(|t| number_and_unit(t))
+                .map_or("mm", |(_, u)| u);
+            parse_length_um(&format!("{first} {unit}"))
+        })
+    });
+    let field = field.or_else(|| {
+        number(&raw, "CM_MAG")
+            .filter(|m| *m > 0.0)
+            .map(|m| JEOL_FIELD_AT_MAG_1_UM / m)
+    });
+    Some(SemMetadata {
+        vendor: Some(SemVendor::Jeol),
+        pixel_size_um: None,
+        tilt_deg: None,
+        dwell_us: None,
+        field_width_um: positive(field),
+        image_area: raw.get("CM_FULL_SIZE").and_then(|v| size_pair(v, &[' '])),
+        raw,
+    })
+}
+
+/// Parses a sidecar of either vendor that writes one (Hitachi, JEOL).
+#[must_use]
+pub fn parse_sidecar(bytes: &[u8]) -> Option<SemMetadata> {
+    parse_hitachi(bytes).or_else(|| parse_jeol(bytes))
 }
 
 /// Parses sdsem's own ImageDescription JSON; `None` for any other description.
@@ -357,6 +521,7 @@ pub fn parse_sdsem_description(bytes: &[u8]) -> Option<SemMetadata> {
             .and_then(serde_json::Value::as_f64)
             .filter(|t| t.is_finite()),
         raw,
+        ..SemMetadata::default()
     })
 }
 
@@ -514,5 +679,78 @@ DataSize=1280x960\r\nPixelSize=24.8\r\nStagePositionX=12500000\r\nStagePositionT
         assert_eq!(a.vendor, Some(SemVendor::Sdsem));
         assert_eq!(a.pixel_size_um, Some(0.1));
         assert_eq!(a.tilt_deg, Some(-3.0));
+    }
+
+    #[test]
+    fn info_bars_and_dwell_of_each_vendor() {
+        let z = parse_zeiss(
+            b"AP_DWELL\r\nDwell Time = 50 ns\r\nDP_STORE\r\nStore resolution = 1024 * 768\r\n",
+        );
+        assert_eq!(z.dwell_us, Some(0.05));
+        assert_eq!(z.kept_size(1024, 768), None, "no bar stored");
+        assert_eq!(z.kept_size(1024, 884), Some((1024, 768)), "data zone below");
+        assert_eq!(
+            z.kept_size(768, 1024),
+            None,
+            "rotated after storing: left alone"
+        );
+
+        let f = parse_fei(
+            b"[Image]\r\nResolutionX=1536\r\nResolutionY=1024\r\n[Scan]\r\nDwelltime=1e-006\r\n",
+        );
+        assert_eq!(f.kept_size(1536, 1092), Some((1536, 1024)));
+        assert!((f.dwell_us.unwrap() - 1.0).abs() < 1e-12);
+
+        let mut tag = Vec::new();
+        for (kind, data) in [
+            (2u16, &b"ImageStripSize=120\nPixelSizeX=2.5012e-6\n\0"[..]),
+            (3, &b"DwellTime=3.2000e-6\nStageTilt=0.0\n\0"[..]),
+        ] {
+            tag.extend(((data.len() + 2) as u32).to_le_bytes());
+            tag.extend(kind.to_le_bytes());
+            tag.extend_from_slice(data);
+        }
+        let t = parse_tescan(&tag, false);
+        assert_eq!(t.kept_size(1024, 888), Some((1024, 768)));
+        assert!((t.dwell_us.unwrap() - 3.2).abs() < 1e-9);
+        assert!((t.pixel_size_um.unwrap() - 2.5012).abs() < 1e-9);
+        assert_eq!(t.kept_size(1024, 100), None, "strip taller than the image");
+
+        let h = parse_hitachi(b"[SemImageFile]\r\nDataSize=1280x960\r\n").unwrap();
+        assert_eq!(h.kept_size(1280, 1024), Some((1280, 960)));
+    }
+
+    #[test]
+    fn jeol_sidecar_gives_the_field_width() {
+        let text = b"$CM_FORMAT JEOL-SEM\n$CM_VERSION 3.0\n$CM_MAG 50\n$$SM_WD 9.07\n\
+$CM_STAGE_POS 5.483 0.831 8.5 -0.0 0.0 0.000\n$CM_FULL_SIZE 1280 960\n$CM_TITLE \n";
+        let m = parse_jeol(text).unwrap();
+        assert_eq!(m.vendor, Some(SemVendor::Jeol));
+        // No field of view: 128 mm at magnification 1.
+        assert!((m.field_width_um.unwrap() - 2560.0).abs() < 1e-9);
+        assert_eq!(m.raw["SM_WD"], "9.07");
+        assert_eq!(m.raw["CM_TITLE"], "");
+        assert_eq!(
+            m.tilt_deg, None,
+            "the stage field's layout varies: not read"
+        );
+        assert_eq!(m.kept_size(1280, 1024), Some((1280, 960)));
+        for fov in ["1.067mm 0.800mm", "1.067 0.800mm"] {
+            let t = format!("$CM_FORMAT JEOL/EO\n$CM_MAG 120\n$CM_FIELD_OF_VIEW {fov}\n");
+            let m = parse_jeol(t.as_bytes()).unwrap();
+            assert!((m.field_width_um.unwrap() - 1067.0).abs() < 1e-9, "{fov}");
+        }
+        assert!(
+            parse_jeol(b"$SOMETHING else\n").is_none(),
+            "not a JEOL header"
+        );
+        assert!(parse_jeol(b"notes\n$CM_FORMAT JEOL\n").is_none());
+        assert_eq!(parse_sidecar(text).unwrap().vendor, Some(SemVendor::Jeol));
+        assert_eq!(
+            parse_sidecar(b"[SemImageFile]\r\nPixelSize=1\r\n")
+                .unwrap()
+                .vendor,
+            Some(SemVendor::Hitachi)
+        );
     }
 }

@@ -6,8 +6,12 @@
 //! - [`FrameSource`]: anything that grabs frames; [`SemLinkClient`] speaks the
 //!   SEM imaging link ([`sdsem_protocol::sem`]) over TCP to the simulator or a
 //!   microscope adapter, configured by [`ImagingConfig`].
+//! - [`WatchFolderSource`]: micrographs the SEM's own software stores in a folder
+//!   (`imaging.protocol = "watch-folder"`), found by [`arrival`], sent for by a [`Trigger`]
+//!   over the stage link.
 //! - [`file`]: micrographs on disk (TIFF, PNG) with their SEM metadata ([`metadata`]).
 
+pub mod arrival;
 mod config;
 mod error;
 pub mod file;
@@ -16,9 +20,14 @@ mod frame;
 mod link_client;
 pub mod metadata;
 mod source;
+mod watch_folder;
 
-pub use config::{DEFAULT_PORT, ImagingConfig, ScanSettings};
+pub use config::{DEFAULT_PORT, ImagingConfig, ImagingProtocol, ScanSettings};
 pub use error::ImagingError;
-pub use frame::{Frame, FrameMeta, Pixels, Role};
+pub use frame::{Frame, FrameFile, FrameMeta, Pixels, Role};
 pub use link_client::{GroundTruth, SemLinkClient};
-pub use source::{FrameSource, GrabFuture, GrabRequest};
+pub use source::{
+    FrameSource, GrabContext, GrabFuture, GrabRequest, IdentifyFuture, Trigger, TriggerError,
+    TriggerFuture,
+};
+pub use watch_folder::WatchFolderSource;

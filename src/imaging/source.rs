@@ -1,4 +1,4 @@
-//! Anything that delivers frames: the SEM link, or a test double.
+//! Anything that delivers frames: the SEM link, a watched folder, or a test double.
 
 use std::future::Future;
 use std::pin::Pin;
@@ -6,9 +6,37 @@ use std::pin::Pin;
 pub use sdsem_protocol::sem::GrabRequest;
 
 use super::{Frame, ImagingError};
+use crate::stage::StagePosition;
 
 /// The future of one [`FrameSource::grab`].
 pub type GrabFuture<'a> = Pin<Box<dyn Future<Output = Result<Frame, ImagingError>> + Send + 'a>>;
+
+/// The future of one [`FrameSource::identify`].
+pub type IdentifyFuture<'a> =
+    Pin<Box<dyn Future<Output = Result<String, ImagingError>> + Send + 'a>>;
+
+/// Why a trigger could not be sent (the stage link's own error).
+pub type TriggerError = Box<dyn std::error::Error + Send + Sync>;
+
+/// The future of one [`Trigger::trigger`].
+pub type TriggerFuture<'a> = Pin<Box<dyn Future<Output = Result<(), TriggerError>> + Send + 'a>>;
+
+/// Sends a command that makes the SEM store one micrograph (`imaging.trigger`, e.g. RemCon32
+/// `FREC` or `MAC 1`): implemented over the stage link by the acquisition, since the SEM's
+/// own stage protocol is the line that carries it.
+pub trait Trigger: Send {
+    /// Sends `command` and returns once the SEM accepted it.
+    fn trigger<'a>(&'a mut self, command: &'a str) -> TriggerFuture<'a>;
+}
+
+/// What the acquisition knows and offers at the moment of one grab.
+#[derive(Default)]
+pub struct GrabContext<'a> {
+    /// The stage position verified before this grab.
+    pub stage: Option<StagePosition>,
+    /// A line to send `imaging.trigger` over, when the stage link can carry one.
+    pub trigger: Option<&'a mut dyn Trigger>,
+}
 
 /// A source of SEM frames. Object-safe, so the acquisition can hold a
 /// `Box<dyn FrameSource>` chosen by configuration.
@@ -16,4 +44,37 @@ pub trait FrameSource: Send {
     /// Scans one frame as requested (size, dwell, role, bit depth) and returns
     /// it with its metadata.
     fn grab(&mut self, request: GrabRequest) -> GrabFuture<'_>;
+
+    /// [`FrameSource::grab`] with what the acquisition knows (stage position) and offers
+    /// (a trigger). Sources that need neither keep this default.
+    fn grab_with<'a>(
+        &'a mut self,
+        request: GrabRequest,
+        context: GrabContext<'a>,
+    ) -> GrabFuture<'a> {
+        let _ = context;
+        self.grab(request)
+    }
+
+    /// Checks that the source answers and says what it is (an instrument's identity, a
+    /// folder and its state); the daemon's link check between jobs.
+    fn identify(&mut self) -> IdentifyFuture<'_>;
+}
+
+impl<S: FrameSource + ?Sized> FrameSource for Box<S> {
+    fn grab(&mut self, request: GrabRequest) -> GrabFuture<'_> {
+        (**self).grab(request)
+    }
+
+    fn grab_with<'a>(
+        &'a mut self,
+        request: GrabRequest,
+        context: GrabContext<'a>,
+    ) -> GrabFuture<'a> {
+        (**self).grab_with(request, context)
+    }
+
+    fn identify(&mut self) -> IdentifyFuture<'_> {
+        (**self).identify()
+    }
 }

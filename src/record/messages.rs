@@ -39,6 +39,10 @@ pub struct FrameInfo {
     /// Specimen drift measured on this frame (x, y), pixels; absent when not measured.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub drift_px: Option<[f64; 2]>,
+    /// The file the frame was read from (watch folder): name, vendor, recorded tilt,
+    /// stored size and averaging; absent for scanned frames.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub file: Option<crate::imaging::FrameFile>,
 }
 
 // `/stage/state` and `/stage/io` carry the driver's own records
@@ -130,7 +134,19 @@ pub const FRAME_INFO_SCHEMA: JsonSchema = JsonSchema {
     "height": {"type": "integer", "minimum": 0},
     "tilt_axis_deg": {"type": "number", "description": "direction of the tilt axis in the image, degrees"},
     "drift_px": {"type": "array", "items": {"type": "number"}, "minItems": 2, "maxItems": 2,
-                 "description": "measured specimen drift (x, y), pixels"}
+                 "description": "measured specimen drift (x, y), pixels"},
+    "file": {"type": "object", "description": "the stored micrograph the frame was read from (watch folder)",
+             "properties": {
+               "name": {"type": "string"},
+               "vendor": {"type": "string"},
+               "sidecar": {"type": "string"},
+               "recorded_tilt_deg": {"type": "number", "description": "tilt the file records, degrees"},
+               "stored_width": {"type": "integer", "minimum": 0},
+               "stored_height": {"type": "integer", "minimum": 0},
+               "downsampled": {"type": "integer", "minimum": 1,
+                               "description": "stored pixels averaged per frame pixel and side"}
+             },
+             "required": ["name", "stored_width", "stored_height", "downsampled"]}
   },
   "required": ["role", "index", "tilt_deg", "stage_x_um", "stage_y_um", "pixel_size_um",
                "dwell_us", "width", "height"]
@@ -283,10 +299,20 @@ mod tests {
             height: 1536,
             tilt_axis_deg: Some(0.0),
             drift_px: Some([0.5, -1.0]),
+            file: Some(crate::imaging::FrameFile {
+                name: "img_001.tif".into(),
+                vendor: Some("Zeiss".into()),
+                sidecar: None,
+                recorded_tilt_deg: Some(-3.0),
+                stored_width: 2048,
+                stored_height: 1536,
+                downsampled: 1,
+            }),
         };
         let full = info.clone();
         info.drift_px = None;
         info.tilt_axis_deg = None;
+        info.file = None;
         assert_schema_matches(FRAME_INFO_SCHEMA, &full, &info);
     }
 

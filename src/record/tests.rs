@@ -31,6 +31,7 @@ fn frame_info(role: FrameRole, index: u64, tilt: f64) -> FrameInfo {
         height: 6,
         tilt_axis_deg: Some(0.0),
         drift_px: (role == FrameRole::Tracking).then_some([0.25, -0.5]),
+        file: None,
     }
 }
 
