@@ -32,7 +32,7 @@ use crate::walk::WalkParams;
 /// | --- | --- | --- |
 /// | `seed` | 0 | seed of every random choice (faults, specimen, walk, scan noise), see the module docs |
 /// | `time_scale` | 1 | real seconds per simulated second: 0.01 runs motion, settling and scans 100× faster than real time; 1 is real time |
-/// | `stage` | see [`StageSimConfig`] | the PI GCS stage controller |
+/// | `stage` | see [`StageSimConfig`] | the stage: PI GCS controller or Zeiss RemCon32 (`stage.protocol`) |
 /// | `sem` | see [`SemSimConfig`] | the SEM imaging server |
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]

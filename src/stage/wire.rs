@@ -116,6 +116,16 @@ impl<T: AsyncRead + AsyncWrite + Unpin + Send, F: Framing> Wire<T, F> {
         self.dirty = false;
     }
 
+    /// A reply (or a second line of one) may still come: the next send waits it out.
+    pub fn mark_dirty(&mut self) {
+        self.dirty = true;
+    }
+
+    /// The framer (its partial state explains a timeout).
+    pub fn framer(&self) -> &F {
+        &self.framer
+    }
+
     /// Writes one request. With `settle`, first waits out a reply that a
     /// cancelled exchange may still produce.
     pub async fn send(
