@@ -20,7 +20,7 @@ use sdsem_protocol::remcon::{
     Command, DataError, Reply, ReplyFramer, StageInit, StageReading, StageTarget, encode_line,
 };
 use tokio::io::{AsyncRead, AsyncWrite};
-use tracing::{debug, info, warn};
+use tracing::{info, warn};
 
 use super::backend::{BoxFuture, Connected, MotionPoll, StageBackend, StageIdentity};
 use super::config::{StageAxis, StageConfig, StageProtocol, secs};
@@ -135,23 +135,10 @@ impl<T: AsyncRead + AsyncWrite + Unpin + Send> RemconBackend<T> {
                     }
                     Err(e) => {
                         let reply = Reply::Done(data).to_text();
-                        let cause = e.to_string();
-                        self.wire.record(
-                            &sent,
-                            text,
-                            attempt,
-                            Some(reply.clone()),
-                            IoOutcome::Garbled,
-                            Some(cause.clone()),
-                        );
-                        debug!(command = %text, %reply, %cause, "garbled stage reply");
-                        failure = StageError::Garbled {
-                            command: text.to_owned(),
-                            reply: Some(reply),
-                            cause,
-                            attempts: attempt,
-                        };
-                        self.wire.resync(Duration::ZERO, text).await?;
+                        failure = self
+                            .wire
+                            .garbled(&sent, text, attempt, reply, e.to_string())
+                            .await?;
                     }
                 },
                 Received::Reply(Reply::Failed(error)) => {
@@ -179,23 +166,10 @@ impl<T: AsyncRead + AsyncWrite + Unpin + Send> RemconBackend<T> {
                     };
                 }
                 Received::Frame(e) => {
-                    let cause = e.to_string();
-                    self.wire.record(
-                        &sent,
-                        text,
-                        attempt,
-                        None,
-                        IoOutcome::Garbled,
-                        Some(cause.clone()),
-                    );
-                    debug!(command = %text, %cause, "unframeable stage reply");
-                    failure = StageError::Garbled {
-                        command: text.to_owned(),
-                        reply: None,
-                        cause,
-                        attempts: attempt,
-                    };
-                    self.wire.resync(Duration::ZERO, text).await?;
+                    failure = self
+                        .wire
+                        .unframeable(&sent, text, attempt, e.to_string())
+                        .await?;
                 }
                 Received::Timeout => {
                     let detail = if self.wire.framer().is_acknowledged() {
@@ -203,17 +177,10 @@ impl<T: AsyncRead + AsyncWrite + Unpin + Send> RemconBackend<T> {
                     } else {
                         format!("no reply within {timeout:?}")
                     };
-                    self.wire
-                        .record(&sent, text, attempt, None, IoOutcome::Timeout, Some(detail));
-                    debug!(command = %text, attempt, "stage reply timed out");
-                    failure = StageError::NoReply {
-                        command: text.to_owned(),
-                        attempts: attempt,
-                        timeout,
-                    };
-                    // The reply may only be late: let it arrive and discard it.
-                    let window = self.wire.timing().reply_timeout;
-                    self.wire.resync(window, text).await?;
+                    failure = self
+                        .wire
+                        .timed_out(&sent, text, attempt, timeout, detail)
+                        .await?;
                 }
             }
         }
