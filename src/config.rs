@@ -249,6 +249,16 @@ impl Config {
         imaging
             .validate()
             .map_err(|e| ConfigError::Rule(e.to_string()))?;
+        if let Some(sim) = &self.simulator {
+            let simulated = crate::stage::StageProtocol::from(sim.stage.protocol);
+            if simulated != self.stage.protocol {
+                return Err(ConfigError::Rule(format!(
+                    "stage.protocol = \"{}\" but the simulated stage speaks \"{simulated}\": set \
+                     simulator.stage.protocol = \"{}\" too",
+                    self.stage.protocol, self.stage.protocol
+                )));
+            }
+        }
         let t = &self.tracking;
         if !(t.gain > 0.0 && t.gain <= 1.0) {
             return Err(ConfigError::Rule(format!(
@@ -332,6 +342,17 @@ mod tests {
             &overrides,
             env.iter().map(|(k, v)| ((*k).to_owned(), (*v).to_owned())),
         )
+    }
+
+    #[test]
+    fn a_simulated_stage_must_speak_the_configured_protocol() {
+        let e = load("[stage]\nprotocol = \"remcon32\"\n[simulator]\n", &[], &[])
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("simulator.stage.protocol = \"remcon32\""), "{e}");
+        let both = "[stage]\nprotocol = \"remcon32\"\n[simulator.stage]\nprotocol = \"remcon32\"\n";
+        let c = load(both, &[], &[]).unwrap();
+        assert_eq!(c.stage.effective_baud(), 9600);
     }
 
     #[test]

@@ -32,7 +32,7 @@ use crate::walk::WalkParams;
 /// | --- | --- | --- |
 /// | `seed` | 0 | seed of every random choice (faults, specimen, walk, scan noise), see the module docs |
 /// | `time_scale` | 1 | real seconds per simulated second: 0.01 runs motion, settling and scans 100× faster than real time; 1 is real time |
-/// | `stage` | see [`StageSimConfig`] | the PI GCS stage controller |
+/// | `stage` | see [`StageSimConfig`] | the stage: PI GCS controller or Zeiss RemCon32 (`stage.protocol`) |
 /// | `sem` | see [`SemSimConfig`] | the SEM imaging server |
 /// | `folder` | none | the SEM's store folder, see [`crate::FolderSimConfig`] |
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -321,8 +321,9 @@ impl FaultTrigger {
 
 /// Faults on demand, each one a failure real stages show (DESIGN §7). On a
 /// RemCon32 link (`stage.protocol = "remcon32"`) the same faults apply:
-/// `stale_on_target` is a moving flag set late after a move command, and
-/// `move_error` refuses the move with `*613` (parameter unattainable).
+/// `stale_on_target` is a move that starts late (the stage stands still, its
+/// moving flag at 0, for `stale_on_target_s`), and `move_error` refuses the
+/// move with `*613` (parameter unattainable).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct FaultConfig {

@@ -40,8 +40,8 @@ STAGE LINK with --stage-protocol remcon32 (Zeiss SmartSEM RemCon32; ASCII,
   MAG?  FREC (store a photo)  MAC n (run macro REMCONn)  PHN? (photo count)
   Unknown words: @ then *600; wrong value count to C95/STG: # alone;
   targets beyond the limits: *603; an empty line (null command): no reply.
-  Faults as for GCS; a stale on-target flag is a moving flag set late, a move
-  error answers *613.
+  Faults as for GCS; a stale on-target flag is a move that starts late (still
+  stage, moving flag 0.0), a move error answers *613.
 
 SEM LINK (TCP; one request line, one reply header line, maybe a payload)
   *IDN?                                  -> IDN <vendor>,<model>,<serial>,<version>

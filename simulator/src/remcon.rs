@@ -5,9 +5,10 @@
 //!
 //! Faults, from [`crate::FaultConfig`] and counted as there: dropped, garbled
 //! and late replies and the disconnect by command number; by move, a silently
-//! ignored `C95`, a moving flag set late (`stale_on_target`: the flag reads
-//! `0.0` for `stale_on_target_s` after the command) and `move_error`, answered
-//! `*613` (parameter unattainable). A target outside the limits is `*603`;
+//! ignored `C95`, a move that starts late (`stale_on_target`: the stage stands
+//! still with its moving flag at `0.0` for `stale_on_target_s` after the
+//! command, the reason for the ~1 s wait before the first poll [OD-Z]) and
+//! `move_error`, answered `*613` (parameter unattainable). A target outside the limits is `*603`;
 //! a move while the stage is not initialised, `*616`.
 //!
 //! Z, rotation and M are not modelled in motion: a `C95` sets them at once (a
@@ -135,7 +136,10 @@ impl RemconStage {
             (AxisRole::Y, target.y_mm * 1000.0),
             (AxisRole::Tilt, target.t_deg),
         ];
-        match self.stage.with_model(|m, now| m.move_roles(now, &targets)) {
+        match self
+            .stage
+            .with_model(|m, now| m.move_roles(now, &targets, true))
+        {
             Ok(started) => {
                 if started {
                     let mut e = self.extra();
@@ -338,13 +342,14 @@ mod tests {
         assert_eq!(data(&s, "C95 0 0 10 3 0 0"), "");
         clock.advance(5.0);
         assert_eq!(reading(&s).t_deg, 0.0);
-        // 2: the flag reads idle for 0.5 s while the stage already moves.
+        // 2: for 0.5 s the stage stands still and its flag reads idle.
         data(&s, "C95 0 0 10 3 0 0");
         clock.advance(0.3);
         let early = reading(&s);
-        assert!(!early.moving && early.t_deg > 0.0, "{early:?}");
+        assert!(!early.moving && early.t_deg == 0.0, "{early:?}");
         clock.advance(0.5);
-        assert!(reading(&s).moving);
+        let late = reading(&s);
+        assert!(late.moving && (late.t_deg - 0.3).abs() < 1e-9, "{late:?}");
         clock.advance(5.0);
         // 3: refused, parameter unattainable.
         assert_eq!(

@@ -449,7 +449,7 @@ impl StageModel {
             }
             idx.push((i, *target));
         }
-        if self.start_checked(now, &idx) == Err(MoveRefusal::Fault) {
+        if self.start_checked(now, &idx, false) == Err(MoveRefusal::Fault) {
             let code = GcsErrorCode(self.faults.move_error_code);
             self.last_error = code;
             if code == GcsErrorCode::MOTION_ERROR {
@@ -475,8 +475,14 @@ impl StageModel {
 
     /// Counts an accepted move and applies the move faults: refused
     /// ([`MoveRefusal::Fault`]), silently ignored (`Ok(false)`), or started
-    /// (`Ok(true)`, with a stale on-target flag when that fault fires).
-    fn start_checked(&mut self, now: f64, idx: &[(usize, f64)]) -> Result<bool, MoveRefusal> {
+    /// (`Ok(true)`, with a stale on-target flag when that fault fires; with
+    /// `late_start`, the motion itself starts only when the flag turns honest).
+    fn start_checked(
+        &mut self,
+        now: f64,
+        idx: &[(usize, f64)],
+        late_start: bool,
+    ) -> Result<bool, MoveRefusal> {
         self.moves += 1;
         let m = self.moves;
         if fires(&self.faults.move_error, m, &mut self.rng) {
@@ -491,15 +497,17 @@ impl StageModel {
         if stale {
             self.fired.stale_on_target += 1;
         }
+        let stale_until = if stale {
+            now + self.faults.stale_on_target_s
+        } else {
+            now
+        };
+        let start = if late_start { stale_until } else { now };
         for &(i, target) in idx {
             let settle = self.settle_s;
             let a = &mut self.axes[i];
-            a.start_motion(now, target, settle);
-            a.stale_until = if stale {
-                now + self.faults.stale_on_target_s
-            } else {
-                now
-            };
+            a.start_motion(start, target, settle);
+            a.stale_until = stale_until;
         }
         Ok(true)
     }
@@ -566,11 +574,13 @@ impl StageModel {
 
     /// Moves the axes of the given roles together to absolute targets, all or
     /// nothing, with the move faults: `Ok(true)` started, `Ok(false)` silently
-    /// ignored (fault), or refused.
+    /// ignored (fault), or refused. With `late_start`, the stale-flag fault
+    /// delays the motion as well as the flag (a move that starts late).
     pub fn move_roles(
         &mut self,
         now_s: f64,
         targets: &[(AxisRole, f64)],
+        late_start: bool,
     ) -> Result<bool, MoveRefusal> {
         self.finish_referencing(now_s);
         let mut idx = Vec::with_capacity(targets.len());
@@ -581,7 +591,7 @@ impl StageModel {
             self.check_target(i, target)?;
             idx.push((i, target));
         }
-        self.start_checked(now_s, &idx)
+        self.start_checked(now_s, &idx, late_start)
     }
 
     /// Halts every axis where it is (an abort).

@@ -74,6 +74,9 @@ pub enum StageProtocol {
     #[default]
     #[serde(rename = "pi-gcs")]
     PiGcs,
+    /// Zeiss SmartSEM RemCon32 (the SEM's own stage, RS-232).
+    #[serde(rename = "remcon32")]
+    Remcon32,
 }
 
 impl StageProtocol {
@@ -81,13 +84,26 @@ impl StageProtocol {
     pub fn as_str(self) -> &'static str {
         match self {
             Self::PiGcs => "pi-gcs",
+            Self::Remcon32 => "remcon32",
         }
     }
 
-    /// The usual serial rate of the protocol: 115200 for PI controllers.
+    /// The usual serial rate of the protocol: 115200 for PI controllers,
+    /// 9600 for RemCon32 [SF, SF-old, ML].
     pub fn default_baud(self) -> u32 {
         match self {
             Self::PiGcs => 115_200,
+            Self::Remcon32 => 9_600,
+        }
+    }
+}
+
+impl From<sdsem_sim::SimStageProtocol> for StageProtocol {
+    /// The protocol a simulated stage speaks.
+    fn from(p: sdsem_sim::SimStageProtocol) -> Self {
+        match p {
+            sdsem_sim::SimStageProtocol::PiGcs => Self::PiGcs,
+            sdsem_sim::SimStageProtocol::Remcon32 => Self::Remcon32,
         }
     }
 }
@@ -103,14 +119,14 @@ impl fmt::Display for StageProtocol {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct StageConfig {
-    /// The stage's language: `pi-gcs` (the default).
+    /// The stage's language: `pi-gcs` (the default) or `remcon32`.
     pub protocol: StageProtocol,
     /// Where the controller is: a serial device (`/dev/ttyUSB0`,
     /// `/dev/serial/by-id/…`, a simulator's pty path, optionally written
     /// `serial:///dev/ttyUSB0`) or `tcp://HOST:PORT`. Default `/dev/ttyUSB0`.
     pub endpoint: String,
     /// Serial baud rate (ignored for TCP and pseudo-terminals); 0 = the
-    /// protocol's usual rate (115200 for pi-gcs). Default 0.
+    /// protocol's usual rate (115200 for pi-gcs, 9600 for remcon32). Default 0.
     pub baud: u32,
     /// GCS identifier of the X axis. Default `1` (the simulator uses `X`).
     pub axis_x: AxisId,
@@ -118,7 +134,8 @@ pub struct StageConfig {
     pub axis_y: AxisId,
     /// GCS identifier of the tilt axis. Default `3` (simulator: `T`).
     pub axis_tilt: AxisId,
-    /// Text the `*IDN?` answer must contain (e.g. `C-884`); empty accepts any. Default empty.
+    /// Text the identity must contain (`*IDN?` on PI GCS, e.g. `C-884`; `VER?`
+    /// on RemCon32); empty accepts any. Default empty.
     pub expect_idn: String,
     /// Switch servos on and reference (`FRF`) unreferenced axes at connect.
     /// Referencing moves the stage to its reference switches: only enable it
@@ -167,6 +184,9 @@ pub struct StageConfig {
     pub xy_speed_um_s: f64,
     /// Tilt to return to after a run or an abort, degrees. Default 0.
     pub safe_tilt_deg: f64,
+    /// remcon32: time after a move command before the moving flag is trusted
+    /// (the flag may be set late; the documentation advises ~1 s [OD-Z]). Default 1 s.
+    pub moving_flag_delay_s: f64,
     /// Time for the SEM to finish a watch-folder trigger (`imaging.trigger`,
     /// e.g. `FREC`), which answers only once done. Default 60 s.
     pub trigger_timeout_s: f64,
@@ -206,6 +226,7 @@ impl Default for StageConfig {
             tilt_speed_deg_s: 1.0,
             xy_speed_um_s: 100.0,
             safe_tilt_deg: 0.0,
+            moving_flag_delay_s: 1.0,
             trigger_timeout_s: 60.0,
         }
     }
@@ -306,6 +327,7 @@ impl StageConfig {
         for (field, v) in [
             ("stage.resync_quiet_s", self.resync_quiet_s),
             ("stage.move_timeout_margin_s", self.move_timeout_margin_s),
+            ("stage.moving_flag_delay_s", self.moving_flag_delay_s),
         ] {
             if !(v.is_finite() && v >= 0.0) {
                 return Err(invalid(field, format!("must be ≥ 0, got {v}")));

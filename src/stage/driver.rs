@@ -65,7 +65,7 @@ pub struct MoveReport {
     pub positions: Vec<(StageAxis, f64)>,
     /// Whether the move had to be re-issued (it did not happen the first time).
     pub reissued: bool,
-    /// Motion polls made (`ONT?` on PI GCS).
+    /// Motion polls made (`ONT?` on PI GCS, `C95?` on RemCon32).
     pub polls: u32,
     /// From sending the move to verifying it.
     pub elapsed: Duration,

@@ -4,6 +4,7 @@
 use std::time::Duration;
 
 use sdsem_protocol::gcs::GcsErrorCode;
+use sdsem_protocol::remcon::RemconError;
 
 use super::config::{StageAxis, StageProtocol};
 
@@ -190,6 +191,40 @@ pub enum StageError {
         /// What to do instead.
         remedy: &'static str,
     },
+
+    /// The SEM refused a RemCon32 command: its status line was `*NNN`.
+    #[error("the SEM refused `{command}` with RemCon32 error {error}; {remedy}")]
+    Remcon {
+        /// The refused command.
+        command: String,
+        /// The error number, named.
+        error: RemconError,
+        /// What to do.
+        remedy: &'static str,
+    },
+
+    /// The instrument answered that the command is invalid (RemCon32 `#`).
+    #[error(
+        "the SEM answered `#` (invalid command) to `{command}` ({attempts} attempt(s)); check \
+         that stage.protocol names the instrument's language and, for imaging.trigger, the \
+         command's arguments"
+    )]
+    InvalidCommand {
+        /// The command.
+        command: String,
+        /// Attempts made.
+        attempts: u32,
+    },
+
+    /// The SEM's stage is not initialised, so it cannot move.
+    #[error(
+        "the SEM's stage is not initialised (IST? answered {reply:?}); initialise the stage in \
+         SmartSEM, then start again"
+    )]
+    NotInitialised {
+        /// The answer to `IST?`.
+        reply: String,
+    },
 }
 
 fn not_ready_message(unreferenced: &[String], servo_off: &[String]) -> String {
@@ -229,5 +264,50 @@ pub(crate) fn remedy(code: GcsErrorCode) -> String {
                  switch the servo on (SVO) and reference again"
             .into(),
         _ => "see the controller's manual for this error code".into(),
+    }
+}
+
+/// What to do about a RemCon32 error number.
+pub(crate) fn remcon_remedy(error: RemconError) -> &'static str {
+    match error {
+        RemconError::UnknownCommand => {
+            "the SEM does not know this command: check that stage.protocol = \"remcon32\" suits \
+             this SEM and the spelling of imaging.trigger"
+        }
+        RemconError::InvalidParameterCount | RemconError::InvalidParameterType => {
+            "the SEM did not accept the parameters: check imaging.trigger, or report this as an \
+             sdsem bug"
+        }
+        RemconError::ParameterOutOfRange => {
+            "a target is beyond the SEM stage's range: narrow stage.xy_min_um/xy_max_um and \
+             stage.tilt_min_deg/tilt_max_deg to the range SmartSEM shows for this stage"
+        }
+        RemconError::CommandTimeout => {
+            "the SEM timed out executing it: look for a dialog or an error in SmartSEM, then \
+             start again"
+        }
+        RemconError::Catastrophic => {
+            "SmartSEM reports a catastrophic error: restart the SEM software as its manual \
+             says, then start again"
+        }
+        RemconError::ExternalControlAbort => {
+            "external control was aborted on the SEM: check that RemCon32 still runs on the \
+             SEM PC and that nobody took over the stage, then start again"
+        }
+        RemconError::ParameterUnattainable => {
+            "the stage cannot reach that position now (collision protection, working distance): \
+             check the stage in SmartSEM, or narrow the limits in [stage]"
+        }
+        RemconError::OptionNotFitted => {
+            "this SEM lacks the option (e.g. a motorised tilt): check the stage fitted"
+        }
+        RemconError::CannotChangeParameter | RemconError::CannotExecute => {
+            "the SEM cannot do it now: check in SmartSEM that the stage is initialised, not \
+             locked and not in use, then start again"
+        }
+        RemconError::CommandTooLong => {
+            "the command is too long for RemCon32: shorten imaging.trigger"
+        }
+        RemconError::Other(_) => "see the RemCon32 manual for this error number",
     }
 }

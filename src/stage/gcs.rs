@@ -22,7 +22,7 @@ use sdsem_protocol::gcs::{
 };
 use tokio::io::{AsyncRead, AsyncWrite};
 use tokio::time::Instant;
-use tracing::{debug, info, warn};
+use tracing::{info, warn};
 
 use super::backend::{BoxFuture, Connected, MotionPoll, StageBackend, StageIdentity};
 use super::config::{StageAxis, StageConfig, StageProtocol, secs};
@@ -323,61 +323,25 @@ impl<T: AsyncRead + AsyncWrite + Unpin + Send> GcsBackend<T> {
                         return Ok(value);
                     }
                     Err(e) => {
-                        let cause = e.to_string();
-                        self.wire.record(
-                            &sent,
-                            &text,
-                            attempt,
-                            Some(reply.to_text()),
-                            IoOutcome::Garbled,
-                            Some(cause.clone()),
-                        );
-                        debug!(command = %text, reply = %reply.to_text(), %cause, "garbled stage reply");
-                        failure = StageError::Garbled {
-                            command: text.clone(),
-                            reply: Some(reply.to_text()),
-                            cause,
-                            attempts: attempt,
-                        };
-                        self.wire.resync(Duration::ZERO, &text).await?;
+                        failure = self
+                            .wire
+                            .garbled(&sent, &text, attempt, reply.to_text(), e.to_string())
+                            .await?;
                     }
                 },
                 Received::Frame(e) => {
-                    let cause = e.to_string();
-                    self.wire.record(
-                        &sent,
-                        &text,
-                        attempt,
-                        None,
-                        IoOutcome::Garbled,
-                        Some(cause.clone()),
-                    );
-                    debug!(command = %text, %cause, "unframeable stage reply");
-                    failure = StageError::Garbled {
-                        command: text.clone(),
-                        reply: None,
-                        cause,
-                        attempts: attempt,
-                    };
-                    self.wire.resync(Duration::ZERO, &text).await?;
+                    failure = self
+                        .wire
+                        .unframeable(&sent, &text, attempt, e.to_string())
+                        .await?;
                 }
                 Received::Timeout => {
-                    self.wire.record(
-                        &sent,
-                        &text,
-                        attempt,
-                        None,
-                        IoOutcome::Timeout,
-                        Some(format!("no reply within {timeout:?}")),
-                    );
-                    debug!(command = %text, attempt, "stage reply timed out");
-                    failure = StageError::NoReply {
-                        command: text.clone(),
-                        attempts: attempt,
-                        timeout,
-                    };
-                    // The reply may only be late: let it arrive and discard it.
-                    self.wire.resync(timeout, &text).await?;
+                    let detail = format!("no reply within {timeout:?}");
+                    failure = self
+                        .wire
+                        .timed_out(&sent, &text, attempt, timeout, detail)
+                        .await?;
+                    // A controller does not answer a query it rejects: ask why.
                     if explain_timeouts {
                         let code = Box::pin(self.query_inner(&ErrorQuery, false)).await?;
                         if code.is_error() {

@@ -3,7 +3,8 @@
 //!
 //! - [`transport`]: opens `stage.endpoint` (serial device, pty, `tcp://HOST:PORT`).
 //! - [`backend`]: [`StageBackend`], what differs per protocol (identify, read,
-//!   start a move, poll, stop, raw commands). Backends: [`gcs`] (PI GCS 2.0).
+//!   start a move, poll, stop, raw commands). Backends: [`gcs`] (PI GCS 2.0),
+//!   [`remcon`] (Zeiss SmartSEM RemCon32).
 //! - [`driver`]: [`StageDriver`], the safety layer above any backend: limits,
 //!   move timeouts, every move verified by read-back, one re-issue, safe tilt, stop.
 //! - [`observer`]: what the driver reports (every exchange, every position that
@@ -20,6 +21,7 @@ pub mod driver;
 pub mod error;
 pub mod gcs;
 pub mod observer;
+pub mod remcon;
 pub mod transport;
 mod wire;
 
@@ -34,6 +36,7 @@ pub use observer::{
     AxisState, IoOutcome, MemoryObserver, NoopObserver, StageEvent, StageIo, StageObserver,
     StageState,
 };
+pub use remcon::RemconBackend;
 pub use transport::{Endpoint, StageLink};
 
 /// Opens `config.endpoint` and returns the backend `config.protocol` names,
@@ -49,6 +52,7 @@ pub async fn open_backend(
     let link = transport::open(&config.endpoint, config.effective_baud(), timeout).await?;
     Ok(match config.protocol {
         StageProtocol::PiGcs => Box::new(GcsBackend::new(link, config.clone(), observer)),
+        StageProtocol::Remcon32 => Box::new(RemconBackend::new(link, config.clone(), observer)),
     })
 }
 

@@ -116,6 +116,16 @@ impl<T: AsyncRead + AsyncWrite + Unpin + Send, F: Framing> Wire<T, F> {
         self.dirty = false;
     }
 
+    /// A reply (or a second line of one) may still come: the next send waits it out.
+    pub fn mark_dirty(&mut self) {
+        self.dirty = true;
+    }
+
+    /// The framer (its partial state explains a timeout).
+    pub fn framer(&self) -> &F {
+        &self.framer
+    }
+
     /// Writes one request. With `settle`, first waits out a reply that a
     /// cancelled exchange may still produce.
     pub async fn send(
@@ -264,6 +274,82 @@ impl<T: AsyncRead + AsyncWrite + Unpin + Send, F: Framing> Wire<T, F> {
                 detail,
             });
         }
+    }
+
+    /// A reply that framed but does not answer the request: recorded, input
+    /// resynchronised; returns the error to report if no attempt succeeds.
+    pub async fn garbled(
+        &mut self,
+        sent: &Sent,
+        text: &str,
+        attempt: u32,
+        reply: String,
+        cause: String,
+    ) -> Result<StageError, StageError> {
+        self.record(
+            sent,
+            text,
+            attempt,
+            Some(reply.clone()),
+            IoOutcome::Garbled,
+            Some(cause.clone()),
+        );
+        debug!(command = %text, %reply, %cause, "garbled stage reply");
+        self.resync(Duration::ZERO, text).await?;
+        Ok(StageError::Garbled {
+            command: text.to_owned(),
+            reply: Some(reply),
+            cause,
+            attempts: attempt,
+        })
+    }
+
+    /// Bytes that did not frame as a reply: recorded, input resynchronised;
+    /// returns the error to report if no attempt succeeds.
+    pub async fn unframeable(
+        &mut self,
+        sent: &Sent,
+        text: &str,
+        attempt: u32,
+        cause: String,
+    ) -> Result<StageError, StageError> {
+        self.record(
+            sent,
+            text,
+            attempt,
+            None,
+            IoOutcome::Garbled,
+            Some(cause.clone()),
+        );
+        debug!(command = %text, %cause, "unframeable stage reply");
+        self.resync(Duration::ZERO, text).await?;
+        Ok(StageError::Garbled {
+            command: text.to_owned(),
+            reply: None,
+            cause,
+            attempts: attempt,
+        })
+    }
+
+    /// No reply by the deadline: recorded with `detail`, then the reply, which
+    /// may only be late, is let arrive and discarded. Returns the error to
+    /// report if no attempt succeeds (`timeout` is the time each attempt had).
+    pub async fn timed_out(
+        &mut self,
+        sent: &Sent,
+        text: &str,
+        attempt: u32,
+        timeout: Duration,
+        detail: String,
+    ) -> Result<StageError, StageError> {
+        self.record(sent, text, attempt, None, IoOutcome::Timeout, Some(detail));
+        debug!(command = %text, attempt, "stage reply timed out");
+        self.resync(self.timing.reply_timeout, text).await?;
+        Ok(StageError::NoReply {
+            command: text.to_owned(),
+            attempts: attempt,
+            timeout,
+        })
     }
 
     /// Records a request that gets no reply of its own.

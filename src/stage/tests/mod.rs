@@ -3,9 +3,12 @@
 //! - `fake`: against a scripted controller and against the simulator's pure
 //!   device model, both over `tokio::io::duplex` on tokio's paused clock (no real
 //!   sleeps: timeouts and polls advance virtual time).
+//! - `remcon`: the RemCon32 backend against the simulator's RemCon32 server and
+//!   scripted servers, on the paused clock.
 //! - `sim`: against the real simulator over TCP and a pty, in-process.
 
 mod fake;
+mod remcon;
 mod sim;
 
 use std::sync::{Arc, Mutex, PoisonError};

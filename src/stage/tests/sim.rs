@@ -140,3 +140,92 @@ async fn timing_figures() {
     );
     sim.stop();
 }
+
+#[tokio::test]
+async fn remcon32_tilt_series_over_a_pseudo_terminal() {
+    let sim = Simulator::spawn(SimConfig {
+        time_scale: 0.01,
+        stage: StageSimConfig {
+            endpoint: SimEndpoint::Pty,
+            protocol: sdsem_sim::SimStageProtocol::Remcon32,
+            ..StageSimConfig::default()
+        },
+        ..SimConfig::default()
+    })
+    .unwrap();
+    let config = StageConfig {
+        protocol: crate::stage::StageProtocol::Remcon32,
+        moving_flag_delay_s: 0.02,
+        ..fast_driver(sim.stage_endpoint())
+    };
+    let mut stage = StageDriver::open(config, Arc::new(MemoryObserver::default()))
+        .await
+        .unwrap();
+    assert_eq!(stage.instrument().protocol, "remcon32");
+    for deg in 1..=3 {
+        let target = f64::from(deg);
+        let report = stage.move_tilt(target).await.unwrap();
+        assert!((report.positions[0].1 - target).abs() <= 0.01);
+        assert!((sim.stage().snapshot().pose.tilt_deg - target).abs() <= 0.01);
+    }
+    stage.move_to_safe_tilt().await.unwrap();
+    assert!(sim.stage().snapshot().pose.tilt_deg.abs() <= 0.01);
+    sim.stop();
+}
+
+/// Prints the RemCon32 round trip and the time of a verified 1° step at time
+/// scale 1 (ideal 1.2 s: 1 s of motion, 0.2 s settling) over a pty:
+/// `cargo test -p sdsem --lib stage::tests::sim::remcon32_timing_figures -- --ignored --nocapture`
+#[tokio::test]
+#[ignore = "evaluation: prints timing figures"]
+async fn remcon32_timing_figures() {
+    use std::time::Instant;
+
+    let sim = Simulator::spawn(SimConfig {
+        stage: StageSimConfig {
+            endpoint: SimEndpoint::Pty,
+            protocol: sdsem_sim::SimStageProtocol::Remcon32,
+            ..StageSimConfig::default()
+        },
+        ..SimConfig::default()
+    })
+    .unwrap();
+    let config = StageConfig {
+        protocol: crate::stage::StageProtocol::Remcon32,
+        ..fast_driver(sim.stage_endpoint())
+    };
+    let config = StageConfig {
+        poll_interval_s: 0.05,
+        ..config
+    };
+    let mut stage = StageDriver::open(config, Arc::new(MemoryObserver::default()))
+        .await
+        .unwrap();
+    let mut rtt: Vec<f64> = Vec::new();
+    for _ in 0..200 {
+        let t = Instant::now();
+        stage.position().await.unwrap();
+        rtt.push(t.elapsed().as_secs_f64() * 1e6);
+    }
+    rtt.sort_by(f64::total_cmp);
+    println!(
+        "C95? round trip over a pty: median {:.0} µs, p99 {:.0} µs (n = {})",
+        rtt[rtt.len() / 2],
+        rtt[rtt.len() * 99 / 100],
+        rtt.len()
+    );
+    let t = Instant::now();
+    let mut polls = 0;
+    for deg in 1..=5 {
+        polls += stage.move_tilt(f64::from(deg)).await.unwrap().polls;
+    }
+    let per_step = t.elapsed().as_secs_f64() / 5.0;
+    println!(
+        "1° tilt step over RemCon32, verified (time scale 1, flag trusted after 1 s, poll 50 ms): \
+         {:.0} ms per step (ideal 1200 ms, overhead {:.1} %), {:.1} polls per step",
+        per_step * 1e3,
+        (per_step / 1.2 - 1.0) * 100.0,
+        f64::from(polls) / 5.0
+    );
+    sim.stop();
+}
