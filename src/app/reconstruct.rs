@@ -376,7 +376,7 @@ pub fn write_outputs(
         report.wall_s = started.elapsed().as_secs_f64();
         report.peak_rss_mib = peak_rss_mib();
         let path = out.join(files::REPORT);
-        export::report::write_json_atomic(&path, report)?;
+        export::report::write_report_atomic(&path, report)?;
         Ok(())
     })();
     if result.is_err() {
@@ -623,15 +623,17 @@ mod tests {
         }
         assert!(table4["rmse_after_px"].as_f64().unwrap() < 0.5);
         assert!(json["peak_rss_mib"].as_f64().unwrap() > 0.0);
-        // The noise floor: present, in pixels and µm by eq. (19).
-        let precision = &json["reconstruction"]["precision"];
-        let px = precision["disparity_px"].as_f64().unwrap();
-        let um = precision["height_um"].as_f64().unwrap();
-        assert!(px > 0.0 && px < 1.0, "{precision}");
+        // The noise floor: present in the file, in pixels and µm by eq. (19) (the file
+        // rounds them to 1e-3 px and 1 nm, so the relation is checked unrounded).
+        assert!(json["reconstruction"]["precision"]["height_um"].is_number());
+        let precision = report.reconstruction.precision.as_ref().unwrap();
+        let (px, um) = (precision.disparity_px, precision.height_um);
+        assert!(px > 0.0 && px < 1.0, "{precision:?}");
         assert!(
             (um / px / params_um_per_px() - 1.0).abs() < 1e-9,
-            "{precision}"
+            "{precision:?}"
         );
+        assert_eq!(json["schema_version"], 1);
         assert_eq!(report.outputs.len(), 6);
     }
 

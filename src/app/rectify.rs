@@ -168,9 +168,7 @@ pub fn run_rectify(
         .save(&path)
         .with_context(|| format!("cannot write {}", path.display()))?;
     let json = rectification_json(&pair.sparse, tilt_axis_deg, params);
-    let path = out.join("rectification.json");
-    std::fs::write(&path, serde_json::to_string_pretty(&json)? + "\n")
-        .with_context(|| format!("cannot write {}", path.display()))?;
+    crate::export::report::write_report_atomic(&out.join("rectification.json"), &json)?;
     Ok(())
 }
 

@@ -340,6 +340,10 @@ pub struct MicrographTags {
 fn description(tags: &MicrographTags) -> String {
     let mut map = tags.extra.clone();
     map.insert("sdsem".into(), "micrograph".into());
+    map.insert(
+        "schema_version".into(),
+        crate::export::height_tiff::DESCRIPTION_SCHEMA_VERSION.into(),
+    );
     if let Some(p) = tags.pixel_size_um {
         map.insert("pixel_size_um".into(), p.into());
     }
