@@ -384,6 +384,10 @@ fn job_error(e: ConfigError) -> JobError {
             PlanError::NotFinite { key } => JobError::Tilts {
                 message: format!("{} is not a finite number", job_key(key)),
             },
+            // The daemon's configuration, not the job, is at fault.
+            inverted @ PlanError::InvertedLimits { .. } => JobError::Config {
+                message: inverted.to_string(),
+            },
         },
         other => JobError::Config {
             message: other.to_string(),
