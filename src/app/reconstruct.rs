@@ -236,9 +236,10 @@ pub fn run(
 }
 
 /// Reconstructs an acquired pair into `out` and, when recording, publishes the
-/// results: `/recon/height`, `/recon/pointcloud`, `/recon/report` and the
-/// `height.gsf`, `mesh.ply` and `confidence.tif` attachments (DESIGN §5). Used by `acquire`
-/// and `replay`, so both run the very same code.
+/// results: `/recon/height`, `/recon/pointcloud`, the Foxglove views of
+/// [`RecorderHandle::reconstruction`](crate::record::RecorderHandle::reconstruction),
+/// `/recon/report` and the `height.gsf` and `confidence.tif` attachments (DESIGN §5).
+/// Used by `acquire` and `replay`, so both run the very same code.
 ///
 /// # Errors
 /// The reconstruction's or the writing's one-line cause.
@@ -252,7 +253,16 @@ pub fn reconstruct_recorded_pair(
     sources: (&Path, &Path),
 ) -> anyhow::Result<(ReportFile, Reconstruction)> {
     let t0 = Instant::now();
-    let recon = reconstruct(left, right, geometry, &config.params())?;
+    let recon = reconstruct(left, right, geometry, &config.params()).map_err(|e| {
+        let hint = match &e {
+            ReconstructError::Sparse(s) => super::rectify::tilt_axis_hint(s),
+            _ => None,
+        };
+        match hint {
+            Some(hint) => anyhow::anyhow!("{e}{hint}"),
+            None => e.into(),
+        }
+    })?;
     let mut report = ReportFile {
         sdsem_version: env!("CARGO_PKG_VERSION"),
         left: sources.0.to_owned(),
@@ -272,13 +282,19 @@ pub fn reconstruct_recorded_pair(
     write_outputs(out, &recon, left, &config.mesh, &mut report, t0)?;
     if let Some(rec) = rec {
         let t = crate::stage::observer::wall_ns();
-        rec.height(t, &recon.height_um)?;
-        let cloud = ply::cloud_from_height(&recon.height_um, geometry.pixel_size_um, Some(left));
-        rec.point_cloud(crate::record::topics::RECON_POINTCLOUD, t, "left", &cloud)?;
+        rec.reconstruction(
+            t,
+            &crate::record::ReconstructionView {
+                height_um: &recon.height_um,
+                intensity: left,
+                pixel_size_um: geometry.pixel_size_um,
+                mesh: &config.mesh,
+            },
+        )?;
         rec.report(t, &report)?;
+        // mesh.ply stays in the run directory: the record shows the mesh as /recon/mesh.
         for (name, media_type) in [
             (files::HEIGHT_GSF, "application/x-gwyddion-gsf"),
-            (files::MESH, "application/x-ply"),
             (files::CONFIDENCE_TIFF, "image/tiff"),
         ] {
             let path = out.join(name);
