@@ -57,6 +57,12 @@ pub fn run(args: &ReplayArgs) -> anyhow::Result<ExitCode> {
             100.0 * report.reconstruction.reconstruction.depth.valid_fraction
         );
         println!("{}", report.comparison.summary());
+        eprintln!(
+            "wrote {}/{{{}, {}}}",
+            report.out.display(),
+            report.reconstruction.outputs.join(", "),
+            replay::REPLAY_REPORT
+        );
         println!("{}", report.out.display());
     }
     if report.is_mismatch() {
