@@ -279,6 +279,18 @@ fn timestamp(log_time_ns: u64) -> Option<Timestamp> {
     Timestamp::new_checked(sec, nsec)
 }
 
+/// At the frame's origin, axes along the frame's.
+fn identity_pose() -> Pose {
+    Pose {
+        position: Some(Vector3 {
+            x: 0.0,
+            y: 0.0,
+            z: 0.0,
+        }),
+        orientation: Some(identity_rotation()),
+    }
+}
+
 fn identity_rotation() -> Quaternion {
     Quaternion {
         x: 0.0,
@@ -412,14 +424,7 @@ impl Entry {
         let message = PointCloud {
             timestamp: timestamp(log_time_ns),
             frame_id: frame_id.to_owned(),
-            pose: Some(Pose {
-                position: Some(Vector3 {
-                    x: 0.0,
-                    y: 0.0,
-                    z: 0.0,
-                }),
-                orientation: Some(identity_rotation()),
-            }),
+            pose: Some(identity_pose()),
             point_stride: 16,
             fields: vec![
                 field("x", 0),
@@ -494,14 +499,7 @@ impl Entry {
                     })
                     .collect(),
                 models: vec![ModelPrimitive {
-                    pose: Some(Pose {
-                        position: Some(Vector3 {
-                            x: 0.0,
-                            y: 0.0,
-                            z: 0.0,
-                        }),
-                        orientation: Some(identity_rotation()),
-                    }),
+                    pose: Some(identity_pose()),
                     scale: Some(Vector3 {
                         x: 1.0,
                         y: 1.0,
