@@ -297,10 +297,11 @@ impl Config {
         )
     }
 
-    /// The effective configuration as TOML (for the record and `check-config`).
+    /// The effective configuration as TOML (for the record and `check-config`), arrays on
+    /// one line (`stage_to_image = [[-1.0, 0.0], [0.0, 1.0]]`).
     #[must_use]
     pub fn to_toml(&self) -> String {
-        toml::to_string_pretty(self).unwrap_or_else(|e| format!("# cannot render: {e}\n"))
+        toml::to_string(self).unwrap_or_else(|e| format!("# cannot render: {e}\n"))
     }
 }
 
@@ -432,6 +433,16 @@ mod tests {
         let c = load("[series]\nend_tilt_deg = 5.0\n", &[], &[]).unwrap();
         let again = load(&c.to_toml(), &[], &[]).unwrap();
         assert_eq!(c, again);
+    }
+
+    #[test]
+    fn effective_config_writes_arrays_on_one_line() {
+        let text = Config::default().to_toml();
+        assert!(
+            text.contains("stage_to_image = [[-1.0, 0.0], [0.0, -1.0]]\n"),
+            "{text}"
+        );
+        assert!(!text.contains("[\n"), "{text}");
     }
 
     fn leaf_keys(prefix: &str, v: &toml::Value, out: &mut Vec<String>) {

@@ -45,6 +45,7 @@ pub mod eval;
 pub mod export;
 pub mod imaging;
 pub mod memory;
+pub mod numbers;
 pub mod record;
 pub mod stage;
 pub mod vision;

@@ -10,8 +10,11 @@ below, so `protobuf` is not needed; JSON messages must parse and carry the field
 JSON schema marks as required.
 
 Checks (DESIGN §5):
-  * the file reads with mcap's summary-based reader;
-  * every topic is one of the contract topics, with the contract schema and encodings;
+  * every record reads linearly, as a killed run leaves them: a record cut short is read up to
+    its last whole chunk and reported INCOMPLETE (a problem only with --require-all-topics);
+  * a finished file also reads with mcap's summary-based reader, message for message;
+  * every topic is one of the contract topics (or of the Foxglove views beyond them: the
+    frames on /tf, the height preview and its legend, the mesh), with its schema and encodings;
   * every protobuf message decodes against its schema, and RawImage / PointCloud / Log
     messages are self-consistent (data size = width x height x bytes per pixel, ...);
   * every JSON message parses and has its schema's required keys;
@@ -26,7 +29,10 @@ import json
 import struct
 import sys
 
+from mcap.exceptions import McapError
 from mcap.reader import make_reader
+from mcap.records import Attachment, Channel, Footer, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader
 
 CONTRACT = {
     "/sem/frame": ({"foxglove.RawImage", "foxglove.CompressedImage"}, "protobuf"),
@@ -37,6 +43,14 @@ CONTRACT = {
     "/recon/pointcloud": ({"foxglove.PointCloud"}, "protobuf"),
     "/recon/report": ({"sdsem.ReconReport"}, "json"),
     "/log": ({"foxglove.Log"}, "protobuf"),
+}
+
+# Beyond DESIGN §5: what a reconstruction adds so Foxglove shows it right (src/record/reconstruction.rs).
+VIEWS = {
+    "/tf": ({"foxglove.FrameTransforms"}, "protobuf"),
+    "/recon/height_preview": ({"foxglove.CompressedImage"}, "protobuf"),
+    "/recon/height_preview/legend": ({"foxglove.ImageAnnotations"}, "protobuf"),
+    "/recon/mesh": ({"foxglove.SceneUpdate"}, "protobuf"),
 }
 
 # --- minimal protobuf wire-format decoding -------------------------------------------
@@ -174,6 +188,85 @@ def check_protobuf(topic, schema_name, msg, problems):
     elif schema_name == "foxglove.Log":
         if msg.get("level", 0) not in range(1, 6) or "message" not in msg:
             problems.append(f"{topic}: log level {msg.get('level')} / no message")
+    elif schema_name == "foxglove.CompressedImage":
+        data = msg.get("data", b"")
+        if msg.get("format") == "png" and not data.startswith(b"\x89PNG\r\n\x1a\n"):
+            problems.append(f"{topic}: format png, but the data is not a PNG file")
+    elif schema_name == "foxglove.FrameTransforms":
+        for t in msg.get("transforms", []):
+            if not t.get("parent_frame_id") or not t.get("child_frame_id"):
+                problems.append(f"{topic}: a transform without parent or child frame")
+    elif schema_name == "foxglove.SceneUpdate":
+        for entity in msg.get("entities", []):
+            for model in entity.get("models", []):
+                data = model.get("data", b"")
+                if model.get("media_type") != "model/gltf-binary" or data[:4] != b"glTF" \
+                        or struct.unpack("<I", data[8:12])[0] != len(data):
+                    problems.append(f"{topic}: entity {entity.get('id')!r}: model is not a whole GLB")
+
+
+def check_message(schema, channel, message, state, problems):
+    """Checks one message against its topic's schema (DESIGN §5 or VIEWS)."""
+    topic = channel.topic
+    state["counts"][topic] = state["counts"].get(topic, 0) + 1
+    expected = CONTRACT.get(topic) or VIEWS.get(topic)
+    if expected is None:
+        problems.append(f"{topic}: not a contract topic")
+        return
+    names, encoding = expected
+    if schema is None or schema.name not in names or channel.message_encoding != encoding:
+        problems.append(f"{topic}: schema {schema and schema.name}, "
+                        f"encoding {channel.message_encoding}")
+        return
+    try:
+        if encoding == "protobuf":
+            if schema.encoding != "protobuf":
+                raise ValueError(f"schema encoding {schema.encoding}")
+            if schema.id not in state["descriptors"]:
+                state["descriptors"][schema.id] = parse_descriptor_set(schema.data)
+            msg = decode(state["descriptors"][schema.id], schema.name, message.data)
+            check_protobuf(topic, schema.name, msg, problems)
+        else:
+            if schema.encoding != "jsonschema":
+                raise ValueError(f"schema encoding {schema.encoding}")
+            if schema.id not in state["required"]:
+                js = json.loads(schema.data)
+                if js.get("type") != "object":
+                    raise ValueError("JSON schema is not an object schema")
+                state["required"][schema.id] = js.get("required", [])
+            value = json.loads(message.data)
+            missing = [k for k in state["required"][schema.id] if k not in value]
+            if missing:
+                raise ValueError(f"missing required keys {missing}")
+    except (ValueError, UnicodeDecodeError, struct.error) as e:
+        problems.append(f"{topic}: message at {message.log_time} does not decode: {e}")
+
+
+def read_linearly(f, state, problems):
+    """Reads every record from the start, as a killed run leaves them: stops quietly at the
+    first cut or damaged record. Returns (complete, where it stopped)."""
+    schemas, channels = {}, {}
+    try:
+        for record in StreamReader(f, validate_crcs=True).records:
+            if isinstance(record, Schema):
+                schemas[record.id] = record
+            elif isinstance(record, Channel):
+                channels[record.id] = record
+            elif isinstance(record, Message):
+                channel = channels.get(record.channel_id)
+                if channel is None:
+                    problems.append(f"message on unknown channel {record.channel_id}")
+                    continue
+                check_message(schemas.get(channel.schema_id), channel, record, state, problems)
+            elif isinstance(record, Metadata):
+                state["metadata"].append(record.name)
+            elif isinstance(record, Attachment):
+                state["attachments"].append(record.name)
+            elif isinstance(record, Footer):
+                return True, None
+    except (McapError, EOFError, ValueError, struct.error, OSError) as e:
+        return False, f"{type(e).__name__} after byte {f.tell()}: {e}"
+    return False, "the file ends without a footer"
 
 
 def main(argv):
@@ -182,56 +275,30 @@ def main(argv):
     if len(args) != 1:
         print(__doc__, file=sys.stderr)
         return 2
-    problems, counts, descriptors, required = [], {}, {}, {}
+    problems = []
+    state = {"counts": {}, "descriptors": {}, "required": {}, "metadata": [], "attachments": []}
     with open(args[0], "rb") as f:
-        reader = make_reader(f)
-        summary = reader.get_summary()
-        if summary is None:
-            problems.append("no summary section (the record was not finished)")
-        for schema, channel, message in reader.iter_messages():
-            topic = channel.topic
-            counts[topic] = counts.get(topic, 0) + 1
-            expected = CONTRACT.get(topic)
-            if expected is None:
-                problems.append(f"{topic}: not a contract topic")
-                continue
-            names, encoding = expected
-            if schema is None or schema.name not in names or channel.message_encoding != encoding:
-                problems.append(f"{topic}: schema {schema and schema.name}, "
-                                f"encoding {channel.message_encoding}")
-                continue
-            try:
-                if encoding == "protobuf":
-                    if schema.encoding != "protobuf":
-                        raise ValueError(f"schema encoding {schema.encoding}")
-                    if schema.id not in descriptors:
-                        descriptors[schema.id] = parse_descriptor_set(schema.data)
-                    msg = decode(descriptors[schema.id], schema.name, message.data)
-                    check_protobuf(topic, schema.name, msg, problems)
-                else:
-                    if schema.encoding != "jsonschema":
-                        raise ValueError(f"schema encoding {schema.encoding}")
-                    if schema.id not in required:
-                        js = json.loads(schema.data)
-                        if js.get("type") != "object":
-                            raise ValueError("JSON schema is not an object schema")
-                        required[schema.id] = js.get("required", [])
-                    value = json.loads(message.data)
-                    missing = [k for k in required[schema.id] if k not in value]
-                    if missing:
-                        raise ValueError(f"missing required keys {missing}")
-            except (ValueError, UnicodeDecodeError, struct.error) as e:
-                problems.append(f"{topic}: message at {message.log_time} does not decode: {e}")
-        metadata = [m.name for m in reader.iter_metadata()]
-        attachments = [a.name for a in reader.iter_attachments()]
+        complete, stopped = read_linearly(f, state, problems)
+        if complete:
+            # A finished record also reads through its summary, message for message.
+            f.seek(0)
+            reader = make_reader(f)
+            if reader.get_summary() is None:
+                problems.append("no summary section")
+            elif sum(1 for _ in reader.iter_messages()) != sum(state["counts"].values()):
+                problems.append("the summary-based reader sees other messages than a linear read")
+        else:
+            print(f"INCOMPLETE: {stopped}; everything before it was read")
+            if require_all:
+                problems.append("the record is incomplete (a killed run?)")
     if require_all:
         for topic in CONTRACT:
-            if topic not in counts:
+            if topic not in state["counts"]:
                 problems.append(f"{topic}: missing")
-    for topic in sorted(counts):
-        print(f"{topic:20s} {counts[topic]:6d} messages")
-    print(f"metadata: {', '.join(metadata) or '-'}")
-    print(f"attachments: {', '.join(attachments) or '-'}")
+    for topic in sorted(state["counts"]):
+        print(f"{topic:30s} {state['counts'][topic]:6d} messages")
+    print(f"metadata: {', '.join(state['metadata']) or '-'}")
+    print(f"attachments: {', '.join(state['attachments']) or '-'}")
     for p in problems:
         print(f"PROBLEM: {p}", file=sys.stderr)
     print("OK" if not problems else f"{len(problems)} problem(s)")

@@ -98,7 +98,6 @@ fn replay_reproduces_a_recorded_run_bit_for_bit_whatever_the_thread_count() {
     let summary = record::read_summary(&record).unwrap();
     for (name, media_type) in [
         (topics::ATTACHMENT_HEIGHT_GSF, "application/x-gwyddion-gsf"),
-        (topics::ATTACHMENT_MESH_PLY, "application/x-ply"),
         (topics::ATTACHMENT_CONFIDENCE_TIFF, "image/tiff"),
     ] {
         let a = summary

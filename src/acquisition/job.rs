@@ -276,7 +276,7 @@ async fn reconstruct_series(
     .await??;
     let t = &report.reconstruction.timings;
     info!(
-        total_s = t.total_ms / 1e3,
+        total_s = crate::numbers::secs(t.total_ms / 1e3),
         inliers = report.reconstruction.sparse.inliers,
         "reconstruction done in {:.1} s: heights on {:.1} % of the left micrograph",
         t.total_ms / 1e3,

@@ -56,6 +56,11 @@ pub enum PlanError {
          series.start_tilt_deg to series.end_tilt_deg: choose a larger step"
     )]
     TooManySteps { step: f64 },
+    #[error(
+        "the stage tilt limits are inverted: stage.tilt_min_deg = {min}° is not below \
+         stage.tilt_max_deg = {max}° (swap them)"
+    )]
+    InvertedLimits { min: f64, max: f64 },
 }
 
 /// Most steps a plan holds, whatever the limits of the daemon: the plan is a list in memory.
@@ -98,6 +103,13 @@ impl SeriesPlan {
         }
         if start == end {
             return Err(PlanError::NoTiltRange { tilt: start });
+        }
+        // Checked before the series against them: with min ≥ max every tilt is "outside".
+        if tilt_min >= tilt_max {
+            return Err(PlanError::InvertedLimits {
+                min: tilt_min,
+                max: tilt_max,
+            });
         }
         for (key, tilt) in [("start_tilt_deg", start), ("end_tilt_deg", end)] {
             if tilt < tilt_min || tilt > tilt_max {
@@ -211,5 +223,18 @@ mod tests {
         let msg = err.to_string();
         assert!(msg.contains("series.end_tilt_deg = 75"), "{msg}");
         assert!(msg.contains("[-5°, 70°]"), "{msg}");
+    }
+
+    /// Swapped limits are named as such, not as a tilt "outside [60°, -5°]".
+    #[test]
+    fn inverted_limits_are_called_inverted() {
+        let err = SeriesPlan::new(&series(0.0, 7.0, 1.0), 60.0, -5.0).unwrap_err();
+        let msg = err.to_string();
+        assert!(msg.contains("limits are inverted"), "{msg}");
+        assert!(
+            msg.contains("stage.tilt_min_deg = 60°") && msg.contains("stage.tilt_max_deg = -5°"),
+            "{msg}"
+        );
+        assert!(!msg.contains("outside"), "{msg}");
     }
 }

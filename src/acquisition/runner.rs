@@ -12,6 +12,7 @@ use super::cancel::Cancel;
 use super::machine::{Action, Event, FrameRole, Outcome, Series, Tracked};
 use super::stage_trigger::StageTrigger;
 use crate::imaging::{Frame, FrameSource, GrabContext, ImagingConfig, Pixels as FramePixels};
+use crate::numbers;
 use crate::record::{self, Entry, FrameInfo, Pixels, RecorderHandle, topics};
 use crate::stage::{StageBackend, StageDriver, StagePosition};
 use crate::vision::Image;
@@ -127,8 +128,8 @@ where
                         info!(
                             step,
                             steps,
-                            tilt_deg = reached,
-                            move_s = report.elapsed.as_secs_f64(),
+                            tilt_deg = numbers::deg(reached),
+                            move_s = numbers::secs(report.elapsed.as_secs_f64()),
                             "step {step}/{steps}: tilt {reached:.3}° reached{}",
                             if report.reissued {
                                 " (move re-issued)"
@@ -160,8 +161,8 @@ where
                 if matches!(event, Event::Recentred) {
                     info!(
                         step,
-                        dx_um,
-                        dy_um,
+                        dx_um = numbers::um(dx_um),
+                        dy_um = numbers::um(dy_um),
                         "step {step}/{steps}: specimen {:.1} px off, re-centred by ({dx_um:+.3}, {dy_um:+.3}) µm",
                         offset_px[0].hypot(offset_px[1])
                     );
@@ -216,7 +217,7 @@ where
     }
     match stage.move_tilt(tilt_deg).await {
         Ok(_) => {
-            info!("stage back at the safe tilt {tilt_deg}°");
+            info!("stage back at the safe tilt {}°", numbers::deg(tilt_deg));
             Event::SafeReached { error: None }
         }
         Err(e) => {
@@ -309,6 +310,7 @@ impl RunState {
         self.record.frames += 1;
         match role {
             FrameRole::Left => {
+                let tilt_deg = numbers::deg(tilt_deg);
                 info!(tilt_deg, "left micrograph captured at {tilt_deg}°");
                 self.record.left = Some(Captured {
                     frame,
@@ -317,6 +319,7 @@ impl RunState {
                 });
             }
             FrameRole::Right => {
+                let tilt_deg = numbers::deg(tilt_deg);
                 info!(tilt_deg, "right micrograph captured at {tilt_deg}°");
                 self.record.right = Some(Captured {
                     frame,

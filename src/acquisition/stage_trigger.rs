@@ -26,5 +26,7 @@ pub fn carries_sem_commands(protocol: StageProtocol) -> bool {
     match protocol {
         // A PI controller drives only its stage.
         StageProtocol::PiGcs => false,
+        // RemCon32 is SmartSEM's own remote control: FREC, MAC n.
+        StageProtocol::Remcon32 => true,
     }
 }

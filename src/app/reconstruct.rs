@@ -236,9 +236,10 @@ pub fn run(
 }
 
 /// Reconstructs an acquired pair into `out` and, when recording, publishes the
-/// results: `/recon/height`, `/recon/pointcloud`, `/recon/report` and the
-/// `height.gsf`, `mesh.ply` and `confidence.tif` attachments (DESIGN §5). Used by `acquire`
-/// and `replay`, so both run the very same code.
+/// results: `/recon/height`, `/recon/pointcloud`, the Foxglove views of
+/// [`RecorderHandle::reconstruction`](crate::record::RecorderHandle::reconstruction),
+/// `/recon/report` and the `height.gsf` and `confidence.tif` attachments (DESIGN §5).
+/// Used by `acquire` and `replay`, so both run the very same code.
 ///
 /// # Errors
 /// The reconstruction's or the writing's one-line cause.
@@ -252,7 +253,16 @@ pub fn reconstruct_recorded_pair(
     sources: (&Path, &Path),
 ) -> anyhow::Result<(ReportFile, Reconstruction)> {
     let t0 = Instant::now();
-    let recon = reconstruct(left, right, geometry, &config.params())?;
+    let recon = reconstruct(left, right, geometry, &config.params()).map_err(|e| {
+        let hint = match &e {
+            ReconstructError::Sparse(s) => super::rectify::tilt_axis_hint(s),
+            _ => None,
+        };
+        match hint {
+            Some(hint) => anyhow::anyhow!("{e}{hint}"),
+            None => e.into(),
+        }
+    })?;
     let mut report = ReportFile {
         sdsem_version: env!("CARGO_PKG_VERSION"),
         left: sources.0.to_owned(),
@@ -272,13 +282,19 @@ pub fn reconstruct_recorded_pair(
     write_outputs(out, &recon, left, &config.mesh, &mut report, t0)?;
     if let Some(rec) = rec {
         let t = crate::stage::observer::wall_ns();
-        rec.height(t, &recon.height_um)?;
-        let cloud = ply::cloud_from_height(&recon.height_um, geometry.pixel_size_um, Some(left));
-        rec.point_cloud(crate::record::topics::RECON_POINTCLOUD, t, "left", &cloud)?;
+        rec.reconstruction(
+            t,
+            &crate::record::ReconstructionView {
+                height_um: &recon.height_um,
+                intensity: left,
+                pixel_size_um: geometry.pixel_size_um,
+                mesh: &config.mesh,
+            },
+        )?;
         rec.report(t, &report)?;
+        // mesh.ply stays in the run directory: the record shows the mesh as /recon/mesh.
         for (name, media_type) in [
             (files::HEIGHT_GSF, "application/x-gwyddion-gsf"),
-            (files::MESH, "application/x-ply"),
             (files::CONFIDENCE_TIFF, "image/tiff"),
         ] {
             let path = out.join(name);
@@ -376,7 +392,7 @@ pub fn write_outputs(
         report.wall_s = started.elapsed().as_secs_f64();
         report.peak_rss_mib = peak_rss_mib();
         let path = out.join(files::REPORT);
-        export::report::write_json_atomic(&path, report)?;
+        export::report::write_report_atomic(&path, report)?;
         Ok(())
     })();
     if result.is_err() {
@@ -623,15 +639,17 @@ mod tests {
         }
         assert!(table4["rmse_after_px"].as_f64().unwrap() < 0.5);
         assert!(json["peak_rss_mib"].as_f64().unwrap() > 0.0);
-        // The noise floor: present, in pixels and µm by eq. (19).
-        let precision = &json["reconstruction"]["precision"];
-        let px = precision["disparity_px"].as_f64().unwrap();
-        let um = precision["height_um"].as_f64().unwrap();
-        assert!(px > 0.0 && px < 1.0, "{precision}");
+        // The noise floor: present in the file, in pixels and µm by eq. (19) (the file
+        // rounds them to 1e-3 px and 1 nm, so the relation is checked unrounded).
+        assert!(json["reconstruction"]["precision"]["height_um"].is_number());
+        let precision = report.reconstruction.precision.as_ref().unwrap();
+        let (px, um) = (precision.disparity_px, precision.height_um);
+        assert!(px > 0.0 && px < 1.0, "{precision:?}");
         assert!(
             (um / px / params_um_per_px() - 1.0).abs() < 1e-9,
-            "{precision}"
+            "{precision:?}"
         );
+        assert_eq!(json["schema_version"], 1);
         assert_eq!(report.outputs.len(), 6);
     }
 

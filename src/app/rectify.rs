@@ -5,6 +5,7 @@ use std::path::Path;
 use anyhow::{Context, bail};
 
 use crate::vision::Image;
+use crate::vision::rectify::RectifyError;
 use crate::vision::sparse::{
     Correspondence, Side, SparseError, SparseParams, SparseResult, rectify_pair,
 };
@@ -154,7 +155,7 @@ pub fn run_rectify(
     out: &Path,
     tilt_axis_deg: Option<f64>,
     params: &SparseParams,
-) -> anyhow::Result<()> {
+) -> anyhow::Result<RectifyOutputs> {
     let l = load_gray(left)?;
     let r = load_gray(right)?;
     let pair =
@@ -168,10 +169,30 @@ pub fn run_rectify(
         .save(&path)
         .with_context(|| format!("cannot write {}", path.display()))?;
     let json = rectification_json(&pair.sparse, tilt_axis_deg, params);
-    let path = out.join("rectification.json");
-    std::fs::write(&path, serde_json::to_string_pretty(&json)? + "\n")
-        .with_context(|| format!("cannot write {}", path.display()))?;
-    Ok(())
+    crate::export::report::write_report_atomic(&out.join("rectification.json"), &json)?;
+    Ok(RectifyOutputs {
+        files: [
+            "rectified_left.png",
+            "rectified_right.png",
+            "matches.png",
+            "rectification.json",
+        ]
+        .map(|name| out.join(name))
+        .to_vec(),
+        inliers: pair.sparse.inliers.len(),
+        initial_error_px: pair.sparse.rectification.initial_error_px,
+        final_error_px: pair.sparse.rectification.final_error_px,
+    })
+}
+
+/// What `sdsem rectify` wrote, and the figures of its summary line.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RectifyOutputs {
+    pub files: Vec<std::path::PathBuf>,
+    /// Inlier matches the rectification used.
+    pub inliers: usize,
+    pub initial_error_px: f64,
+    pub final_error_px: f64,
 }
 
 /// The stage's refusal with the file(s) it concerns: the one image at fault, or the pair.
@@ -183,11 +204,31 @@ pub(crate) fn name_files(e: SparseError, left: &Path, right: &Path, stage: &str)
         }
         _ => None,
     };
+    let hint = tilt_axis_hint(&e).unwrap_or_default();
     match side {
         Some(Side::Left) => anyhow::anyhow!("{}: {stage}{e}", left.display()),
         Some(Side::Right) => anyhow::anyhow!("{}: {stage}{e}", right.display()),
-        None => anyhow::anyhow!("{} and {}: {stage}{e}", left.display(), right.display()),
+        None => anyhow::anyhow!(
+            "{} and {}: {stage}{e}{hint}",
+            left.display(),
+            right.display()
+        ),
     }
+}
+
+/// The remedy for a rectification the tilt axis contradicts: the matches ask for other rows
+/// than the given φ, or no rectification along φ is plausible — most often a wrong φ.
+pub(crate) fn tilt_axis_hint(e: &SparseError) -> Option<&'static str> {
+    matches!(
+        e,
+        SparseError::Rectify(
+            RectifyError::TiltAxisMismatch { .. } | RectifyError::Implausible { .. }
+        )
+    )
+    .then_some(
+        " — check the tilt axis (--tilt-axis DEG, or reconstruction.tilt_axis_deg): the \
+         direction of the stage tilt axis in the image, from +x towards +y",
+    )
 }
 
 fn matrix_rows(m: &nalgebra::Matrix3<f64>) -> [[f64; 3]; 3] {

@@ -102,13 +102,13 @@ impl Comparison {
             ),
             Self::Differs(d) => format!(
                 "height map differs from the recorded /recon/height: {} of {} pixels \
-                 ({:.4} %), max |Δh| {:.3e} µm, RMS {:.3e} µm over pixels known in both; \
+                 ({:.4} %), max |Δh| {}, RMS {} over pixels known in both; \
                  known only in the record {}, only here {}",
                 d.pixels_differing,
                 d.pixels,
                 100.0 * ratio(d.pixels_differing, d.pixels),
-                d.max_abs_diff_um,
-                d.rms_diff_um,
+                crate::numbers::fmt_um(d.max_abs_diff_um),
+                crate::numbers::fmt_um(d.rms_diff_um),
                 d.valid_only_recorded,
                 d.valid_only_replayed
             ),
@@ -309,7 +309,7 @@ pub fn replay(record: &Path, out: &Path, overrides: &[String]) -> anyhow::Result
         comparison,
         reconstruction,
     };
-    crate::export::report::write_json_atomic(&out.join(REPLAY_REPORT), &report)?;
+    crate::export::report::write_report_atomic(&out.join(REPLAY_REPORT), &report)?;
     Ok(report)
 }
 
@@ -398,6 +398,11 @@ mod tests {
             compare_heights(&recorded, &image(&[1.0]))
                 .summary()
                 .contains("1×1 here")
+        );
+        let summary = compare_heights(&recorded, &replayed).summary();
+        assert!(
+            summary.contains("max |Δh| 0.5 µm, RMS 0.354 µm"),
+            "{summary}"
         );
     }
 }

@@ -29,8 +29,10 @@ pub struct EvalArgs {
 pub enum Which {
     /// The 0→7° series on the simulator: tilts, frames, stage I/O, re-centring
     /// against ground truth, real-time overhead, the record in the Python reader.
+    #[command(after_help = super::manual::EVAL_ACQUISITION)]
     Acquisition,
     /// SIFT flow on Middlebury RubberWhale against its ground truth (paper Table 3).
+    #[command(after_help = super::manual::EVAL_FLOW)]
     Flow {
         /// Override a dense parameter, KEY=VALUE as in [reconstruction.dense] (repeatable).
         #[arg(long = "set", value_name = "KEY=VALUE")]
@@ -38,13 +40,17 @@ pub enum Which {
     },
     /// The daemon as a process through consecutive short jobs with seeded
     /// random stage faults: final states, reasons, records, RSS and fds.
+    #[command(after_help = super::manual::EVAL_SOAK)]
     Soak(SoakArgs),
     /// `kill -9` of the daemon at random moments, each followed by a restart:
     /// no job lost or re-run, every record readable.
+    #[command(after_help = super::manual::EVAL_KILL)]
     Kill(KillArgs),
     /// The dense stage on the simulator's ground-truth scenes: coverage, RMSE, disparity error, scale.
+    #[command(after_help = super::manual::EVAL_DENSE)]
     Dense(DenseArgs),
     /// Agreement of the Potamogeton height maps from three tilt pairs (real Zeiss data).
+    #[command(after_help = super::manual::EVAL_POTAMOGETON)]
     Potamogeton {
         /// Only this mode (default: improved and paper).
         #[arg(long, value_parser = parse_mode)]
@@ -56,6 +62,7 @@ pub enum Which {
     /// The sparse stage (SIFT, ORSA, rectification): simulator pairs against their true
     /// correspondences, the grid over several seeds, the Potamogeton pairs beside the paper's
     /// Table 2, and the time per step at 1280×960.
+    #[command(after_help = super::manual::EVAL_SPARSE)]
     Sparse,
 }
 

@@ -4,13 +4,11 @@
 use std::path::Path;
 use std::process::ExitCode;
 
-use anyhow::Context;
-
 use crate::record::{format_inspection, read_summary};
 
 pub fn run(path: &Path, json: bool) -> anyhow::Result<ExitCode> {
-    let inspection =
-        read_summary(path).with_context(|| format!("cannot read the record {}", path.display()))?;
+    // Every ReadError names the file already.
+    let inspection = read_summary(path)?;
     if json {
         println!("{}", serde_json::to_string_pretty(&inspection)?);
     } else {

@@ -58,7 +58,7 @@ pub fn init(format: LogFormat, filter: Option<&str>) {
     } else {
         fmt::layer()
             .with_target(false)
-            .with_ansi(std::io::stderr().is_terminal())
+            .with_ansi(colours())
             .with_writer(std::io::stderr)
             .boxed()
     };
@@ -71,6 +71,12 @@ pub fn init(format: LogFormat, filter: Option<&str>) {
     if installed {
         let _ = RECORD_LOGS.set(switch);
     }
+}
+
+/// Whether the text log is coloured, decided as clap decides it for the help: a non-empty
+/// `NO_COLOR` and `CLICOLOR=0` turn colours off, `CLICOLOR_FORCE` on, else a terminal.
+fn colours() -> bool {
+    anstream::AutoStream::choice(&std::io::stderr()) != anstream::ColorChoice::Never
 }
 
 /// The switch that sends log events into the record of the current run.

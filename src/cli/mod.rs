@@ -15,16 +15,17 @@ mod daemon;
 mod eval;
 mod inspect;
 pub(crate) mod logging;
-
-pub use logging::journal_error_prefix;
+mod manual;
 mod replay;
 mod status;
 mod submit;
 mod vision;
 
+pub use logging::journal_error_prefix;
+
 /// Unattended 3D surface reconstruction on a scanning electron microscope.
 #[derive(Debug, Parser)]
-#[command(name = "sdsem", version, about, long_about = None)]
+#[command(name = "sdsem", version, about, long_about = None, after_help = manual::ROOT)]
 pub struct Cli {
     #[command(subcommand)]
     pub command: Command,
@@ -42,7 +43,8 @@ pub struct ConfigArgs {
     /// Configuration file (TOML); see config/sdsem.toml for every key.
     #[arg(long, short = 'c', value_name = "FILE")]
     pub config: Option<PathBuf>,
-    /// Override one key, e.g. `--set series.end_tilt_deg=5` (repeatable; beats file and environment).
+    /// Override one key, e.g. `--set reconstruction.mode=paper` (repeatable; beats file and
+    /// environment).
     #[arg(long = "set", value_name = "KEY=VALUE")]
     pub overrides: Vec<String>,
 }
@@ -61,17 +63,22 @@ impl ConfigArgs {
 pub enum Command {
     /// One run now: tilt series, end micrographs, reconstruction, record.
     /// The last line on stdout is the run directory.
+    #[command(after_help = manual::ACQUIRE)]
     Acquire {
         #[command(flatten)]
         config: ConfigArgs,
     },
     /// Height map, point cloud and mesh from a stereo pair (SD-SEM).
+    #[command(after_help = manual::RECONSTRUCT)]
     Reconstruct(vision::ReconstructArgs),
     /// The sparse stage alone: matches and the rectified pair.
+    #[command(after_help = manual::RECTIFY)]
     Rectify(vision::RectifyArgs),
     /// Dense SIFT-flow correspondence of two images, as Middlebury .flo.
+    #[command(after_help = manual::FLOW)]
     Flow(vision::FlowArgs),
     /// Summarise a run record: topics, message counts, frames, outcome (works on truncated files).
+    #[command(after_help = manual::INSPECT)]
     Inspect {
         /// The record, e.g. runs/sim-…/run.mcap.
         record: PathBuf,
@@ -80,6 +87,7 @@ pub enum Command {
         json: bool,
     },
     /// Validate a configuration file (all layers) and print the effective configuration.
+    #[command(after_help = manual::CHECK_CONFIG)]
     CheckConfig {
         /// The configuration file.
         file: PathBuf,
@@ -91,15 +99,26 @@ pub enum Command {
         quiet: bool,
     },
     /// The unattended service: run queued jobs one at a time (SIGTERM stops safely, SIGHUP reloads).
+    #[command(after_help = manual::DAEMON)]
     Daemon(daemon::DaemonArgs),
     /// Validate a job file and queue it for the daemon (an invalid job is refused, never queued).
+    #[command(after_help = manual::SUBMIT)]
     Submit(submit::SubmitArgs),
     /// List the spool's jobs (name, state, reason) and what the daemon is doing.
+    #[command(after_help = manual::STATUS)]
     Status(status::StatusArgs),
     /// Reconstruct a run again from its record; says whether the height map is bit-identical.
+    #[command(after_help = manual::REPLAY)]
     Replay(replay::ReplayArgs),
     /// Print measured figures against ground truth (simulator scenes, shared real data).
+    #[command(after_help = manual::EVAL)]
     Eval(eval::EvalArgs),
+    /// Print the completion script of a shell (bash, zsh, fish, elvish, powershell).
+    #[command(after_help = manual::COMPLETIONS)]
+    Completions(manual::CompletionsArgs),
+    /// Print the manual page of sdsem or of one command, as roff.
+    #[command(after_help = manual::MAN)]
+    Man(manual::ManArgs),
 }
 
 impl Command {
@@ -118,6 +137,40 @@ impl Command {
         };
         Some(config.log)
     }
+}
+
+impl Command {
+    /// Whether the command must outlive the reader of its output: `acquire` and `daemon` drive
+    /// the instruments (a run stopped half-way leaves the stage tilted), `eval soak` and
+    /// `eval kill` own daemon processes. Every other command ends quietly by SIGPIPE when
+    /// its reader goes away (`sdsem check-config … | head -1`).
+    #[must_use]
+    pub fn outlives_its_reader(&self) -> bool {
+        match self {
+            Self::Acquire { .. } | Self::Daemon(_) => true,
+            Self::Eval(args) => matches!(args.which, eval::Which::Soak(_) | eval::Which::Kill(_)),
+            _ => false,
+        }
+    }
+}
+
+/// The one line `main` prints for a failure: the causes joined by ": ", each once — a
+/// cause whose text an outer message already holds ("cannot read x.tif: No such file or
+/// directory") is not repeated.
+#[must_use]
+pub fn error_line(err: &anyhow::Error) -> String {
+    let mut line = String::new();
+    for cause in err.chain() {
+        let text = cause.to_string();
+        if line.contains(&text) {
+            continue;
+        }
+        if !line.is_empty() {
+            line.push_str(": ");
+        }
+        line.push_str(&text);
+    }
+    line
 }
 
 /// Runs one command.
@@ -153,5 +206,40 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Status(args) => status::run(&args),
         Command::Replay(args) => replay::run(&args),
         Command::Eval(args) => eval::run(&args),
+        Command::Completions(args) => manual::completions(&args),
+        Command::Man(args) => manual::man(&args),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[derive(Debug, thiserror::Error)]
+    #[error("cannot read {path}: {source}")]
+    struct ReadFailed {
+        path: String,
+        source: std::io::Error,
+    }
+
+    /// An error that shows its source and also names it as `source()` reads once.
+    #[test]
+    fn a_cause_the_message_already_shows_is_printed_once() {
+        let io = std::io::Error::from(std::io::ErrorKind::NotFound);
+        let io_text = io.to_string();
+        let err = anyhow::Error::new(ReadFailed {
+            path: "nope.tif".into(),
+            source: io,
+        })
+        .context("reconstruct refused");
+        let line = error_line(&err);
+        assert_eq!(line.matches(&io_text).count(), 1, "{line}");
+        assert_eq!(
+            line,
+            format!("reconstruct refused: cannot read nope.tif: {io_text}")
+        );
+        // Distinct causes are all kept.
+        let err = anyhow::anyhow!("inner").context("middle").context("outer");
+        assert_eq!(error_line(&err), "outer: middle: inner");
     }
 }

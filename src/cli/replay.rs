@@ -7,6 +7,7 @@ use std::process::ExitCode;
 use clap::Args;
 
 use crate::app::replay::{self, Comparison};
+use crate::numbers;
 
 #[derive(Debug, Args)]
 pub struct ReplayArgs {
@@ -32,7 +33,10 @@ const EXIT_MISMATCH: u8 = 2;
 pub fn run(args: &ReplayArgs) -> anyhow::Result<ExitCode> {
     let report = replay::replay(&args.record, &args.out, &args.overrides)?;
     if args.json {
-        println!("{}", serde_json::to_string_pretty(&report)?);
+        println!(
+            "{}",
+            serde_json::to_string_pretty(&crate::numbers::report_json(&report)?)?
+        );
     } else {
         if let Some(note) = &report.record_note {
             eprintln!("note: {note}");
@@ -47,12 +51,18 @@ pub fn run(args: &ReplayArgs) -> anyhow::Result<ExitCode> {
             } else {
                 format!(" and --set {}", report.overrides.join(" --set "))
             },
-            g.tilt_deg,
-            g.pixel_size_um,
-            g.tilt_axis_deg,
+            numbers::deg(g.tilt_deg),
+            numbers::significant(g.pixel_size_um, 6),
+            numbers::deg(g.tilt_axis_deg),
             100.0 * report.reconstruction.reconstruction.depth.valid_fraction
         );
         println!("{}", report.comparison.summary());
+        eprintln!(
+            "wrote {}/{{{}, {}}}",
+            report.out.display(),
+            report.reconstruction.outputs.join(", "),
+            replay::REPLAY_REPORT
+        );
         println!("{}", report.out.display());
     }
     if report.is_mismatch() {

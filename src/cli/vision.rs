@@ -7,6 +7,7 @@ use clap::Args;
 
 use super::ConfigArgs;
 use crate::app::reconstruct::{self, GeometryOverrides};
+use crate::numbers;
 
 #[derive(Debug, Args)]
 pub struct ReconstructArgs {
@@ -124,7 +125,28 @@ fn summarise(report: &reconstruct::ReportFile, out: &Path) {
             .peak_rss_mib
             .map_or_else(|| "unknown".to_owned(), |m| format!("{m:.0} MiB"))
     );
+    eprintln!(
+        "wrote {}",
+        written(
+            out,
+            &report.outputs.iter().map(PathBuf::from).collect::<Vec<_>>()
+        )
+    );
     println!("{}", out.display());
+}
+
+/// `DIR/{a, b, c}` for a summary line: the files a command wrote into `dir`.
+fn written(dir: &Path, files: &[PathBuf]) -> String {
+    let names: Vec<String> = files
+        .iter()
+        .map(|f| {
+            f.file_name().map_or_else(
+                || f.display().to_string(),
+                |n| n.to_string_lossy().into_owned(),
+            )
+        })
+        .collect();
+    format!("{}/{{{}}}", dir.display(), names.join(", "))
 }
 
 /// Share of the relief (1st–99th percentile) above which the summary
@@ -160,13 +182,20 @@ fn describe_precision(p: &crate::vision::precision::Precision, relief: f64) -> S
 pub fn run_rectify(args: &RectifyArgs) -> anyhow::Result<ExitCode> {
     let config = args.config.load()?;
     let tilt_axis = args.tilt_axis.or(config.reconstruction.tilt_axis_deg);
-    crate::app::rectify::run_rectify(
+    let outputs = crate::app::rectify::run_rectify(
         &args.left,
         &args.right,
         &args.out,
         tilt_axis,
         &config.reconstruction.sparse,
     )?;
+    eprintln!(
+        "{} inlier matches, rectification error {} px → {} px",
+        outputs.inliers,
+        numbers::px(outputs.initial_error_px),
+        numbers::px(outputs.final_error_px)
+    );
+    eprintln!("wrote {}", written(&args.out, &outputs.files));
     println!("{}", args.out.display());
     Ok(ExitCode::SUCCESS)
 }
@@ -174,7 +203,15 @@ pub fn run_rectify(args: &RectifyArgs) -> anyhow::Result<ExitCode> {
 pub fn run_flow(args: &FlowArgs) -> anyhow::Result<ExitCode> {
     let config = args.config.load()?;
     let params = config.reconstruction.params().dense_params().flow_params();
-    crate::app::flow::run(&args.a, &args.b, &args.out, &params)?;
+    let flow = crate::app::flow::run(&args.a, &args.b, &args.out, &params)?;
+    eprintln!(
+        "wrote {} ({}×{} flow from {} to {})",
+        args.out.display(),
+        flow.u.width(),
+        flow.u.height(),
+        args.a.display(),
+        args.b.display()
+    );
     println!("{}", args.out.display());
     Ok(ExitCode::SUCCESS)
 }

@@ -503,6 +503,10 @@ fn job_error(e: ConfigError) -> JobError {
                     crate::acquisition::plan::MAX_PLAN_STEPS
                 ),
             },
+            // The daemon's configuration, not the job, is at fault.
+            inverted @ PlanError::InvertedLimits { .. } => JobError::Config {
+                message: inverted.to_string(),
+            },
         },
         other => JobError::Config {
             message: other.to_string(),

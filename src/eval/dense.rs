@@ -527,7 +527,7 @@ pub fn evaluate_case(
         let est_map: Vec<f32> = (0..truth.len())
             .map(|p| heights.data()[p] - plane_at(p))
             .collect();
-        if let Err(e) = dump_maps(
+        match dump_maps(
             dir,
             &label,
             (case.width, case.height),
@@ -538,7 +538,11 @@ pub fn evaluate_case(
             &visible,
             (lo, hi),
         ) {
-            tracing::warn!("cannot write the maps of {label}: {e}");
+            Ok(()) => eprintln!(
+                "wrote {}/{label}_{{left, truth, height, error}}.png",
+                dir.display()
+            ),
+            Err(e) => tracing::warn!("cannot write the maps of {label}: {e}"),
         }
     }
     Ok(SimFigures {

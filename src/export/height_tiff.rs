@@ -1,6 +1,6 @@
 //! `height.tif`: the height map as a single-channel float32 TIFF, µm, NaN unknown.
 //!
-//! The ImageDescription holds a small JSON object (`{"sdsem":"height","unit":"um",...}`)
+//! The ImageDescription holds a small JSON object (`{"sdsem":"height","schema_version":1,"unit":"um",...}`)
 //! with the pixel size, and the standard resolution tags carry it too (pixels per cm),
 //! so GIS tools, ImageJ/Fiji and Gwyddion read a calibrated field.
 
@@ -39,16 +39,22 @@ pub(crate) fn rational(value: f64) -> Rational {
     }
 }
 
+/// Version of the layout of sdsem's TIFF ImageDescription JSON (height, confidence and
+/// micrograph files, key `schema_version`): raised when a key changes meaning or goes away.
+pub const DESCRIPTION_SCHEMA_VERSION: u32 = 1;
+
 fn description(kind: Field, pixel_size_um: Option<f64>) -> String {
     let mut json = match kind {
         Field::Height => serde_json::json!({
             "sdsem": "height",
+            "schema_version": DESCRIPTION_SCHEMA_VERSION,
             "unit": "um",
             "unknown": "NaN",
             "grid": "left micrograph",
         }),
         Field::Confidence => serde_json::json!({
             "sdsem": "confidence",
+            "schema_version": DESCRIPTION_SCHEMA_VERSION,
             "unit": "1",
             "unknown": "NaN",
             "interpolated": 0,
@@ -197,6 +203,13 @@ mod tests {
             assert!(a == b || (a.is_nan() && b.is_nan()), "{a} vs {b}");
         }
         assert!(back.height_um.get(2, 1).is_nan());
+        // The description names its layout's version, for readers written against it.
+        let mut decoder = Decoder::new(std::fs::File::open(&path).unwrap()).unwrap();
+        let description: serde_json::Value =
+            serde_json::from_str(&decoder.get_tag_ascii_string(Tag::ImageDescription).unwrap())
+                .unwrap();
+        assert_eq!(description["sdsem"], "height");
+        assert_eq!(description["schema_version"], DESCRIPTION_SCHEMA_VERSION);
     }
 
     #[test]

@@ -11,9 +11,11 @@
 pub mod atomic;
 mod error;
 pub mod flo;
+pub mod glb;
 pub mod gsf;
 pub mod height_tiff;
 pub mod ply;
+pub mod preview;
 pub mod report;
 
 pub use error::ExportError;

@@ -152,6 +152,43 @@ pub fn build_mesh(
     mesh
 }
 
+/// A mesh of at most `max_vertices` vertices, for viewers of a whole run (the record's
+/// `/recon/mesh`): [`build_mesh`] of every `stride`-th pixel of each row and column, the
+/// smallest stride that fits, with the same slope rule and in the same coordinates.
+/// Returns the mesh and the stride.
+///
+/// # Panics
+/// When `intensity` is given with other dimensions than `height_um`.
+#[must_use]
+pub fn build_mesh_decimated(
+    height_um: &Image,
+    pixel_size_um: f64,
+    intensity: Option<&Image>,
+    params: &MeshParams,
+    max_vertices: usize,
+) -> (Mesh, usize) {
+    let (w, h) = height_um.dimensions();
+    let stride = (1..)
+        .find(|s| w.div_ceil(*s) * h.div_ceil(*s) <= max_vertices.max(1))
+        .unwrap_or(1);
+    if stride == 1 {
+        return (build_mesh(height_um, pixel_size_um, intensity, params), 1);
+    }
+    let sample = |img: &Image| {
+        Image::from_fn(w.div_ceil(stride), h.div_ceil(stride), |x, y| {
+            img.get(x * stride, y * stride)
+        })
+    };
+    let intensity = intensity.map(sample);
+    let mesh = build_mesh(
+        &sample(height_um),
+        pixel_size_um * stride as f64,
+        intensity.as_ref(),
+        params,
+    );
+    (mesh, stride)
+}
+
 /// Records per block of [`write_records`]: 1–2 MB of output at a time.
 const RECORDS_PER_BLOCK: usize = 1 << 16;
 
@@ -377,6 +414,38 @@ fn parse_ply(bytes: &[u8]) -> Result<PlyData, String> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The decimated mesh keeps the bound, the coordinates of the full one and its cuts.
+    #[test]
+    fn decimated_mesh_keeps_the_bound_and_the_coordinates() {
+        let height = Image::from_fn(
+            100,
+            60,
+            |x, y| {
+                if x >= 50 { 40.0 } else { (x + y) as f32 * 0.01 }
+            },
+        );
+        let (full, stride) = build_mesh_decimated(&height, 0.1, None, &MeshParams::default(), 6000);
+        assert_eq!(stride, 1);
+        assert_eq!(full, build_mesh(&height, 0.1, None, &MeshParams::default()));
+        let (small, stride) =
+            build_mesh_decimated(&height, 0.1, None, &MeshParams::default(), 1000);
+        assert_eq!(stride, 3, "34 × 20 = 680 ≤ 1000 < 50 × 30");
+        assert_eq!(small.vertices.len(), 34 * 20);
+        // Vertex (column 2, row 1) of the small mesh is pixel (6, 3) of the map.
+        let v = small.vertices[34 + 2];
+        assert!(
+            (v.x - 0.6).abs() < 1e-6 && (v.y + 0.3).abs() < 1e-6,
+            "{v:?}"
+        );
+        assert_eq!(v.z, height.get(6, 3));
+        // The 40 µm wall is still cut, not bridged.
+        assert!(small.cut_triangles > 0);
+        assert!(small.triangles.iter().all(|t| {
+            let z: Vec<f32> = t.iter().map(|&i| small.vertices[i as usize].z).collect();
+            z.iter().all(|&h| h == 40.0) || z.iter().all(|&h| h < 40.0)
+        }));
+    }
 
     #[test]
     fn cloud_maps_pixels_to_right_handed_micrometres() {

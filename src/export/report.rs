@@ -22,6 +22,20 @@ pub fn write_json_atomic(path: &Path, value: &impl Serialize) -> Result<(), Expo
     write_atomic(path, |w| w.write_all(&text))
 }
 
+/// Writes a report people read (`report.json`, `replay.json`, `rectification.json`) like
+/// [`write_json_atomic`], with `schema_version` first and every number rounded to what it
+/// means ([`crate::numbers::report_json`]).
+///
+/// # Errors
+/// As [`write_json_atomic`]; [`ExportError::Invalid`] when `report` is not a JSON object.
+pub fn write_report_atomic(path: &Path, report: &impl Serialize) -> Result<(), ExportError> {
+    let value = crate::numbers::report_json(report).map_err(|e| ExportError::Invalid {
+        path: path.to_path_buf(),
+        reason: format!("cannot serialise to JSON: {e}"),
+    })?;
+    write_json_atomic(path, &value)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -47,6 +61,20 @@ mod tests {
         assert!(text.ends_with('\n'));
         let v: serde_json::Value = serde_json::from_str(&text).unwrap();
         assert_eq!(v["matches"], 42);
+    }
+
+    #[test]
+    fn reports_carry_their_schema_version_and_rounded_figures() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("report.json");
+        write_report_atomic(
+            &path,
+            &serde_json::json!({"wall_s": 231.43128099999998, "inliers": 938}),
+        )
+        .unwrap();
+        let text = std::fs::read_to_string(&path).unwrap();
+        assert!(text.contains("\"schema_version\": 1"), "{text}");
+        assert!(text.contains("\"wall_s\": 231.431,"), "{text}");
     }
 
     #[test]

@@ -17,7 +17,7 @@ use tiff::encoder::TiffEncoder;
 use tiff::encoder::colortype::{Gray8, Gray16};
 use tiff::tags::{ResolutionUnit, Tag, Type};
 
-use super::file_tiff::{RawTiff, is_tiff, patch_u16};
+use super::file_tiff::{RawTiff, is_tiff, patch_u16, truncation};
 use super::metadata::{
     SemMetadata, TAG_FEI, TAG_FEI_OLD, TAG_TESCAN, TAG_ZEISS, parse_fei, parse_sdsem_description,
     parse_sidecar, parse_tescan, parse_zeiss, zeiss_block,
@@ -41,6 +41,8 @@ pub enum ImageFileError {
     Unsupported { path: PathBuf, what: String },
     #[error("{path}: cannot decode the image: {cause}")]
     Decode { path: PathBuf, cause: String },
+    #[error("{path} is incomplete: {how} — an interrupted copy or transfer; copy it again")]
+    Truncated { path: PathBuf, how: String },
     #[error(transparent)]
     Write(#[from] ExportError),
 }
@@ -211,6 +213,12 @@ fn grey_palette(colormap: &[u64], entries: usize) -> Option<Vec<f32>> {
 }
 
 fn decode_tiff(path: &Path, mut bytes: Vec<u8>) -> Result<(Image, u8), ImageFileError> {
+    if let Some(how) = truncation(&bytes) {
+        return Err(ImageFileError::Truncated {
+            path: path.to_path_buf(),
+            how,
+        });
+    }
     let raw = RawTiff::parse(&bytes).ok_or_else(|| decode_error(path, "malformed TIFF header"))?;
     let photometric = raw.photometric_field();
     let palette = match photometric {
@@ -378,6 +386,10 @@ pub struct MicrographTags {
 fn description(tags: &MicrographTags) -> String {
     let mut map = tags.extra.clone();
     map.insert("sdsem".into(), "micrograph".into());
+    map.insert(
+        "schema_version".into(),
+        crate::export::height_tiff::DESCRIPTION_SCHEMA_VERSION.into(),
+    );
     if let Some(p) = tags.pixel_size_um {
         map.insert("pixel_size_um".into(), p.into());
     }

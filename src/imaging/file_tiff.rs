@@ -227,6 +227,60 @@ impl<'a> RawTiff<'a> {
     }
 }
 
+/// How a TIFF held in `bytes` was cut short, if it was (an interrupted copy or transfer): its
+/// header, its first directory or its image data (strips or tiles) runs past the last byte.
+/// `None` when all of it is there, also for a TIFF malformed in another way.
+pub(crate) fn truncation(bytes: &[u8]) -> Option<String> {
+    let len = bytes.len() as u64;
+    if !is_tiff(bytes) {
+        return None;
+    }
+    let big_tiff = bytes[2] == b'+' || bytes[3] == b'+';
+    let header = if big_tiff { 16 } else { 8 };
+    if len < header {
+        return Some(format!("it ends after {len} bytes, inside the TIFF header"));
+    }
+    let Some(tiff) = RawTiff::parse(bytes) else {
+        let partial = RawTiff {
+            bytes,
+            big_endian: bytes[0] == b'M',
+            big_tiff,
+            entries: Vec::new(),
+        };
+        let ifd = if big_tiff {
+            partial.u64_at(8)?
+        } else {
+            u64::from(partial.u32_at(4)?)
+        };
+        let (count_len, entry_len) = if big_tiff { (8, 20) } else { (2, 12) };
+        let at = usize::try_from(ifd).ok()?;
+        let entries = if big_tiff {
+            partial.u64_at(at)
+        } else {
+            partial.u16_at(at).map(u64::from)
+        };
+        let whole = entries.is_some_and(|n| {
+            n.checked_mul(entry_len)
+                .and_then(|b| b.checked_add(ifd + count_len))
+                .is_some_and(|end| end <= len)
+        });
+        return (!whole).then(|| {
+            format!(
+                "its image directory at byte {ifd} is not all there: the file ends at byte {len}"
+            )
+        });
+    };
+    let mut end = 0u64;
+    for (offsets, counts) in [(273, 279), (324, 325)] {
+        if let (Some(o), Some(c)) = (tiff.unsigned_values(offsets), tiff.unsigned_values(counts)) {
+            for (o, c) in o.iter().zip(&c) {
+                end = end.max(o.saturating_add(*c));
+            }
+        }
+    }
+    (end > len).then(|| format!("its image data runs to byte {end}, the file ends at byte {len}"))
+}
+
 /// Writes `value` as a SHORT at `at` in the file's byte order.
 pub(crate) fn patch_u16(bytes: &mut [u8], at: usize, value: u16, big_endian: bool) {
     let b = if big_endian {
@@ -359,6 +413,43 @@ mod tests {
         assert_eq!(b.len(), 50);
         b.extend(b"A = 1 \xb0\r\0");
         b
+    }
+
+    /// A file cut short is told apart from a whole one, at each place a cut can fall.
+    #[test]
+    fn truncation_names_what_is_missing() {
+        let whole = tiny_tiff(false);
+        assert_eq!(truncation(&whole), None);
+        assert!(
+            truncation(&whole[..6])
+                .unwrap()
+                .contains("inside the TIFF header")
+        );
+        let cut = truncation(&whole[..20]).unwrap();
+        assert!(
+            cut.contains("image directory at byte 8") && cut.contains("ends at byte 20"),
+            "{cut}"
+        );
+        // Strip data promised beyond the end: StripOffsets 100, StripByteCounts 64.
+        let mut strips = whole[..8].to_vec();
+        strips.extend(2u16.to_le_bytes());
+        for (tag, value) in [(273u16, 100u32), (279, 64)] {
+            strips.extend(tag.to_le_bytes());
+            strips.extend(4u16.to_le_bytes());
+            strips.extend(1u32.to_le_bytes());
+            strips.extend(value.to_le_bytes());
+        }
+        strips.extend(0u32.to_le_bytes());
+        strips.resize(120, 0);
+        let cut = truncation(&strips).unwrap();
+        assert!(
+            cut.contains("runs to byte 164, the file ends at byte 120"),
+            "{cut}"
+        );
+        strips.resize(164, 0);
+        assert_eq!(truncation(&strips), None);
+        // Not a TIFF, or a TIFF malformed otherwise: not a truncation.
+        assert_eq!(truncation(b"\x89PNG\r\n"), None);
     }
 
     #[test]

@@ -8,8 +8,10 @@ use std::collections::BTreeMap;
 
 use foxglove::Encode;
 use foxglove::messages::{
-    CompressedImage, Log, PackedElementField, PointCloud, Pose, Quaternion, RawImage, Timestamp,
-    Vector3, log::Level as FoxgloveLevel, packed_element_field::NumericType,
+    Color, CompressedImage, FrameTransform, FrameTransforms, ImageAnnotations, KeyValuePair, Log,
+    ModelPrimitive, PackedElementField, Point2, PointCloud, Pose, Quaternion, RawImage,
+    SceneEntity, SceneUpdate, TextAnnotation, Timestamp, Vector3, log::Level as FoxgloveLevel,
+    packed_element_field::NumericType,
 };
 use serde::Serialize;
 
@@ -277,6 +279,27 @@ fn timestamp(log_time_ns: u64) -> Option<Timestamp> {
     Timestamp::new_checked(sec, nsec)
 }
 
+/// At the frame's origin, axes along the frame's.
+fn identity_pose() -> Pose {
+    Pose {
+        position: Some(Vector3 {
+            x: 0.0,
+            y: 0.0,
+            z: 0.0,
+        }),
+        orientation: Some(identity_rotation()),
+    }
+}
+
+fn identity_rotation() -> Quaternion {
+    Quaternion {
+        x: 0.0,
+        y: 0.0,
+        z: 0.0,
+        w: 1.0,
+    }
+}
+
 fn encode<T: Encode>(topic: &str, message: &T) -> Result<Vec<u8>, RecordError> {
     let mut data = Vec::with_capacity(message.encoded_len().unwrap_or(64));
     message
@@ -401,19 +424,7 @@ impl Entry {
         let message = PointCloud {
             timestamp: timestamp(log_time_ns),
             frame_id: frame_id.to_owned(),
-            pose: Some(Pose {
-                position: Some(Vector3 {
-                    x: 0.0,
-                    y: 0.0,
-                    z: 0.0,
-                }),
-                orientation: Some(Quaternion {
-                    x: 0.0,
-                    y: 0.0,
-                    z: 0.0,
-                    w: 1.0,
-                }),
-            }),
+            pose: Some(identity_pose()),
             point_stride: 16,
             fields: vec![
                 field("x", 0),
@@ -424,6 +435,131 @@ impl Entry {
             data: data.into(),
         };
         Self::message::<PointCloud>(topic, log_time_ns, &message, true)
+    }
+
+    /// A foxglove.FrameTransforms: each `(parent, child, translation)` places the child
+    /// frame's origin at `translation` in its parent, axes parallel (no rotation).
+    ///
+    /// # Errors
+    /// Only when protobuf encoding fails.
+    pub fn frame_transforms(
+        topic: &str,
+        log_time_ns: u64,
+        transforms: &[(&str, &str, [f64; 3])],
+    ) -> Result<Self, RecordError> {
+        let message = FrameTransforms {
+            transforms: transforms
+                .iter()
+                .map(|&(parent, child, [x, y, z])| FrameTransform {
+                    timestamp: timestamp(log_time_ns),
+                    parent_frame_id: parent.to_owned(),
+                    child_frame_id: child.to_owned(),
+                    translation: Some(Vector3 { x, y, z }),
+                    rotation: Some(identity_rotation()),
+                })
+                .collect(),
+        };
+        Self::message::<FrameTransforms>(topic, log_time_ns, &message, false)
+    }
+
+    /// A foxglove.SceneUpdate with one entity `id` in `frame_id` holding one model
+    /// (foxglove.ModelPrimitive) embedded as `data` of `media_type`, at the frame's origin,
+    /// scale 1; `metadata` shows beside it in Foxglove.
+    ///
+    /// # Errors
+    /// [`RecordError::InvalidMessage`] for empty model data.
+    pub fn scene_model(
+        topic: &str,
+        log_time_ns: u64,
+        frame_id: &str,
+        id: &str,
+        model: (&str, Vec<u8>),
+        metadata: &[(&str, String)],
+    ) -> Result<Self, RecordError> {
+        let (media_type, data) = model;
+        if data.is_empty() {
+            return Err(RecordError::InvalidMessage {
+                topic: topic.to_owned(),
+                reason: "empty model".to_owned(),
+            });
+        }
+        let message = SceneUpdate {
+            deletions: Vec::new(),
+            entities: vec![SceneEntity {
+                timestamp: timestamp(log_time_ns),
+                frame_id: frame_id.to_owned(),
+                id: id.to_owned(),
+                lifetime: None,
+                frame_locked: true,
+                metadata: metadata
+                    .iter()
+                    .map(|(key, value)| KeyValuePair {
+                        key: (*key).to_owned(),
+                        value: value.clone(),
+                    })
+                    .collect(),
+                models: vec![ModelPrimitive {
+                    pose: Some(identity_pose()),
+                    scale: Some(Vector3 {
+                        x: 1.0,
+                        y: 1.0,
+                        z: 1.0,
+                    }),
+                    color: None,
+                    override_color: false,
+                    url: String::new(),
+                    media_type: media_type.to_owned(),
+                    data: data.into(),
+                }],
+                ..SceneEntity::default()
+            }],
+        };
+        Self::message::<SceneUpdate>(topic, log_time_ns, &message, true)
+    }
+
+    /// A foxglove.ImageAnnotations of text lines at the top left of an image, white on a
+    /// dark box (a legend).
+    ///
+    /// # Errors
+    /// Only when protobuf encoding fails.
+    pub fn image_text(
+        topic: &str,
+        log_time_ns: u64,
+        lines: &[String],
+    ) -> Result<Self, RecordError> {
+        const FONT_PX: f64 = 14.0;
+        let message = ImageAnnotations {
+            timestamp: timestamp(log_time_ns),
+            texts: lines
+                .iter()
+                .zip(1u32..)
+                .map(|(text, row)| TextAnnotation {
+                    timestamp: timestamp(log_time_ns),
+                    // Bottom-left corner of the line, in image pixels.
+                    position: Some(Point2 {
+                        x: 4.0,
+                        y: f64::from(row) * (FONT_PX + 4.0),
+                    }),
+                    text: text.clone(),
+                    font_size: FONT_PX,
+                    text_color: Some(Color {
+                        r: 1.0,
+                        g: 1.0,
+                        b: 1.0,
+                        a: 1.0,
+                    }),
+                    background_color: Some(Color {
+                        r: 0.0,
+                        g: 0.0,
+                        b: 0.0,
+                        a: 0.7,
+                    }),
+                    metadata: Vec::new(),
+                })
+                .collect(),
+            ..ImageAnnotations::default()
+        };
+        Self::message::<ImageAnnotations>(topic, log_time_ns, &message, false)
     }
 
     /// A JSON message with the topic's schema ([`json_schema_for`]).

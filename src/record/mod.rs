@@ -9,7 +9,8 @@
 //! ```
 //!
 //! Topics and schemas are the contract of DESIGN §5 ([`topics`]); the JSON messages and their
-//! schemas are in [`messages`].
+//! schemas are in [`messages`]; what a reconstruction adds for Foxglove (frames, preview,
+//! mesh) is in `reconstruction` ([`RecorderHandle::reconstruction`]).
 //!
 //! ```no_run
 //! use sdsem::record::{self, topics, FrameInfo, Recorder, RunOutcome, RunStatus};
@@ -44,6 +45,7 @@ mod inspect;
 mod log_layer;
 pub mod messages;
 mod read;
+mod reconstruction;
 mod recorder;
 pub mod topics;
 
@@ -61,6 +63,7 @@ pub use read::{
     read_attachments, read_end_micrographs, read_images, read_json, read_logs, read_metadata,
     read_point_clouds, read_replay_inputs,
 };
+pub use reconstruction::{MESH_PREVIEW_MAX_VERTICES, ReconstructionView};
 pub use recorder::{RecordSummary, Recorder, RecorderHandle, RecorderOptions, RecorderStatus};
 pub use topics::FrameRole;
 

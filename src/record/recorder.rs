@@ -396,12 +396,17 @@ impl RecorderHandle {
         )
     }
 
-    /// Records the reconstruction report (the figures of `report.json`) on `/recon/report`.
+    /// Records the reconstruction report (the figures of `report.json`, with its
+    /// `schema_version` and rounding: [`crate::numbers::report_json`]) on `/recon/report`.
     ///
     /// # Errors
     /// As [`Entry::json`] and [`Self::send`].
     pub fn report(&self, log_time_ns: u64, report: &impl Serialize) -> Result<(), RecordError> {
-        self.json(topics::RECON_REPORT, log_time_ns, report)
+        let value = crate::numbers::report_json(report).map_err(|source| RecordError::Json {
+            topic: topics::RECON_REPORT.to_owned(),
+            source,
+        })?;
+        self.json(topics::RECON_REPORT, log_time_ns, &value)
     }
 
     /// Writes the run's outcome as the metadata record [`topics::METADATA_OUTCOME`];

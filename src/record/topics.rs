@@ -18,6 +18,25 @@ pub const RECON_REPORT: &str = "/recon/report";
 /// The tracing events of the run (foxglove.Log).
 pub const LOG: &str = "/log";
 
+/// Beyond DESIGN §5: the height map as a picture (foxglove.CompressedImage, PNG, RGB): viridis
+/// over the 1st–99th percentile of the heights, unknown pixels black; `frame_id` `left`.
+pub const RECON_HEIGHT_PREVIEW: &str = "/recon/height_preview";
+/// The legend of [`RECON_HEIGHT_PREVIEW`]: the heights its colours span (foxglove.ImageAnnotations).
+pub const RECON_HEIGHT_PREVIEW_LEGEND: &str = "/recon/height_preview/legend";
+/// The mesh, decimated to at most [`super::MESH_PREVIEW_MAX_VERTICES`] vertices, as a
+/// foxglove.SceneUpdate whose entity holds a glTF model (µm, frame [`FRAME_LEFT`]).
+pub const RECON_MESH: &str = "/recon/mesh";
+/// Where the 3D frames sit (foxglove.FrameTransforms): [`FRAME_LEFT`] in [`FRAME_SPECIMEN`].
+pub const TRANSFORMS: &str = "/tf";
+
+/// The 3D frame of the left micrograph's grid, in µm: pixel (c, r) at height h is the point
+/// (c·p, −r·p, h) — x right, y up in the image, z towards the beam, as in the PLY files.
+/// The point cloud, the mesh and (as its `frame_id`) the height map lie in it.
+pub const FRAME_LEFT: &str = "left";
+/// The parent of [`FRAME_LEFT`]: the same axes and unit, its origin at the centre of the left
+/// micrograph at height 0, so a 3D view centred on the origin shows the middle of the field.
+pub const FRAME_SPECIMEN: &str = "specimen";
+
 /// All contract topics, in the order of DESIGN §5.
 pub const ALL_TOPICS: [&str; 8] = [
     SEM_FRAME,
@@ -42,7 +61,8 @@ pub const METADATA_LOG_DROPS: &str = "sdsem.log_drops";
 
 /// Attachment name of the Gwyddion height field (DESIGN §5).
 pub const ATTACHMENT_HEIGHT_GSF: &str = "height.gsf";
-/// Attachment name of the triangle mesh (DESIGN §5).
+/// Attachment name of the triangle mesh (DESIGN §5) in records written before the mesh
+/// became the [`RECON_MESH`] scene entity; `mesh.ply` lies in the run directory.
 pub const ATTACHMENT_MESH_PLY: &str = "mesh.ply";
 /// Attachment name of the per-pixel confidence of the height map (beyond
 /// DESIGN §5: 0 marks interpolated heights).

@@ -181,7 +181,7 @@ pub enum RectifyError {
     )]
     Degenerate,
     #[error(
-        "the tilt-axis normal (φ = {tilt_axis_deg:.1}°) ends {mismatch_deg:.1}° away from the rows the matches ask for (limit {limit_deg}°): check --tilt-axis"
+        "the tilt-axis normal (φ = {tilt_axis_deg:.1}°) ends {mismatch_deg:.1}° away from the rows the matches ask for (limit {limit_deg}°)"
     )]
     TiltAxisMismatch {
         tilt_axis_deg: f64,
