@@ -14,8 +14,8 @@ use crate::export::MeshParams;
 use crate::imaging::ImagingConfig;
 use crate::stage::StageConfig;
 use crate::vision::dense::DenseParams;
+use crate::vision::dense::sift_flow::Mode;
 use crate::vision::pipeline::ReconstructionParams;
-use crate::vision::sift_flow::Mode;
 use crate::vision::sparse::SparseParams;
 
 /// Where runs go and what they are called.

@@ -8,7 +8,7 @@ use std::process::ExitCode;
 use clap::{Args, Subcommand};
 
 use crate::eval::{self, EvalOptions};
-use crate::vision::sift_flow::Mode;
+use crate::vision::dense::sift_flow::Mode;
 
 #[derive(Debug, Args)]
 pub struct EvalArgs {

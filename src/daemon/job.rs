@@ -471,7 +471,10 @@ mod tests {
         let c = job("name = \"a\"\nstart_tilt = 0\nend_tilt = 5\n\
              [reconstruction]\nreconstruction.mode = \"paper\"\nreconstruction.dense.levels = 3\n")
         .unwrap();
-        assert_eq!(c.reconstruction.mode, crate::vision::sift_flow::Mode::Paper);
+        assert_eq!(
+            c.reconstruction.mode,
+            crate::vision::dense::sift_flow::Mode::Paper
+        );
         assert_eq!(c.reconstruction.dense.levels, 3);
         let err = JobSpec::parse(
             "name = \"a\"\nstart_tilt = 0\nend_tilt = 5\n[capture]\nreconstruction.mode = \"paper\"\n",

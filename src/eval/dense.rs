@@ -24,11 +24,11 @@ use sdsem_sim::scene::{Scene, SceneKind, SceneParams};
 use serde::Serialize;
 
 use crate::vision::Image;
+use crate::vision::dense::sift_flow::Mode;
 use crate::vision::dense::{DenseParams, DenseStats, dense_disparity_in_range};
 use crate::vision::depth::{StereoGeometry, height_on_left_grid};
-use crate::vision::sift_flow::Mode;
+use crate::vision::rectify::warp::{Warped, warp};
 use crate::vision::sparse::{SparseParams, rectify_pair};
-use crate::vision::warp::{Warped, warp};
 
 /// Where the rectification of a simulated pair comes from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]

@@ -9,7 +9,7 @@ use serde::Serialize;
 use crate::export::flo;
 use crate::vision::Image;
 use crate::vision::dense::DenseError;
-use crate::vision::sift_flow::{Flow, FlowParams, sift_flow};
+use crate::vision::dense::sift_flow::{Flow, FlowParams, sift_flow};
 
 /// Errors of an evaluation run.
 #[derive(Debug, thiserror::Error)]
@@ -137,7 +137,7 @@ pub fn evaluate_rubberwhale(
 /// When the Middlebury data are missing, an override is invalid or the flow fails.
 pub fn run(opts: &super::EvalOptions, set: &[String]) -> anyhow::Result<()> {
     use crate::vision::dense::DenseParams;
-    use crate::vision::sift_flow::Mode;
+    use crate::vision::dense::sift_flow::Mode;
     let mut rows = Vec::new();
     for mode in [Mode::Paper, Mode::Improved] {
         let dense = DenseParams {
@@ -179,7 +179,7 @@ pub fn run(opts: &super::EvalOptions, set: &[String]) -> anyhow::Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::vision::sift_flow::Mode;
+    use crate::vision::dense::sift_flow::Mode;
 
     #[test]
     fn errors_of_a_known_offset() {

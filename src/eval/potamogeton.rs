@@ -17,8 +17,8 @@ use serde::Serialize;
 
 use crate::app::reconstruct::{GeometryOverrides, load_pair};
 use crate::vision::Image;
+use crate::vision::dense::sift_flow::Mode;
 use crate::vision::pipeline::{ReconReport, ReconstructionParams, reconstruct};
-use crate::vision::sift_flow::Mode;
 
 /// Tilt axis of the series in the stored files (see the data's README).
 pub const TILT_AXIS_DEG: f64 = -90.0;

@@ -17,10 +17,10 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::Image;
+use super::dense::sift_flow::Mode;
 use super::dense::{DenseError, DenseParams, DenseStats, dense_disparity_in_range};
 use super::depth::{StereoGeometry, height_on_left_grid};
 use super::precision::{self, Precision};
-use super::sift_flow::Mode;
 use super::sparse::{SparseError, SparseParams, rectify_pair};
 
 /// Parameters of the whole reconstruction (`[reconstruction]` in the configuration).

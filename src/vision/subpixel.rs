@@ -26,8 +26,8 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::Image;
-use super::bilateral_grid::KERNEL as XB_KERNEL;
-use super::sift_flow::energy::{DataTerm, LabelSpace};
+use super::dense::sift_flow::energy::{DataTerm, LabelSpace};
+use super::filter::bilateral_grid::KERNEL as XB_KERNEL;
 
 /// Minimum of the V through `(−1, cm)`, `(0, c0)`, `(1, cp)`; 0 when `c0`
 /// is not the smallest (a plateau or an edge of the window).
@@ -1005,7 +1005,7 @@ pub fn upsample_flow(
 }
 
 /// Refines a flow from `a` to `b` given at pyramid level `level` (the images
-/// halved `level` times, [`super::sift_flow::pyramid::halve_image`]): refined
+/// halved `level` times, [`super::dense::sift_flow::pyramid::halve_image`]): refined
 /// at that level, upsampled, refined again, down to full resolution.
 #[must_use]
 pub fn refine_flow(
@@ -1036,7 +1036,7 @@ pub fn refine_flow_down_to(
     stop: usize,
     params: &RefineParams,
 ) -> RefinedFlow {
-    use super::sift_flow::pyramid::{halve_image, halve_mask};
+    use super::dense::sift_flow::pyramid::{halve_image, halve_mask};
     let stop = stop.min(level);
     // Pyramids of both images and masks, finest first.
     let mut imgs = vec![(a.clone(), b.clone())];

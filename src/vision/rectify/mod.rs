@@ -15,6 +15,8 @@
 //! (any tilt axis) rectify too. Rotations compose as `R = R_x · R_y · R_z`: the in-plane
 //! rotation first, then the small corrections in the rectified frame.
 
+pub mod warp;
+
 use nalgebra::{Matrix3, SMatrix, Vector2, Vector3};
 use serde::{Deserialize, Serialize};
 
@@ -911,7 +913,7 @@ fn levenberg_marquardt(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::vision::fundamental::eight_point;
+    use crate::vision::sparse::fundamental::eight_point;
     use rand::{Rng, SeedableRng};
 
     /// An SEM-like pair: parallel projection, tilt about an axis at `phi` (DESIGN §3), plus an

@@ -35,16 +35,20 @@ use nalgebra::{Matrix3, Vector2};
 use serde::{Deserialize, Serialize};
 
 use crate::vision::Image;
-use crate::vision::fundamental::FundamentalModel;
-use crate::vision::matching::{MatchParams, match_keypoints};
-use crate::vision::orsa::{ModelFilter, OrsaError, OrsaParams, orsa_filtered};
+use crate::vision::rectify::warp::{Warped, warp};
 use crate::vision::rectify::{
     Rectification, RectifyError, RectifyParams, epipolar_direction, rectify,
 };
-use crate::vision::sift::{SiftParams, SiftParamsError, sift};
-use crate::vision::warp::{Warped, warp};
+use crate::vision::sparse::fundamental::FundamentalModel;
+use crate::vision::sparse::matching::{MatchParams, match_keypoints};
+use crate::vision::sparse::orsa::{ModelFilter, OrsaError, OrsaParams, orsa_filtered};
+use crate::vision::sparse::sift::{SiftParams, SiftParamsError, sift};
 
+pub mod fundamental;
+pub mod matching;
+pub mod orsa;
 pub mod refine;
+pub mod sift;
 pub use refine::RefineParams;
 
 /// Parameters of the sparse stage.
@@ -399,7 +403,7 @@ struct Stage<'a> {
 
 /// ORSA's model, its inliers (right positions refined) and their rectification.
 struct Geometry {
-    orsa: crate::vision::orsa::OrsaResult,
+    orsa: crate::vision::sparse::orsa::OrsaResult,
     left: Vec<Vector2<f64>>,
     right: Vec<Vector2<f64>>,
     refined: usize,
@@ -549,9 +553,9 @@ impl Stage<'_> {
 /// otherwise count several times in ORSA (inflating the NFA's evidence) and can make minimal
 /// samples degenerate.
 fn distinct_positions(
-    kl: &[crate::vision::sift::Keypoint],
-    kr: &[crate::vision::sift::Keypoint],
-    matches: &[crate::vision::matching::Match],
+    kl: &[crate::vision::sparse::sift::Keypoint],
+    kr: &[crate::vision::sparse::sift::Keypoint],
+    matches: &[crate::vision::sparse::matching::Match],
 ) -> (Vec<Vector2<f64>>, Vec<Vector2<f64>>, Vec<f64>) {
     let mut seen = std::collections::HashSet::new();
     let (mut pl, mut pr, mut sigmas) = (Vec::new(), Vec::new(), Vec::new());
@@ -601,7 +605,7 @@ pub fn rectify_pair(
 pub(crate) mod tests {
     use super::*;
     use crate::vision::rectify::transform;
-    use crate::vision::sift::scale_space::gaussian_blur;
+    use crate::vision::sparse::sift::scale_space::gaussian_blur;
     use rand::{Rng, SeedableRng};
 
     /// A parallel-projection (SEM) pair of a textured surface with a bump, after DESIGN §3's

@@ -1,5 +1,5 @@
 //! The dense stage of SD-SEM as one call: rectified pair in, disparity out
-//! (steps 4–5 of DESIGN §6; step 6, depth, is [`super::depth`]).
+//! (steps 4–5 of DESIGN §6; step 6, depth, is [`crate::vision::depth`]).
 //!
 //! Dense SIFT at every pixel, SIFT flow with a small vertical window (the
 //! pair is rectified, so correspondences share a row up to the rectification
@@ -9,7 +9,7 @@
 //!
 //! The improved mode runs BP down to half resolution only (`finest_level` 1)
 //! and takes the flow to full resolution with the Lucas–Kanade refinement of
-//! [`super::subpixel::refine_flow`] on the rectified intensities: the
+//! [`crate::vision::subpixel::refine_flow`] on the rectified intensities: the
 //! descriptors cannot resolve a fraction of a pixel, the intensities can, and
 //! the finest BP level and its dense SIFT were two thirds of the time. Its
 //! NCC and whether it hit its step bound feed the confidence; the left–right
@@ -18,20 +18,26 @@
 //! search is centred on it and the pyramid deepened until the top window
 //! spans it.
 
+pub mod consistency;
+pub mod dense_sift;
+pub mod fill;
+pub mod reassign;
+pub mod sift_flow;
+
 use std::time::Instant;
 
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::Image;
-use super::bilateral_grid::{BilateralParams, GridInfo, bilateral_filter};
-use super::consistency::{
+use self::consistency::{
     left_right_check, left_right_residual, matcher_level_rejects, reject_beyond,
 };
-use super::fill::fill_row_gaps;
-use super::reassign::{self, ReassignParams};
-use super::sift_flow::{self, FlowParams, FlowStats, LevelReport, Mode};
-use super::subpixel::{RefineParams, upsample_flow};
+use self::fill::fill_row_gaps;
+use self::reassign::ReassignParams;
+use self::sift_flow::{FlowParams, FlowStats, LevelReport, Mode};
+use crate::vision::Image;
+use crate::vision::filter::bilateral_grid::{BilateralParams, GridInfo, bilateral_filter};
+use crate::vision::subpixel::{RefineParams, upsample_flow};
 
 /// Errors of the dense stage, each naming the cause and the remedy.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -79,7 +85,7 @@ pub enum DenseError {
 /// | --- | --- | --- |
 /// | `mode` | `improved` | `paper`: integer disparity, no occlusion handling, descriptor pyramid as the reference code, plain bilateral filter; `improved`: sub-pixel, left–right check, confidence-weighted filter |
 /// | `cell_size` | none | dense SIFT cell, pixels; none = 3 (paper) or 2 (improved: on simulated SEM pairs RMSE 10.5 → 9.0 % and 7.0 → 5.5 % of the relief, height scale 0.71 → 0.79 and 0.80 → 0.87, for 0.3–0.7 % less coverage), at the finest BP level |
-/// | `keep_cell_extent` | true | improved mode: coarser levels use the cell of the same extent in full-resolution pixels (`cell_size / 2^k`, at least 1); false = `cell_size` pixels of every level (see [`level_cell_size`](crate::vision::sift_flow::level_cell_size): the simulated grids' coverage 67 → 78 % at 1024×768) |
+/// | `keep_cell_extent` | true | improved mode: coarser levels use the cell of the same extent in full-resolution pixels (`cell_size / 2^k`, at least 1); false = `cell_size` pixels of every level (see [`level_cell_size`](crate::vision::dense::sift_flow::level_cell_size): the simulated grids' coverage 67 → 78 % at 1024×768) |
 /// | `alpha` | 2·255 | α, truncated-L1 smoothness slope |
 /// | `finest_alpha_scale` | 4 | improved mode: α at the finest BP level is `alpha` times this (see [`FlowParams`]: Potamogeton pairs agree over 71.5/66.4/65.0 → 79.8/73.5/72.6 % of the image at the same RMSE; the simulated targets met stay the same) |
 /// | `finest_d` | none | improved mode: truncation of the smoothness at the finest BP level, none = `d` (see [`FlowParams`]: 2550 sharpens walls — simulated grid 1024×768 > 1 px 3.5 → 2.6 % — and costs the Potamogeton pairs 3.7–3.9 points of agreement area) |
@@ -752,8 +758,8 @@ fn reassign_fields(
         eligible(&bwd.u, &source_b, &mb),
     );
     let (ka, kb) = (
-        super::subpixel::range_key(ia.data(), w, h),
-        super::subpixel::range_key(ib.data(), w, h),
+        crate::vision::subpixel::range_key(ia.data(), w, h),
+        crate::vision::subpixel::range_key(ib.data(), w, h),
     );
     let (rf, rb) = rayon::join(
         || {

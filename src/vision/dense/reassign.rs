@@ -29,7 +29,7 @@
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::Image;
+use crate::vision::Image;
 
 /// Parameters of [`reassign`], in pixels of the grid it runs on (the dense
 /// stage: the finest BP level, half resolution by default).

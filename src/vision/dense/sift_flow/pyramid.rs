@@ -8,7 +8,7 @@
 use rayon::prelude::*;
 
 use crate::vision::Image;
-use crate::vision::dense_sift::{DESCRIPTOR_LEN, DescriptorImage};
+use crate::vision::dense::dense_sift::{DESCRIPTOR_LEN, DescriptorImage};
 
 const BINOMIAL: [f32; 5] = [1.0 / 16.0, 4.0 / 16.0, 6.0 / 16.0, 4.0 / 16.0, 1.0 / 16.0];
 

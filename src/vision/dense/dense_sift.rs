@@ -17,7 +17,7 @@
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::Image;
+use crate::vision::Image;
 
 /// Length of one descriptor: 4 × 4 cells × 8 orientations.
 pub const DESCRIPTOR_LEN: usize = 128;

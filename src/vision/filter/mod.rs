@@ -1,0 +1,3 @@
+//! Edge-preserving and smoothing filters shared by the stages.
+
+pub mod bilateral_grid;
