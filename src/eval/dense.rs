@@ -113,6 +113,8 @@ pub enum SimEvalError {
     Sparse(crate::vision::sparse::SparseError),
     #[error("dense stage: {0}")]
     Dense(crate::vision::dense::DenseError),
+    #[error("depth: {0}")]
+    Depth(crate::vision::depth::DepthError),
     #[error("no pixel is visible in both micrographs")]
     NothingVisible,
 }
@@ -121,6 +123,7 @@ error_from!(SimEvalError {
     Scene(sdsem_sim::scene::SceneError),
     Sparse(crate::vision::sparse::SparseError),
     Dense(crate::vision::dense::DenseError),
+    Depth(crate::vision::depth::DepthError),
 });
 
 /// Pixel dwell of the rendered micrographs, µs (a capture, not a tracking frame).

@@ -11,6 +11,5 @@ pub mod precision;
 pub mod rectify;
 pub mod registration;
 pub mod sparse;
-pub mod subpixel;
 
 pub use image::Image;

@@ -19,7 +19,7 @@ use serde::{Deserialize, Serialize};
 use super::Image;
 use super::dense::sift_flow::Mode;
 use super::dense::{DenseError, DenseParams, DenseStats, dense_disparity_in_range};
-use super::depth::{StereoGeometry, height_on_left_grid};
+use super::depth::{DepthError, StereoGeometry, height_on_left_grid};
 use super::precision::{self, Precision};
 use super::sparse::{SparseError, SparseParams, rectify_pair};
 
@@ -99,6 +99,8 @@ pub enum ReconstructError {
     Sparse(SparseError),
     #[error("dense stage: {0}")]
     Dense(DenseError),
+    #[error("depth: {0}")]
+    Depth(DepthError),
     #[error(
         "no height could be computed: the rectified images do not overlap (is it the same specimen area?)"
     )]
@@ -108,6 +110,7 @@ pub enum ReconstructError {
 error_from!(ReconstructError {
     Sparse(SparseError),
     Dense(DenseError),
+    Depth(DepthError),
 });
 
 /// Wall time of each stage, ms.

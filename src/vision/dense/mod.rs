@@ -9,7 +9,7 @@
 //!
 //! The improved mode runs BP down to half resolution only (`finest_level` 1)
 //! and takes the flow to full resolution with the Lucas–Kanade refinement of
-//! [`crate::vision::subpixel::refine_flow`] on the rectified intensities: the
+//! [`self::refine::refine_flow`] on the rectified intensities: the
 //! descriptors cannot resolve a fraction of a pixel, the intensities can, and
 //! the finest BP level and its dense SIFT were two thirds of the time. Its
 //! NCC and whether it hit its step bound feed the confidence; the left–right
@@ -20,9 +20,13 @@
 
 pub mod consistency;
 pub mod dense_sift;
+mod error;
 pub mod fill;
 pub mod reassign;
+pub mod refine;
 pub mod sift_flow;
+
+pub use self::error::DenseError;
 
 use std::time::Instant;
 
@@ -34,49 +38,10 @@ use self::consistency::{
 };
 use self::fill::fill_row_gaps;
 use self::reassign::ReassignParams;
+use self::refine::{RefineParams, upsample_flow};
 use self::sift_flow::{FlowParams, FlowStats, LevelReport, Mode};
 use crate::vision::Image;
 use crate::vision::filter::bilateral_grid::{BilateralParams, GridInfo, bilateral_filter};
-use crate::vision::subpixel::{RefineParams, upsample_flow};
-
-/// Errors of the dense stage, each naming the cause and the remedy.
-#[derive(Debug, Clone, PartialEq, thiserror::Error)]
-pub enum DenseError {
-    #[error(
-        "rectified images differ in size ({left_width}×{left_height} vs {right_width}×{right_height}); rectify both onto one canvas"
-    )]
-    SizeMismatch {
-        left_width: usize,
-        left_height: usize,
-        right_width: usize,
-        right_height: usize,
-    },
-    #[error(
-        "image of {width}×{height} is too small for {levels} pyramid levels (the top level needs {min_top}×{min_top} pixels); lower `levels`"
-    )]
-    TooSmall {
-        width: usize,
-        height: usize,
-        levels: usize,
-        min_top: usize,
-    },
-    #[error("invalid dense parameter `{name}`: {reason}")]
-    InvalidParameter { name: &'static str, reason: String },
-    #[error(
-        "validity mask holds {len} entries for a {width}×{height} image; pass one entry per pixel"
-    )]
-    MaskSize {
-        width: usize,
-        height: usize,
-        len: usize,
-    },
-    #[error("no valid pixel in the rectified left image; check the rectification homographies")]
-    NoValidPixels,
-    #[error(
-        "the right rectification homography is singular; the sparse stage produced an unusable H_right"
-    )]
-    SingularHomography,
-}
 
 /// Parameters of the dense stage (SIFT flow on the rectified pair, then the
 /// filter). Names as in SIFT flow eq. (10) and the reference code.
@@ -758,8 +723,8 @@ fn reassign_fields(
         eligible(&bwd.u, &source_b, &mb),
     );
     let (ka, kb) = (
-        crate::vision::subpixel::range_key(ia.data(), w, h),
-        crate::vision::subpixel::range_key(ib.data(), w, h),
+        crate::vision::filter::cross_grid::range_key(ia.data(), w, h),
+        crate::vision::filter::cross_grid::range_key(ib.data(), w, h),
     );
     let (rf, rb) = rayon::join(
         || {

@@ -422,7 +422,7 @@ pub fn reassign(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::vision::subpixel::range_key;
+    use crate::vision::filter::cross_grid::range_key;
 
     /// Blurred uniform noise (3×3 box), deterministic.
     fn noise(w: usize, h: usize, seed: u64) -> Vec<f32> {

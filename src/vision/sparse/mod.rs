@@ -604,8 +604,8 @@ pub fn rectify_pair(
 #[cfg(test)]
 pub(crate) mod tests {
     use super::*;
+    use crate::vision::filter::blur::gaussian_blur;
     use crate::vision::rectify::transform;
-    use crate::vision::sparse::sift::scale_space::gaussian_blur;
     use rand::{Rng, SeedableRng};
 
     /// A parallel-projection (SEM) pair of a textured surface with a bump, after DESIGN §3's

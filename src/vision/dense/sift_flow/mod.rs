@@ -9,6 +9,7 @@
 pub mod bp;
 pub mod energy;
 pub mod pyramid;
+pub mod subpixel;
 
 use std::time::Instant;
 
@@ -16,12 +17,12 @@ use serde::{Deserialize, Serialize};
 
 use self::bp::{DualLayerBp, MAX_STATES};
 use self::energy::{DataTerm, EnergyWeights, LabelSpace};
+use super::error::DenseError;
 use crate::vision::Image;
-use crate::vision::dense::DenseError;
 use crate::vision::dense::dense_sift::{
     DenseSiftParams, DescriptorImage, dense_sift, dense_sift_where,
 };
-use crate::vision::subpixel::{RefineParams, RefinedFlow, refine_flow_down_to, upsample_flow};
+use crate::vision::dense::refine::{RefineParams, RefinedFlow, refine_flow_down_to, upsample_flow};
 
 /// Which pipeline to run.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
@@ -818,7 +819,7 @@ impl Engine {
         let outcome = bp.run_until_stable(plan.iterations, patience);
         let bp_ms = ms(tbp);
         let flow = if l == self.finest && self.mode == Mode::Improved {
-            crate::vision::subpixel::refine(&data, &space, &outcome.labels)
+            subpixel::refine(&data, &space, &outcome.labels)
         } else {
             [0, 1].map(|k| {
                 (0..w * h)
