@@ -14,10 +14,10 @@ use serde::Serialize;
 
 use crate::export::{self, MeshParams, ply};
 use crate::imaging::file::{Micrograph, load_micrograph};
-use crate::vision::Image;
 use crate::vision::pipeline::{
-    PairGeometry, ReconReport, ReconstructError, Reconstruction, ReconstructionParams, reconstruct,
+    PairGeometry, ReconReport, ReconstructError, Reconstruction, reconstruct,
 };
+use crate::vision::{Image, ReconstructionParams};
 
 /// Output file names (DESIGN §4).
 pub mod files {
@@ -524,13 +524,8 @@ mod tests {
         let (l, r) = (dir.join("l.png"), dir.join("r.png"));
         save_png(&l, &pair.left);
         save_png(&r, &pair.right);
-        let params = ReconstructionParams {
-            dense: crate::vision::dense::DenseParams {
-                levels: 3,
-                ..crate::vision::dense::DenseParams::default()
-            },
-            ..ReconstructionParams::default()
-        };
+        let mut params = ReconstructionParams::default();
+        params.dense.flow.levels = 3;
         run(
             &l,
             &r,

@@ -240,6 +240,7 @@ pub fn replay(record: &Path, out: &Path, overrides: &[String]) -> anyhow::Result
     } else {
         PathBuf::from(&config_source)
     };
+    let config_text = crate::config::upgrade_recorded(&config_text);
     let config = Config::from_layers(
         Some(&config_text),
         Some(&origin),

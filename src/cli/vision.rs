@@ -173,7 +173,7 @@ pub fn run_rectify(args: &RectifyArgs) -> anyhow::Result<ExitCode> {
 
 pub fn run_flow(args: &FlowArgs) -> anyhow::Result<ExitCode> {
     let config = args.config.load()?;
-    let params = config.reconstruction.params().dense_params().flow_params();
+    let params = config.reconstruction.dense.flow;
     crate::app::flow::run(&args.a, &args.b, &args.out, &params)?;
     println!("{}", args.out.display());
     Ok(ExitCode::SUCCESS)

@@ -6,6 +6,7 @@ pub mod dense;
 pub mod depth;
 pub mod filter;
 pub mod image;
+pub mod params;
 pub mod pipeline;
 pub mod precision;
 pub mod rectify;
@@ -13,3 +14,4 @@ pub mod registration;
 pub mod sparse;
 
 pub use image::Image;
+pub use params::{Preset, ReconstructionParams};

@@ -17,59 +17,11 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::Image;
-use super::dense::sift_flow::Mode;
 use super::dense::{DenseError, DenseParams, DenseStats, dense_disparity_in_range};
 use super::depth::{DepthError, StereoGeometry, height_on_left_grid};
+use super::params::ReconstructionParams;
 use super::precision::{self, Precision};
-use super::sparse::{SparseError, SparseParams, rectify_pair};
-
-/// Parameters of the whole reconstruction (`[reconstruction]` in the configuration).
-///
-/// | parameter | default | effect |
-/// | --- | --- | --- |
-/// | `mode` | `improved` | `paper` reproduces the paper's pipeline; `improved` adds sub-pixel disparity, occlusion masking and confidence |
-/// | `sparse` | see [`SparseParams`] | SIFT, matching, ORSA, rectification |
-/// | `dense` | see [`DenseParams`] | dense SIFT, SIFT flow, bilateral grid (its `mode` follows `mode` above) |
-#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct ReconstructionParams {
-    pub mode: Mode,
-    pub sparse: SparseParams,
-    pub dense: DenseParams,
-}
-
-impl ReconstructionParams {
-    /// The sparse parameters with the pipeline's mode: in the paper mode, the
-    /// keys that [`SparseParams::paper`] changes (DoG threshold, sub-pixel
-    /// refinement of the inliers, robust rectification pass) take the paper's
-    /// values unless the configuration set them away from their defaults.
-    #[must_use]
-    pub fn sparse_params(&self) -> SparseParams {
-        let mut s = self.sparse.clone();
-        if self.mode == Mode::Paper {
-            let (ours, paper) = (SparseParams::default(), SparseParams::paper());
-            if s.sift.c_dog == ours.sift.c_dog {
-                s.sift.c_dog = paper.sift.c_dog;
-            }
-            if s.refine.enabled == ours.refine.enabled {
-                s.refine.enabled = paper.refine.enabled;
-            }
-            if s.rectify.cauchy_scale_px == ours.rectify.cauchy_scale_px {
-                s.rectify.cauchy_scale_px = paper.rectify.cauchy_scale_px;
-            }
-        }
-        s
-    }
-
-    /// The dense parameters with the pipeline's mode.
-    #[must_use]
-    pub fn dense_params(&self) -> DenseParams {
-        DenseParams {
-            mode: self.mode,
-            ..self.dense
-        }
-    }
-}
+use super::sparse::{SparseError, rectify_pair};
 
 /// How the pair was taken.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -178,7 +130,6 @@ fn v2_over_u2(d: impl Iterator<Item = (f64, f64)>) -> f64 {
 /// Everything a reconstruction reports (report.json, `/recon/report`).
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct ReconReport {
-    pub mode: Mode,
     pub geometry: PairGeometry,
     pub image_size: (usize, usize),
     pub sparse: SparseReport,
@@ -220,12 +171,7 @@ pub fn reconstruct(
     let t_total = Instant::now();
 
     let t = Instant::now();
-    let rect = rectify_pair(
-        left,
-        right,
-        Some(geometry.tilt_axis_deg),
-        &params.sparse_params(),
-    )?;
+    let rect = rectify_pair(left, right, Some(geometry.tilt_axis_deg), &params.sparse)?;
     let sparse_ms = ms(t);
 
     let t = Instant::now();
@@ -235,7 +181,7 @@ pub fn reconstruct(
         &rect.right.image,
         Some(&rect.left.valid),
         Some(&rect.right.valid),
-        &params.dense_params(),
+        &params.dense,
         range,
     )?;
     let dense_ms = ms(t);
@@ -259,7 +205,7 @@ pub fn reconstruct(
         left,
         right,
         geometry.tilt_axis_deg,
-        matcher_window_sigma(&params.dense_params()),
+        matcher_window_sigma(&params.dense),
         depth.um_per_disparity_px,
     );
 
@@ -283,7 +229,6 @@ pub fn reconstruct(
         rmse_after_px: r.final_error_px,
     };
     let report = ReconReport {
-        mode: params.mode,
         geometry: *geometry,
         image_size: (w, h),
         sparse: SparseReport {
@@ -356,12 +301,12 @@ fn left_grid_confidence(
 }
 
 /// The Gaussian window (σ, pixels) whose precision bounds the disparity:
-/// the intensity refinement's window in the improved mode; in the paper
-/// mode the descriptor's `4 · cell_size` square, as the Gaussian of the same
+/// the intensity refinement's window when there is one; without, the
+/// descriptor's `4 · cell_size` square, as the Gaussian of the same
 /// effective area (`4πσ² = (4 · cell_size)²`).
 #[must_use]
 pub fn matcher_window_sigma(dense: &DenseParams) -> f64 {
-    let flow = dense.flow_params();
+    let flow = &dense.flow;
     flow.refinement().map_or_else(
         || 4.0 * flow.cell_size as f64 / (4.0 * std::f64::consts::PI).sqrt(),
         |r| f64::from(r.window_sigma),
@@ -479,21 +424,6 @@ mod tests {
         );
         let e = ReconstructError::from(DenseError::NoValidPixels);
         assert!(std::error::Error::source(&e).is_none());
-    }
-
-    #[test]
-    fn paper_mode_takes_the_papers_sparse_path_unless_configured_otherwise() {
-        let mut p = ReconstructionParams {
-            mode: Mode::Paper,
-            ..ReconstructionParams::default()
-        };
-        assert_eq!(p.sparse_params(), SparseParams::paper());
-        p.sparse.refine.enabled = !SparseParams::default().refine.enabled;
-        let s = p.sparse_params();
-        assert_eq!(s.refine.enabled, p.sparse.refine.enabled, "a set key stays");
-        assert_eq!(s.sift.c_dog, SparseParams::paper().sift.c_dog);
-        let improved = ReconstructionParams::default();
-        assert_eq!(improved.sparse_params(), SparseParams::default());
     }
 
     /// On the left grid: NaN where there is no height, 0 where the height

@@ -22,154 +22,28 @@ pub mod consistency;
 pub mod dense_sift;
 mod error;
 pub mod fill;
+mod params;
 pub mod reassign;
 pub mod refine;
 pub mod sift_flow;
 
 pub use self::error::DenseError;
+pub use self::params::DenseParams;
 
 use std::time::Instant;
 
 use rayon::prelude::*;
-use serde::{Deserialize, Serialize};
+use serde::Serialize;
 
 use self::consistency::{
     left_right_check, left_right_residual, matcher_level_rejects, reject_beyond,
 };
 use self::fill::fill_row_gaps;
 use self::reassign::ReassignParams;
-use self::refine::{RefineParams, upsample_flow};
-use self::sift_flow::{FlowParams, FlowStats, LevelReport, Mode};
+use self::refine::upsample_flow;
+use self::sift_flow::{Engine, FlowStats, LevelReport};
 use crate::vision::Image;
-use crate::vision::filter::bilateral_grid::{BilateralParams, GridInfo, bilateral_filter};
-
-/// Parameters of the dense stage (SIFT flow on the rectified pair, then the
-/// filter). Names as in SIFT flow eq. (10) and the reference code.
-///
-/// | parameter | default | effect |
-/// | --- | --- | --- |
-/// | `mode` | `improved` | `paper`: integer disparity, no occlusion handling, descriptor pyramid as the reference code, plain bilateral filter; `improved`: sub-pixel, left–right check, confidence-weighted filter |
-/// | `cell_size` | none | dense SIFT cell, pixels; none = 3 (paper) or 2 (improved: on simulated SEM pairs RMSE 10.5 → 9.0 % and 7.0 → 5.5 % of the relief, height scale 0.71 → 0.79 and 0.80 → 0.87, for 0.3–0.7 % less coverage), at the finest BP level |
-/// | `keep_cell_extent` | true | improved mode: coarser levels use the cell of the same extent in full-resolution pixels (`cell_size / 2^k`, at least 1); false = `cell_size` pixels of every level (see [`level_cell_size`](crate::vision::dense::sift_flow::level_cell_size): the simulated grids' coverage 67 → 78 % at 1024×768) |
-/// | `alpha` | 2·255 | α, truncated-L1 smoothness slope |
-/// | `finest_alpha_scale` | 4 | improved mode: α at the finest BP level is `alpha` times this (see [`FlowParams`]: Potamogeton pairs agree over 71.5/66.4/65.0 → 79.8/73.5/72.6 % of the image at the same RMSE; the simulated targets met stay the same) |
-/// | `finest_d` | none | improved mode: truncation of the smoothness at the finest BP level, none = `d` (see [`FlowParams`]: 2550 sharpens walls — simulated grid 1024×768 > 1 px 3.5 → 2.6 % — and costs the Potamogeton pairs 3.7–3.9 points of agreement area) |
-/// | `edge_d` | 2550 | improved mode: the truncation at the finest BP level on edges across strong intensity differences, where depth steps lie; `edge_d` ≥ `d` (or `finest_d`) switches it off (see [`FlowParams`]: simulated grid 1024×768 > 1 px 3.5 → 2.9 %, grid 640×480 median 0.204 → 0.198 px; Potamogeton agreement area −0.3 to −0.5 points at the same RMSE) |
-/// | `edge_contrast` | 2 | improved mode: the intensity difference, in medians of the image's neighbour differences, at which `edge_d` takes over |
-/// | `d` | 40·255 | smoothness truncation |
-/// | `gamma` | 0.005·255 | η, small-displacement weight |
-/// | `t` | none | data-term truncation |
-/// | `levels` | 4 | pyramid levels |
-/// | `top_window` / `window` | 10 / 2 | half search window of the disparity at the top / finest BP level |
-/// | `middle_window` | none | half search window at the levels in between; none = `window` (paper) or 4 (improved: the bars of simulated grids no longer stay low) |
-/// | `vertical_top_window` / `vertical_window` | 2 / 1 | half search window of the vertical flow (improved mode; the paper searches v as widely as u) |
-/// | `top_iterations` / `iterations` | none | BP iterations at the top / finest level; none = 60 / 30 (paper) or 20 / 8 (improved) |
-/// | `lr_tolerance` | 2.0 | left–right disagreement (pixels) above which a pixel is masked as occluded (1.0 rejected 6–13 % of the visible pixels of simulated scenes at 1024×768, θ = 11°; 2.0 keeps coverage ≥ 98 % there with the same RMSE on the dome) |
-/// | `lr_tolerance_smooth` | 4.0 | improved mode: the tolerance of the left–right check away from depth discontinuities (farther than `reassign.band_radius` pixels of the finest BP level from a flow gradient above `reassign.band`), pixels; values up to `lr_tolerance` change nothing. At the matcher's pyramid level the wide tolerance judges the horizontal flow alone (see [`matcher_level_rejects`]). An occlusion as wide as the tolerance lies within that band, so the wider tolerance keeps weakly textured surface whose two fields disagree by a few pixels without admitting occlusions (see the table in `config/sdsem.toml`); the confidence keeps `lr_tolerance` as the scale of the residual |
-/// | `bilateral` | σs = σr = 3 | bilateral grid filter of the disparity |
-/// | `fill_max_gap` | 0 | improved mode: runs of unknown pixels along a canvas row, at most this many pixels long and measured at both ends, are filled by linear interpolation before the filter (see [`fill_row_gaps`]); filled pixels get confidence 0 and are counted in `filled_fraction`; 0 fills nothing. Off by default: wrong beside steep walls (64 on the simulated grids 640/1024/1280: coverage 84.8/81.5/89.1 → 99.3/98.0/99.5 %, > 1 px 4.2/2.9/2.8 → 12.7/14.9/8.9 %); Potamogeton pairs agree over 86.3/80.3/79.9 → 93.3/89.2/89.0 % of the image at RMSE 0.75/0.74/0.42 → 1.00/1.01/0.58 µm (96: 94.2/90.4/90.4 % at 1.11/1.24/0.74 µm) |
-/// | `max_strips` | 4 | parallel row strips of the BP sweeps (1 = sequential BP-S) |
-/// | `finest_level` | none | finest pyramid level of BP; none = 0 (paper) or 1 (improved: the intensity refinement takes the disparity to full resolution) |
-/// | `reassign` | see [`ReassignParams`] | improved mode: re-assignment of the SIFT flow beside depth discontinuities at the finest BP level (simulated grids 640/1024/1280: RMSE 8.2/5.3/6.3 → 5.2/3.3/4.2 % of the relief, > 1 px 8.4/10.5/8.2 → 3.2/5.7/4.4 %, coverage 88.6/79.0/89.7 → 84.0/79.0/87.3 %; Potamogeton pairwise RMSE 0.83/0.85/0.45 → 0.79/0.77/0.43 µm; other scenes: RMSE within ±0.2 point, coverage at most 0.9 point lower) |
-/// | `refine` | see [`RefineParams`] | improved mode: Lucas–Kanade refinement of the flow on the rectified intensities (`iterations = 0`: none) |
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct DenseParams {
-    pub mode: Mode,
-    pub cell_size: Option<usize>,
-    pub keep_cell_extent: bool,
-    pub alpha: f32,
-    pub finest_alpha_scale: f32,
-    pub d: f32,
-    pub finest_d: Option<f32>,
-    pub edge_d: f32,
-    pub edge_contrast: f32,
-    pub gamma: f32,
-    pub t: Option<f32>,
-    pub levels: usize,
-    pub top_window: usize,
-    pub window: usize,
-    pub middle_window: Option<usize>,
-    pub vertical_top_window: usize,
-    pub vertical_window: usize,
-    pub top_iterations: Option<usize>,
-    pub iterations: Option<usize>,
-    pub lr_tolerance: f32,
-    pub lr_tolerance_smooth: f32,
-    pub bilateral: BilateralParams,
-    pub fill_max_gap: usize,
-    pub max_strips: usize,
-    pub finest_level: Option<usize>,
-    pub refine: RefineParams,
-    pub reassign: ReassignParams,
-}
-
-impl Default for DenseParams {
-    fn default() -> Self {
-        let f = FlowParams::default();
-        Self {
-            mode: Mode::default(),
-            cell_size: None,
-            keep_cell_extent: f.keep_cell_extent,
-            alpha: f.alpha,
-            finest_alpha_scale: f.finest_alpha_scale,
-            d: f.d,
-            finest_d: f.finest_d,
-            edge_d: f.edge_d,
-            edge_contrast: f.edge_contrast,
-            gamma: f.gamma,
-            t: f.t,
-            levels: f.levels,
-            top_window: f.top_window,
-            window: f.window,
-            middle_window: f.middle_window,
-            vertical_top_window: 2,
-            vertical_window: 1,
-            top_iterations: f.top_iterations,
-            iterations: f.iterations,
-            lr_tolerance: 2.0,
-            lr_tolerance_smooth: 4.0,
-            bilateral: BilateralParams::default(),
-            fill_max_gap: 0,
-            max_strips: f.max_strips,
-            finest_level: f.finest_level,
-            refine: f.refine,
-            reassign: ReassignParams::default(),
-        }
-    }
-}
-
-impl DenseParams {
-    /// The SIFT-flow part of these parameters.
-    #[must_use]
-    pub fn flow_params(&self) -> FlowParams {
-        FlowParams {
-            mode: self.mode,
-            cell_size: self.cell_size.unwrap_or(match self.mode {
-                Mode::Paper => 3,
-                Mode::Improved => 2,
-            }),
-            keep_cell_extent: self.keep_cell_extent,
-            alpha: self.alpha,
-            finest_alpha_scale: self.finest_alpha_scale,
-            d: self.d,
-            finest_d: self.finest_d,
-            edge_d: self.edge_d,
-            edge_contrast: self.edge_contrast,
-            gamma: self.gamma,
-            t: self.t,
-            levels: self.levels,
-            top_window: self.top_window,
-            window: self.window,
-            middle_window: self.middle_window,
-            top_iterations: self.top_iterations,
-            iterations: self.iterations,
-            max_strips: self.max_strips,
-            finest_level: self.finest_level,
-            refine: self.refine,
-        }
-    }
-}
+use crate::vision::filter::bilateral_grid::{GridInfo, bilateral_filter};
 
 /// Timings of the dense stage, milliseconds.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Default)]
@@ -187,7 +61,6 @@ pub struct DenseTimings {
 /// Figures of the dense stage for report.json.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct DenseStats {
-    pub mode: Mode,
     /// Left-to-right SIFT flow per level, finest first (energies: Fig. 8).
     pub levels: Vec<LevelReport>,
     /// Right-to-left SIFT flow per level (improved mode only).
@@ -313,15 +186,15 @@ pub fn dense_disparity_in_range(
     let mut params = *params;
     let mut top_shift = 0.0f32;
     if let Some((lo, hi)) = range.filter(|(lo, hi)| lo.is_finite() && hi.is_finite() && hi >= lo)
-        && params.mode == Mode::Improved
+        && params.search_from_sparse
     {
         let (w, h) = left_rect.dimensions();
         let half = (hi - lo) / 2.0 * 1.25 + RANGE_MARGIN_PX;
-        while (params.top_window as f64) * f64::from(1u32 << (params.levels - 1)) < half
-            && params.levels < 8
-            && sift_flow::check_size(w, h, params.levels + 1).is_ok()
+        while (params.flow.top_window as f64) * f64::from(1u32 << (params.flow.levels - 1)) < half
+            && params.flow.levels < 8
+            && sift_flow::check_size(w, h, params.flow.levels + 1).is_ok()
         {
-            params.levels += 1;
+            params.flow.levels += 1;
         }
         // Lies within the image size.
         #[allow(clippy::cast_possible_truncation)]
@@ -356,33 +229,8 @@ fn dense_disparity_impl(
             right_height: right_rect.height(),
         });
     }
-    let fp = params.flow_params();
-    fp.validate()?;
-    if params.vertical_window > 63 || params.vertical_top_window > 63 {
-        return Err(DenseError::InvalidParameter {
-            name: "vertical_window",
-            reason: "half windows are limited to 63 labels".to_owned(),
-        });
-    }
-    if params.lr_tolerance.is_nan() || params.lr_tolerance < 0.0 {
-        return Err(DenseError::InvalidParameter {
-            name: "lr_tolerance",
-            reason: "must be non-negative".to_owned(),
-        });
-    }
-    if params.lr_tolerance_smooth.is_nan() || params.lr_tolerance_smooth < 0.0 {
-        return Err(DenseError::InvalidParameter {
-            name: "lr_tolerance_smooth",
-            reason: "must be non-negative".to_owned(),
-        });
-    }
-    if let Some(name) = params.reassign.invalid_field() {
-        return Err(DenseError::InvalidParameter {
-            name,
-            reason: "out of its range (see the parameter table)".to_owned(),
-        });
-    }
-    sift_flow::check_size(w, h, params.levels)?;
+    params.validate()?;
+    sift_flow::check_size(w, h, params.flow.levels)?;
     let va = validity(left_rect, valid_left)?;
     let vb = validity(right_rect, valid_right)?;
     let n_valid = va.iter().filter(|&&v| v).count();
@@ -391,21 +239,23 @@ fn dense_disparity_impl(
     }
     let a = sift_flow::fill_non_finite(left_rect);
     let b = sift_flow::fill_non_finite(right_rect);
-    let improved = params.mode == Mode::Improved;
-    let mut engine =
-        fp.engine(improved.then_some((params.vertical_window, params.vertical_top_window)));
+    let both = params.left_right_check;
+    let mut engine = Engine::new(
+        &params.flow,
+        Some((params.vertical_window, params.vertical_top_window)),
+    );
     engine.top_shift = top_shift;
 
     // Matching: both directions at once in the improved mode (two cores, two
     // sequential sweeps: the backward field is almost free in wall time).
     let tm = Instant::now();
-    let (mut fwd, mut bwd) = engine.run(&a, &b, Some(&va), Some(&vb), improved);
+    let (mut fwd, mut bwd) = engine.run(&a, &b, Some(&va), Some(&vb), both);
     let matching_ms = ms(tm);
 
     // To full resolution: refined on the intensities (improved) or upsampled.
     let finest = engine.finest;
-    let refine = fp.refinement();
-    let alpha = params.alpha.max(1e-6);
+    let refine = params.flow.refinement();
+    let alpha = params.flow.alpha.max(1e-6);
     let mut margin = fwd.margin.clone();
     let (mut mw, mut mh) = (fwd.width, fwd.height);
     for l in (0..finest).rev() {
@@ -604,12 +454,8 @@ fn dense_disparity_impl(
 
     let tf = Instant::now();
     let mut to_filter = raw.clone();
-    let filled = fill_row_gaps(
-        &mut to_filter,
-        &va,
-        if improved { params.fill_max_gap } else { 0 },
-    );
-    let weights = improved.then(|| {
+    let filled = fill_row_gaps(&mut to_filter, &va, params.fill_max_gap);
+    let weights = params.weighted_filter.then(|| {
         let mut wt = confidence.clone();
         for (c, _) in wt.data_mut().iter_mut().zip(&filled).filter(|(_, f)| **f) {
             *c = FILLED_WEIGHT;
@@ -637,7 +483,6 @@ fn dense_disparity_impl(
         .map(|(_, &c)| f64::from(c))
         .sum();
     let stats = DenseStats {
-        mode: params.mode,
         levels: fwd_levels,
         levels_right_to_left: bwd_levels,
         flow: flow_stats,
@@ -647,7 +492,7 @@ fn dense_disparity_impl(
         rejected_by_matching_fraction: n_rejected_matching as f64 / n_valid as f64,
         reassigned_fraction,
         finest_level: finest,
-        levels_used: params.levels,
+        levels_used: params.flow.levels,
         search_centre_px: top_shift,
         refine_clamped_fraction: n_clamped as f64 / n_valid as f64,
         refine_mean_ncc: ncc_sum / n_valid as f64,
@@ -756,13 +601,12 @@ fn reassign_fields(
 mod tests {
     use super::*;
     use crate::eval::synthetic::{Layer, Texture, dome, raised_band, render};
+    use crate::vision::Preset;
 
-    fn small_params(mode: Mode) -> DenseParams {
-        DenseParams {
-            mode,
-            levels: 3,
-            ..DenseParams::default()
-        }
+    fn small_params(preset: Preset) -> DenseParams {
+        let mut p = DenseParams::preset(preset);
+        p.flow.levels = 3;
+        p
     }
 
     fn errors(d: &Image, truth: &Image, visible: &[bool]) -> (Vec<f32>, usize) {
@@ -791,7 +635,7 @@ mod tests {
             &pair.right,
             None,
             None,
-            &small_params(Mode::Improved),
+            &small_params(Preset::Improved),
         )
         .unwrap();
         let (e, n) = errors(&out.raw, &pair.disparity, &pair.visible);
@@ -804,7 +648,7 @@ mod tests {
             &pair.right,
             None,
             None,
-            &small_params(Mode::Paper),
+            &small_params(Preset::Paper),
         )
         .unwrap();
         let (ep, np) = errors(&paper.raw, &pair.disparity, &pair.visible);
@@ -849,7 +693,7 @@ mod tests {
             &pair.right,
             None,
             None,
-            &small_params(Mode::Improved),
+            &small_params(Preset::Improved),
         )
         .unwrap();
         (w, h, pair, out)
@@ -894,7 +738,7 @@ mod tests {
         let (w, h, pair, plain) = improved_on_occluded_band();
         assert!(!plain.filled.contains(&true));
         assert_eq!(plain.stats.filled_fraction, 0.0);
-        let mut params = small_params(Mode::Improved);
+        let mut params = small_params(Preset::Improved);
         params.fill_max_gap = 64;
         let out = dense_disparity(&pair.left, &pair.right, None, None, &params).unwrap();
         let filled: Vec<usize> = (0..w * h).filter(|&p| out.filled[p]).collect();
@@ -970,7 +814,7 @@ mod tests {
         let pair = occluded_band_pair(w, h);
         let params = DenseParams {
             lr_tolerance_smooth: 100.0,
-            ..small_params(Mode::Improved)
+            ..small_params(Preset::Improved)
         };
         let out = dense_disparity(&pair.left, &pair.right, None, None, &params).unwrap();
         let interior = |p: usize| {
@@ -997,13 +841,13 @@ mod tests {
         let (w, h) = (320, 192);
         let pair = occluded_band_pair(w, h);
         let run_with = |enabled: bool, edge_truncation: bool| {
-            let mut params = small_params(Mode::Improved);
+            let mut params = small_params(Preset::Improved);
             params.reassign.enabled = enabled;
             // The check's own tolerance alone, so that only the
             // re-assignment differs.
             params.lr_tolerance_smooth = params.lr_tolerance;
             if !edge_truncation {
-                params.edge_d = params.d;
+                params.flow.edge_d = params.flow.d;
             }
             dense_disparity(&pair.left, &pair.right, None, None, &params).unwrap()
         };
@@ -1016,8 +860,8 @@ mod tests {
         assert_eq!(off.stats.reassigned_fraction, 0.0);
         // It works on the SIFT-flow fields, so it does not depend on the
         // intensity refinement being on.
-        let mut unrefined = small_params(Mode::Improved);
-        unrefined.refine.iterations = 0;
+        let mut unrefined = small_params(Preset::Improved);
+        unrefined.flow.refine.iterations = 0;
         let plain = dense_disparity(&pair.left, &pair.right, None, None, &unrefined).unwrap();
         assert!(plain.stats.reassigned_fraction > 0.0);
         let masked = |d: &Disparity| {
@@ -1069,7 +913,7 @@ mod tests {
             over(&e_on)
         );
         // Out-of-range parameters are refused by name.
-        let mut bad = small_params(Mode::Improved);
+        let mut bad = small_params(Preset::Improved);
         bad.reassign.window_step = 0;
         match dense_disparity(&pair.left, &pair.right, None, None, &bad) {
             Err(DenseError::InvalidParameter { name, .. }) => {
@@ -1095,7 +939,7 @@ mod tests {
             &pair.right,
             None,
             None,
-            &small_params(Mode::Improved),
+            &small_params(Preset::Improved),
         )
         .unwrap();
         let (e, n) = errors(&out.disparity, &pair.disparity, &pair.visible);
@@ -1143,11 +987,8 @@ mod tests {
             0.2,
             0.01,
         );
-        for mode in [Mode::Paper, Mode::Improved] {
-            let params = DenseParams {
-                mode,
-                ..DenseParams::default()
-            };
+        for mode in [Preset::Paper, Preset::Improved] {
+            let params = DenseParams::preset(mode);
             let t = Instant::now();
             let out = dense_disparity(&pair.left, &pair.right, None, None, &params).unwrap();
             let (e, n) = errors(&out.disparity, &pair.disparity, &pair.visible);

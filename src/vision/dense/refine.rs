@@ -19,27 +19,24 @@ use crate::vision::filter::blur::{blur, blur_in_place, normalise_contrast};
 use crate::vision::filter::cross_grid::{CrossGrid, range_key};
 
 /// Parameters of the intensity refinement of a flow ([`refine_flow`]).
-///
-/// | parameter | default | effect |
-/// | --- | --- | --- |
-/// | `window_sigma` | 6.0 | σ of the Gaussian window of the normal equations, pixels: smaller follows finer relief, larger is less noisy (simulated 640×480 pairs, exact rectification: σ 2 → 6 lowers the median disparity error 0.19–0.24 → 0.12–0.16 px, the height scale of rough relief 0.98 → 0.94) |
-/// | `normalise_sigma` | 2.5 | σ of the local mean and contrast normalisation, pixels: a band-pass that keeps the fine texture, which moves with the surface, and drops the slow shading, which changes with tilt (4 → 2.5: RMSE 9.5 → 7.9 % of the relief on rough) |
-/// | `presmooth_sigma` | 0 | Gaussian blur of both images first, pixels (0 = none): on simulated SEM pairs any blur costs more accuracy than it saves noise (0.8 → 1.5: median error +0.02 px) |
-/// | `iterations` | 3 | Gauss–Newton steps per pyramid level (the start is the window-smoothed SIFT flow: 5 raises the height scale of rough relief 0.925 → 0.936 and the median error 0.110 → 0.119 px, for 40 % more time) |
-/// | `full_resolution_iterations` | 2 | Gauss–Newton steps at full resolution (none = `iterations`): the start there is the refined half-resolution flow, whose windows are four times the area, and stopping early keeps more of its lower noise. 3 → 2 on the 16 simulated cases: RMSE lower on 12 (rough 18.0/8.0/4.3/7.3 → 16.9/7.7/4.2/6.8 % of the relief), median error lower on 15 (e.g. dome 1280×960 0.186 → 0.166 px), but grid > 1 px 3.2/5.7 → 4.3/6.7 % at 640/1024 and the height scale of the finest relief 0.005–0.015 lower (rough 512×384 0.858 → 0.843); Potamogeton pairwise RMSE 0.79/0.77/0.43 → 0.73/0.72/0.40 µm; RubberWhale EPE 0.132 → 0.135 px; 1280×960 reconstruct −0.2 s. 1 lowers the median further and raises the grids' > 1 px errors more (8.9 % at 1024) |
-/// | `max_step` | 4.0 | largest change from the starting flow, full-resolution pixels (halved per coarser level, at least 1 of its pixels); the finest BP level searches ±2 of its labels, ±4 px: 1.5 → 4 on the 16 simulated cases moves only the grids, whose walls leave the SIFT flow more than 1.5 px off (RMSE 8.6/5.7/6.8 → 8.2/5.3/6.3 % of the relief at 640/1024/1280, > 1 px 8.9/11.2/9.0 → 8.4/10.5/8.2 %); RubberWhale and Potamogeton unchanged |
-/// | `vertical` | true | refine the vertical flow too (false: keep it) |
-/// | `range_sigma` | 0.5 | range σ of edge-aware windows, in standard deviations of the first image's intensity (0 = the plain Gaussian window): the sums of the normal equations and the smoothing of the start weigh each pixel also by its intensity's similarity to the centre's (adaptive support weights, Yoon & Kweon 2006, through a cross-bilateral grid), so a window does not straddle a particle's edge. 0 → 0.5 on the 16 simulated cases: all targets 5 → 6/16, median ≤ 0.2 px 12 → 13/16, > 1 px ≤ 3 % 11 → 13/16, grid RMSE 13.9/15.1/13.5/9.4 → 11.7/8.7/8.3/7.6 % of the range, particles' height scale 0.86–0.97 → 0.89–0.98, rough relief slightly worse (RMSE +0.3–0.9 point), RubberWhale EPE 0.162 → 0.131 px; 1280×960 reconstruct +0.8 s CPU, +70 MB |
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct RefineParams {
+    /// σ of the Gaussian window of the normal equations, pixels: smaller follows finer relief.
     pub window_sigma: f32,
+    /// σ of the local mean and contrast normalisation, pixels (drops the shading that changes with tilt).
     pub normalise_sigma: f32,
+    /// Gaussian blur of both images first, pixels (0 = none).
     pub presmooth_sigma: f32,
+    /// Gauss–Newton steps per pyramid level (0 = no refinement; paper 0).
     pub iterations: usize,
+    /// Gauss–Newton steps at full resolution; none = `iterations`.
     pub full_resolution_iterations: Option<usize>,
+    /// Largest change from the starting flow, full-resolution pixels (halved per coarser level).
     pub max_step: f32,
+    /// Refine the vertical flow too (false: keep it).
     pub vertical: bool,
+    /// Range σ of edge-aware windows (Yoon & Kweon 2006), standard deviations of the intensity; 0 = plain Gaussian.
     pub range_sigma: f32,
 }
 

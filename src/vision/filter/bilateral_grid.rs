@@ -23,15 +23,12 @@ use super::blur::BINOMIAL_5 as KERNEL;
 use crate::vision::Image;
 
 /// Parameters of the bilateral filter of the disparity (SD-SEM §2.4).
-///
-/// | parameter | default | effect |
-/// | --- | --- | --- |
-/// | `sigma_s` | 3 | spatial σ, pixels: larger smooths over a wider area |
-/// | `sigma_r` | 3 | range σ, disparity pixels: disparity steps much larger than this are kept sharp |
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct BilateralParams {
+    /// Spatial σ, pixels: larger smooths over a wider area.
     pub sigma_s: f32,
+    /// Range σ, disparity pixels: steps much larger than this stay sharp.
     pub sigma_r: f32,
 }
 

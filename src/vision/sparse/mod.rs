@@ -2,7 +2,7 @@
 //! call: SIFT in both micrographs → ratio-test matching → ORSA fundamental matrix →
 //! quasi-Euclidean rectification → (optionally) both images warped onto one canvas.
 //!
-//! # Beyond the paper ([`SparseParams::paper`] turns the first three off)
+//! # Beyond the paper (the paper preset, [`SparseParams::preset`], turns the first three off)
 //! - Half Lowe's DoG threshold (capped at 2000 keypoints): more true matches on weakly textured
 //!   and repetitive specimens.
 //! - The ORSA inliers' right positions refined to sub-pixel accuracy ([`refine`]) before the
@@ -97,15 +97,17 @@ impl Default for SparseParams {
 }
 
 impl SparseParams {
-    /// The paper's path (Baghaie et al. 2017 with Monasse's rectification): Lowe's DoG
-    /// threshold, SIFT positions straight into the rectification (no sub-pixel refinement),
-    /// least squares only (no robust pass). The rest as [`SparseParams::default`].
+    /// The parameters of a preset. The paper's path (Baghaie et al. 2017 with Monasse's
+    /// rectification): Lowe's DoG threshold, SIFT positions straight into the rectification
+    /// (no sub-pixel refinement), least squares only (no robust pass); the rest as improved.
     #[must_use]
-    pub fn paper() -> Self {
+    pub fn preset(preset: crate::vision::Preset) -> Self {
         let mut p = Self::default();
-        p.sift.c_dog = 0.04 / 3.0;
-        p.refine.enabled = false;
-        p.rectify.cauchy_scale_px = 0.0;
+        if preset == crate::vision::Preset::Paper {
+            p.sift.c_dog = 0.04 / 3.0;
+            p.refine.enabled = false;
+            p.rectify.cauchy_scale_px = 0.0;
+        }
         p
     }
 }
