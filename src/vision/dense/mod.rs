@@ -1,22 +1,17 @@
-//! The dense stage of SD-SEM as one call: rectified pair in, disparity out
-//! (steps 4–5 of DESIGN §6; step 6, depth, is [`crate::vision::depth`]).
+//! The dense stage of SD-SEM (steps 4–5 of DESIGN §6; step 6, depth, is
+//! [`crate::vision::depth`]): rectified pair in, disparity on the left canvas out.
 //!
-//! Dense SIFT at every pixel, SIFT flow with a small vertical window (the
-//! pair is rectified, so correspondences share a row up to the rectification
-//! error), then — in the improved mode — sub-pixel disparity, a left–right
-//! consistency check that masks occlusions, and a per-pixel confidence; last,
-//! the bilateral-grid filter of the disparity.
+//! [`dense_disparity_in_range`] runs, in this order:
+//! 1. `centre_search_on_sparse_range`: the search centred on the sparse matches' disparities;
+//! 2. `sift_flow_matching`: dense SIFT and SIFT flow, coarse to fine ([`sift_flow`]);
+//! 3. `reassign_beside_discontinuities` ([`reassign`]);
+//! 4. `left_right_check_at_matcher_level` ([`consistency`]);
+//! 5. `refine_to_full_resolution`: Lucas–Kanade on the intensities ([`refine`]);
+//! 6. `left_right_consistency` of the refined fields and the per-pixel confidence;
+//! 7. `bilateral_filtering` ([`fill`], then the bilateral grid).
 //!
-//! The improved mode runs BP down to half resolution only (`finest_level` 1)
-//! and takes the flow to full resolution with the Lucas–Kanade refinement of
-//! [`self::refine::refine_flow`] on the rectified intensities: the
-//! descriptors cannot resolve a fraction of a pixel, the intensities can, and
-//! the finest BP level and its dense SIFT were two thirds of the time. Its
-//! NCC and whether it hit its step bound feed the confidence; the left–right
-//! check runs on both the SIFT-flow and the refined fields. Given the
-//! disparity range of the sparse matches ([`dense_disparity_in_range`]), the
-//! search is centred on it and the pyramid deepened until the top window
-//! spans it.
+//! Which of them act is the parameters' choice ([`DenseParams`]); the paper preset runs 2 at
+//! full resolution with integer flow, and 7 unweighted.
 
 pub mod consistency;
 pub mod dense_sift;
@@ -40,8 +35,8 @@ use self::consistency::{
 };
 use self::fill::fill_row_gaps;
 use self::reassign::ReassignParams;
-use self::refine::upsample_flow;
-use self::sift_flow::{Engine, FlowStats, LevelReport};
+use self::refine::{RefinedFlow, upsample_flow};
+use self::sift_flow::{Engine, EngineRun, FlowStats, LevelReport};
 use crate::vision::Image;
 use crate::vision::filter::bilateral_grid::{GridInfo, bilateral_filter};
 
@@ -183,12 +178,95 @@ pub fn dense_disparity_in_range(
     params: &DenseParams,
     range: Option<(f64, f64)>,
 ) -> Result<Disparity, DenseError> {
+    let (params, top_shift) = centre_search_on_sparse_range(params, range, left_rect.dimensions());
+    let t0 = Instant::now();
+    let inputs = Inputs::checked(left_rect, right_rect, valid_left, valid_right, &params)?;
+    let tm = Instant::now();
+    let mut matched = sift_flow_matching(&inputs, &params, top_shift);
+    let matching_ms = ms(tm);
+    let margin = margin_at_full_resolution(&matched.fwd, matched.finest, inputs.w, inputs.h);
+    let tra = Instant::now();
+    let reassigned_fraction = reassign_beside_discontinuities(&inputs, &mut matched, &params);
+    let reassign_ms = ms(tra);
+    let tr = Instant::now();
+    let levels = (
+        matched.fwd.levels.clone(),
+        matched.bwd.as_ref().map(|b| b.levels.clone()),
+    );
+    let check = left_right_check_at_matcher_level(&inputs, &matched, &params);
+    let finest = matched.finest;
+    let (fwd, bwd) = refine_to_full_resolution(&inputs, matched, &check, &params);
+    let refine_ms = ms(tr);
+    let tc = Instant::now();
+    let consistent = left_right_consistency(&inputs, (fwd, bwd), &margin, check, &params);
+    let consistency_ms = ms(tc);
+    let tf = Instant::now();
+    let filtered =
+        bilateral_filtering(&consistent.raw, &consistent.confidence, &inputs.va, &params);
+    let filter_ms = ms(tf);
+
+    let Inputs { va, n_valid, .. } = inputs;
+    let fraction = |marks: &[bool]| {
+        va.iter().zip(marks).filter(|(v, m)| **v && **m).count() as f64 / n_valid as f64
+    };
+    let ncc_sum: f64 = va
+        .iter()
+        .zip(&consistent.ncc)
+        .filter(|(v, _)| **v)
+        .map(|(_, &c)| f64::from(c))
+        .sum();
+    let stats = DenseStats {
+        levels: levels.0,
+        levels_right_to_left: levels.1,
+        flow: consistent.flow_stats,
+        coverage: filtered.known as f64 / n_valid as f64,
+        filled_fraction: filtered.filled.iter().filter(|&&f| f).count() as f64 / n_valid as f64,
+        rejected_fraction: fraction(&consistent.rejected),
+        rejected_by_matching_fraction: consistent
+            .rejected_by_matching
+            .as_deref()
+            .map_or(0.0, fraction),
+        reassigned_fraction,
+        finest_level: finest,
+        levels_used: params.flow.levels,
+        search_centre_px: top_shift,
+        refine_clamped_fraction: fraction(&consistent.clamped),
+        refine_mean_ncc: ncc_sum / n_valid as f64,
+        grid: filtered.grid,
+        timings: DenseTimings {
+            matching_ms,
+            reassign_ms,
+            refine_ms,
+            consistency_ms,
+            filter_ms,
+            total_ms: ms(t0),
+        },
+    };
+    Ok(Disparity {
+        disparity: filtered.disparity,
+        raw: consistent.raw,
+        vertical: consistent.vertical,
+        confidence: consistent.confidence,
+        occluded: consistent.rejected,
+        filled: filtered.filled,
+        stats,
+    })
+}
+
+/// With `search_from_sparse`, the search centred on the disparity range of the sparse matches
+/// (`(min, max)`, canvas pixels), and the pyramid deepened until the top window spans it (a
+/// fixed window misses the large parallax of high tilts or tall specimens): the parameters
+/// to run with and the disparity the top level is centred on.
+fn centre_search_on_sparse_range(
+    params: &DenseParams,
+    range: Option<(f64, f64)>,
+    (w, h): (usize, usize),
+) -> (DenseParams, f32) {
     let mut params = *params;
     let mut top_shift = 0.0f32;
     if let Some((lo, hi)) = range.filter(|(lo, hi)| lo.is_finite() && hi.is_finite() && hi >= lo)
         && params.search_from_sparse
     {
-        let (w, h) = left_rect.dimensions();
         let half = (hi - lo) / 2.0 * 1.25 + RANGE_MARGIN_PX;
         while (params.flow.top_window as f64) * f64::from(1u32 << (params.flow.levels - 1)) < half
             && params.flow.levels < 8
@@ -201,61 +279,92 @@ pub fn dense_disparity_in_range(
         let centre = ((lo + hi) / 2.0) as f32;
         top_shift = centre;
     }
-    dense_disparity_impl(
-        left_rect,
-        right_rect,
-        valid_left,
-        valid_right,
-        &params,
-        top_shift,
-    )
+    (params, top_shift)
 }
 
-fn dense_disparity_impl(
-    left_rect: &Image,
-    right_rect: &Image,
-    valid_left: Option<&[bool]>,
-    valid_right: Option<&[bool]>,
-    params: &DenseParams,
-    top_shift: f32,
-) -> Result<Disparity, DenseError> {
-    let t0 = Instant::now();
-    let (w, h) = left_rect.dimensions();
-    if right_rect.dimensions() != (w, h) {
-        return Err(DenseError::SizeMismatch {
-            left_width: w,
-            left_height: h,
-            right_width: right_rect.width(),
-            right_height: right_rect.height(),
-        });
+/// The pair as the dense stage reads it: both rectified images with their unknown samples
+/// filled, and which of their pixels are real.
+struct Inputs {
+    a: Image,
+    b: Image,
+    va: Vec<bool>,
+    vb: Vec<bool>,
+    n_valid: usize,
+    w: usize,
+    h: usize,
+}
+
+impl Inputs {
+    /// Checks sizes, masks and parameters.
+    fn checked(
+        left_rect: &Image,
+        right_rect: &Image,
+        valid_left: Option<&[bool]>,
+        valid_right: Option<&[bool]>,
+        params: &DenseParams,
+    ) -> Result<Self, DenseError> {
+        let (w, h) = left_rect.dimensions();
+        if right_rect.dimensions() != (w, h) {
+            return Err(DenseError::SizeMismatch {
+                left_width: w,
+                left_height: h,
+                right_width: right_rect.width(),
+                right_height: right_rect.height(),
+            });
+        }
+        params.validate()?;
+        sift_flow::check_size(w, h, params.flow.levels)?;
+        let va = validity(left_rect, valid_left)?;
+        let vb = validity(right_rect, valid_right)?;
+        let n_valid = va.iter().filter(|&&v| v).count();
+        if n_valid == 0 {
+            return Err(DenseError::NoValidPixels);
+        }
+        Ok(Self {
+            a: sift_flow::fill_non_finite(left_rect),
+            b: sift_flow::fill_non_finite(right_rect),
+            va,
+            vb,
+            n_valid,
+            w,
+            h,
+        })
     }
-    params.validate()?;
-    sift_flow::check_size(w, h, params.flow.levels)?;
-    let va = validity(left_rect, valid_left)?;
-    let vb = validity(right_rect, valid_right)?;
-    let n_valid = va.iter().filter(|&&v| v).count();
-    if n_valid == 0 {
-        return Err(DenseError::NoValidPixels);
-    }
-    let a = sift_flow::fill_non_finite(left_rect);
-    let b = sift_flow::fill_non_finite(right_rect);
-    let both = params.left_right_check;
+}
+
+/// The SIFT-flow fields at the finest BP level: left to right and, for the left–right check,
+/// right to left.
+struct Matched {
+    fwd: EngineRun,
+    bwd: Option<EngineRun>,
+    finest: usize,
+}
+
+/// Dense SIFT and SIFT flow (Liu et al. eq. 10, dual-layer BP, coarse to fine). With the
+/// left–right check both directions run at once (two cores, two sequential sweeps: the
+/// backward field is almost free in wall time).
+fn sift_flow_matching(inputs: &Inputs, params: &DenseParams, top_shift: f32) -> Matched {
     let mut engine = Engine::new(
         &params.flow,
         Some((params.vertical_window, params.vertical_top_window)),
     );
     engine.top_shift = top_shift;
+    let (fwd, bwd) = engine.run(
+        &inputs.a,
+        &inputs.b,
+        Some(&inputs.va),
+        Some(&inputs.vb),
+        params.left_right_check,
+    );
+    Matched {
+        fwd,
+        bwd,
+        finest: engine.finest,
+    }
+}
 
-    // Matching: both directions at once in the improved mode (two cores, two
-    // sequential sweeps: the backward field is almost free in wall time).
-    let tm = Instant::now();
-    let (mut fwd, mut bwd) = engine.run(&a, &b, Some(&va), Some(&vb), both);
-    let matching_ms = ms(tm);
-
-    // To full resolution: refined on the intensities (improved) or upsampled.
-    let finest = engine.finest;
-    let refine = params.flow.refinement();
-    let alpha = params.flow.alpha.max(1e-6);
+/// The matcher's margin (how unambiguous its label is) at full resolution.
+fn margin_at_full_resolution(fwd: &EngineRun, finest: usize, w: usize, h: usize) -> Vec<f32> {
     let mut margin = fwd.margin.clone();
     let (mut mw, mut mh) = (fwd.width, fwd.height);
     for l in (0..finest).rev() {
@@ -269,27 +378,48 @@ fn dense_disparity_impl(
         margin = upsample_flow(&margin, mw, mh, wf, hf, 1.0);
         (mw, mh) = (wf, hf);
     }
-    // Re-assignment beside discontinuities (improved mode), at the level of
-    // the fields: the checks and the refinement below see re-assigned fields.
-    let tra = Instant::now();
-    let reassigned_fraction = match bwd.as_mut() {
+    margin
+}
+
+/// Re-assignment of both fields beside depth discontinuities, at their level: the checks and
+/// the refinement after it see the re-assigned fields. The fraction of valid pixels changed.
+fn reassign_beside_discontinuities(
+    inputs: &Inputs,
+    matched: &mut Matched,
+    params: &DenseParams,
+) -> f64 {
+    match matched.bwd.as_mut() {
         Some(bw) if params.reassign.enabled => reassign_fields(
-            (&a, &b),
-            (&va, &vb),
-            (&mut fwd, bw),
-            finest,
+            (&inputs.a, &inputs.b),
+            (&inputs.va, &inputs.vb),
+            (&mut matched.fwd, bw),
+            matched.finest,
             params.lr_tolerance,
             &params.reassign,
         ),
         _ => 0.0,
-    };
-    let reassign_ms = ms(tra);
-    let tr = Instant::now();
-    let fwd_levels = fwd.levels.clone();
-    let bwd_levels = bwd.as_ref().map(|b| b.levels.clone());
-    // The left–right check of the SIFT-flow fields themselves, at their own
-    // level: the intensity refinement smooths the flow over its window, which
-    // would let a narrow occlusion pass the check on the refined fields alone.
+    }
+}
+
+/// The left–right check of the SIFT-flow fields, at their level, on the canvas grid.
+struct MatcherCheck {
+    /// Pixels away from steps of the flow, where `lr_tolerance_smooth` applies.
+    smooth: Option<Vec<bool>>,
+    /// Pixels of the left and of the right image whose matches fail the check.
+    rejected: Option<(Vec<bool>, Vec<bool>)>,
+}
+
+/// The left–right check of the SIFT-flow fields themselves, at their own level: the intensity
+/// refinement smooths the flow over its window, which would let a narrow occlusion pass the
+/// check on the refined fields alone. Away from steps of the flow the wider tolerance applies,
+/// judged on each field at its level.
+fn left_right_check_at_matcher_level(
+    inputs: &Inputs,
+    matched: &Matched,
+    params: &DenseParams,
+) -> MatcherCheck {
+    let (w, h) = (inputs.w, inputs.h);
+    let (fwd, finest) = (&matched.fwd, matched.finest);
     let scale = (1u32 << finest) as f32;
     let f = 1usize << finest;
     let (cw, ch) = (fwd.width, fwd.height);
@@ -301,8 +431,6 @@ fn dense_disparity_impl(
             })
             .collect()
     };
-    // Away from depth discontinuities the wider tolerance applies (see
-    // `lr_tolerance_smooth`), judged on each field at its level.
     let smooth_of = |field: &[f32]| -> Option<Vec<bool>> {
         (params.lr_tolerance_smooth > params.lr_tolerance).then(|| {
             reassign::near_discontinuity(
@@ -318,11 +446,10 @@ fn dense_disparity_impl(
             .collect()
         })
     };
-    let smooth: Option<Vec<bool>> = bwd.as_ref().and_then(|_| smooth_of(&fwd.u));
+    let smooth: Option<Vec<bool>> = matched.bwd.as_ref().and_then(|_| smooth_of(&fwd.u));
     let tolerances = (params.lr_tolerance, params.lr_tolerance_smooth);
-    // Both fields' left–right checks at their level, each on the grid of the
-    // image it starts from.
-    let level_rejected = bwd.as_ref().map(|bw| {
+    // Both fields' checks, each on the grid of the image it starts from.
+    let rejected = matched.bwd.as_ref().map(|bw| {
         let img = |d: &[f32]| Image::from_vec(cw, ch, d.to_vec()).expect("level size");
         let (fu, fv, bu, bv) = (img(&fwd.u), img(&fwd.v), img(&bw.u), img(&bw.v));
         let level_tolerances = (tolerances.0 / scale, tolerances.1 / scale);
@@ -340,37 +467,44 @@ fn dense_disparity_impl(
         );
         (to_canvas(&forward), to_canvas(&backward))
     });
-    let smooth = smooth.map(|s| to_canvas(&s));
-    // A pixel that fails the check at the matcher's level has no match the
-    // refinement could start from (occluded, or out of the other image's
-    // view); it takes no part in the refinement, so that the flow the
-    // matcher's smoothness left there does not spread into its neighbours'
-    // windows (Potamogeton 0°/9°: a 20-pixel ramp of the backward flow beside
-    // the edge of the field of view, which the check then rejected).
+    MatcherCheck {
+        smooth: smooth.map(|s| to_canvas(&s)),
+        rejected,
+    }
+}
+
+/// Both fields to full resolution: refined on the intensities (Lucas–Kanade) or upsampled.
+/// A pixel that fails the check at the matcher's level has no match the refinement could start
+/// from (occluded, or out of the other image's view); it takes no part in the refinement, so
+/// that the flow the matcher's smoothness left there does not spread into its neighbours'
+/// windows. The backward field serves the check within `lr_tolerance`: it is refined at the
+/// finest BP level only, then upsampled.
+fn refine_to_full_resolution(
+    inputs: &Inputs,
+    matched: Matched,
+    check: &MatcherCheck,
+    params: &DenseParams,
+) -> (RefinedFlow, Option<RefinedFlow>) {
     let refinable = |valid: &[bool], rejected: Option<&Vec<bool>>| -> Vec<bool> {
         match rejected {
             Some(r) => valid.iter().zip(r).map(|(v, r)| *v && !*r).collect(),
             None => valid.to_vec(),
         }
     };
-    let ra = refinable(&va, level_rejected.as_ref().map(|r| &r.0));
-    let rb = refinable(&vb, level_rejected.as_ref().map(|r| &r.1));
-    let matching_rejected = level_rejected.map(|r| r.0);
-    let (fwd_full, bwd_full) = rayon::join(
-        || sift_flow::to_full_resolution(&a, &b, Some(&ra), Some(&vb), fwd, finest, 0, refine),
+    let ra = refinable(&inputs.va, check.rejected.as_ref().map(|r| &r.0));
+    let rb = refinable(&inputs.vb, check.rejected.as_ref().map(|r| &r.1));
+    let refine = params.flow.refinement();
+    let Matched { fwd, bwd, finest } = matched;
+    let (a, b) = (&inputs.a, &inputs.b);
+    rayon::join(
+        || sift_flow::to_full_resolution(a, b, Some(&ra), Some(&inputs.vb), fwd, finest, 0, refine),
         || {
             bwd.map(|bw| {
-                // Refined at the finest BP level only, then upsampled: the
-                // backward field serves the check, within `lr_tolerance`
-                // (2 px), and its confidence; on the 16 simulated cases the
-                // figures move by ±0.01 px but for grid 1024×768 (coverage
-                // 68.6 → 67.1 %, median 0.64 → 0.60 px), for 15 % less CPU
-                // time and 90 MB less at 1280×960.
                 sift_flow::to_full_resolution(
-                    &b,
-                    &a,
+                    b,
+                    a,
                     Some(&rb),
-                    Some(&va),
+                    Some(&inputs.va),
                     bw,
                     finest,
                     finest,
@@ -378,36 +512,58 @@ fn dense_disparity_impl(
                 )
             })
         },
-    );
-    let refine_ms = ms(tr);
+    )
+}
 
-    let u = Image::from_vec(w, h, fwd_full.u).expect("flow has the canvas size");
-    let v = Image::from_vec(w, h, fwd_full.v).expect("flow has the canvas size");
+/// The disparity that passed the left–right check, with its confidence.
+struct Consistent {
+    /// Horizontal flow, `NaN` where rejected, unknown or landing outside the right image.
+    raw: Image,
+    vertical: Image,
+    confidence: Image,
+    rejected: Vec<bool>,
+    rejected_by_matching: Option<Vec<bool>>,
+    flow_stats: FlowStats,
+    ncc: Vec<f32>,
+    clamped: Vec<bool>,
+}
+
+/// The left–right consistency of the refined fields (together with the matcher-level check)
+/// and a confidence per pixel: the matcher's margin, the refinement's NCC (a tenth where it hit
+/// its step bound) and the agreement of both directions.
+fn left_right_consistency(
+    inputs: &Inputs,
+    (fwd, bwd): (RefinedFlow, Option<RefinedFlow>),
+    margin: &[f32],
+    check: MatcherCheck,
+    params: &DenseParams,
+) -> Consistent {
+    let (w, h) = (inputs.w, inputs.h);
+    let (va, vb) = (&inputs.va, &inputs.vb);
+    let RefinedFlow { u, v, ncc, clamped } = fwd;
+    let u = Image::from_vec(w, h, u).expect("flow has the canvas size");
+    let v = Image::from_vec(w, h, v).expect("flow has the canvas size");
     let flow_stats = FlowStats::of(&u, &v);
-
-    // Consistency and confidence.
-    let tc = Instant::now();
+    let alpha = params.flow.alpha.max(1e-6);
     let ambiguity: Vec<f32> = margin
         .iter()
-        .zip(&fwd_full.ncc)
-        .zip(&fwd_full.clamped)
+        .zip(&ncc)
+        .zip(&clamped)
         .map(|((&m, &c), &cl)| {
             let a = 1.0 - (-m / alpha).exp();
             a * c * if cl { 0.1 } else { 1.0 }
         })
         .collect();
-    let (rejected, agreement) = match &bwd_full {
+    let tolerances = (params.lr_tolerance, params.lr_tolerance_smooth);
+    let rejected_by_matching = check.rejected.map(|r| r.0);
+    let (rejected, agreement) = match &bwd {
         Some(bw) => {
             let ur = Image::from_vec(w, h, bw.u.clone()).expect("flow has the canvas size");
             let vr = Image::from_vec(w, h, bw.v.clone()).expect("flow has the canvas size");
             let residual = left_right_residual(&u, &v, &ur, &vr);
             // The agreement's scale is the strict tolerance everywhere, also
             // where `lr_tolerance_smooth` accepts a larger residual: the
-            // residual is evidence against the match wherever it lies. Scaling
-            // by each pixel's own tolerance gives such pixels more weight in
-            // the bilateral filter and is slightly worse on the simulated
-            // 640×480 cases (grid > 1 px 5.3 → 5.5 %, particles RMSE 5.13 →
-            // 5.16 % of the relief, dome unchanged).
+            // residual is evidence against the match wherever it lies.
             let tol = params.lr_tolerance.max(1e-3);
             let agreement: Vec<f32> = residual
                 .data()
@@ -420,8 +576,8 @@ fn dense_disparity_impl(
                     }
                 })
                 .collect();
-            let refined = reject_beyond(&residual, tolerances, smooth.as_deref());
-            let rejected = match &matching_rejected {
+            let refined = reject_beyond(&residual, tolerances, check.smooth.as_deref());
+            let rejected = match &rejected_by_matching {
                 Some(m) => refined.iter().zip(m).map(|(a, b)| *a || *b).collect(),
                 None => refined,
             };
@@ -429,7 +585,7 @@ fn dense_disparity_impl(
         }
         None => (vec![false; w * h], vec![1.0; w * h]),
     };
-    let mut raw = u.clone();
+    let mut raw = u;
     let mut confidence = Image::zeros(w, h);
     raw.data_mut()
         .par_iter_mut()
@@ -450,11 +606,37 @@ fn dense_disparity_impl(
                 *c = ambiguity[p] * agreement[p];
             }
         });
-    let consistency_ms = ms(tc);
+    Consistent {
+        raw,
+        vertical: v,
+        confidence,
+        rejected,
+        rejected_by_matching,
+        flow_stats,
+        ncc,
+        clamped,
+    }
+}
 
-    let tf = Instant::now();
+/// The filtered disparity.
+struct Filtered {
+    disparity: Image,
+    filled: Vec<bool>,
+    /// Pixels with a disparity before the filter (measured or filled).
+    known: usize,
+    grid: GridInfo,
+}
+
+/// The bilateral-grid filter of the disparity (paper §2.4), after the optional fill of short
+/// gaps along the rows; measured pixels weigh by their confidence, fills hardly at all.
+fn bilateral_filtering(
+    raw: &Image,
+    confidence: &Image,
+    va: &[bool],
+    params: &DenseParams,
+) -> Filtered {
     let mut to_filter = raw.clone();
-    let filled = fill_row_gaps(&mut to_filter, &va, params.fill_max_gap);
+    let filled = fill_row_gaps(&mut to_filter, va, params.fill_max_gap);
     let weights = params.weighted_filter.then(|| {
         let mut wt = confidence.clone();
         for (c, _) in wt.data_mut().iter_mut().zip(&filled).filter(|(_, f)| **f) {
@@ -463,58 +645,12 @@ fn dense_disparity_impl(
         wt
     });
     let (disparity, grid) = bilateral_filter(&to_filter, weights.as_ref(), &params.bilateral);
-    let filter_ms = ms(tf);
-
-    let known = to_filter.data().iter().filter(|d| d.is_finite()).count();
-    let n_filled = filled.iter().filter(|&&f| f).count();
-    let n_rejected = va.iter().zip(&rejected).filter(|(v, r)| **v && **r).count();
-    let n_rejected_matching = matching_rejected
-        .as_ref()
-        .map_or(0, |m| va.iter().zip(m).filter(|(v, r)| **v && **r).count());
-    let n_clamped = va
-        .iter()
-        .zip(&fwd_full.clamped)
-        .filter(|(v, c)| **v && **c)
-        .count();
-    let ncc_sum: f64 = va
-        .iter()
-        .zip(&fwd_full.ncc)
-        .filter(|(v, _)| **v)
-        .map(|(_, &c)| f64::from(c))
-        .sum();
-    let stats = DenseStats {
-        levels: fwd_levels,
-        levels_right_to_left: bwd_levels,
-        flow: flow_stats,
-        coverage: known as f64 / n_valid as f64,
-        filled_fraction: n_filled as f64 / n_valid as f64,
-        rejected_fraction: n_rejected as f64 / n_valid as f64,
-        rejected_by_matching_fraction: n_rejected_matching as f64 / n_valid as f64,
-        reassigned_fraction,
-        finest_level: finest,
-        levels_used: params.flow.levels,
-        search_centre_px: top_shift,
-        refine_clamped_fraction: n_clamped as f64 / n_valid as f64,
-        refine_mean_ncc: ncc_sum / n_valid as f64,
-        grid,
-        timings: DenseTimings {
-            matching_ms,
-            reassign_ms,
-            refine_ms,
-            consistency_ms,
-            filter_ms,
-            total_ms: ms(t0),
-        },
-    };
-    Ok(Disparity {
+    Filtered {
         disparity,
-        raw,
-        vertical: v,
-        confidence,
-        occluded: rejected,
+        known: to_filter.data().iter().filter(|d| d.is_finite()).count(),
         filled,
-        stats,
-    })
+        grid,
+    }
 }
 
 /// [`reassign::reassign`] of both SIFT-flow fields at their own pyramid
