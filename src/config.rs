@@ -11,8 +11,8 @@ use serde::{Deserialize, Serialize};
 use crate::acquisition::{PlanError, SeriesConfig, SeriesPlan, TrackingConfig};
 use crate::daemon::DaemonConfig;
 use crate::export::MeshParams;
-use crate::imaging::ImagingConfig;
-use crate::stage::StageConfig;
+use crate::imaging::{ImagingConfig, ImagingError};
+use crate::stage::{StageConfig, StageError};
 use crate::vision::dense::DenseParams;
 use crate::vision::sparse::SparseParams;
 use crate::vision::{Preset, ReconstructionParams};
@@ -262,10 +262,20 @@ pub enum ConfigError {
     #[error("invalid configuration: {0}")]
     Plan(PlanError),
     #[error("invalid configuration: {0}")]
-    Rule(String),
+    Stage(StageError),
+    #[error("invalid configuration: {0}")]
+    Imaging(ImagingError),
+    #[error("invalid configuration: tracking.gain = {0} must lie in (0, 1]")]
+    TrackingGain(f64),
+    #[error("invalid configuration: run.name = {0:?} must be a non-empty name without '/'")]
+    RunName(String),
 }
 
-error_from!(ConfigError { Plan(PlanError) });
+error_from!(ConfigError {
+    Plan(PlanError),
+    Stage(StageError),
+    Imaging(ImagingError),
+});
 
 /// Prefix of the environment variables that override configuration keys:
 /// `SDSEM_SERIES__END_TILT_DEG=5` sets `series.end_tilt_deg`. Only variables
@@ -393,24 +403,14 @@ impl Config {
     /// [`ConfigError`] naming the keys at fault.
     pub fn validate(&self) -> Result<(), ConfigError> {
         self.plan()?;
-        self.stage
-            .validate()
-            .map_err(|e| ConfigError::Rule(e.to_string()))?;
-        self.imaging
-            .validate()
-            .map_err(|e| ConfigError::Rule(e.to_string()))?;
+        self.stage.validate()?;
+        self.imaging.validate()?;
         let t = &self.tracking;
         if !(t.gain > 0.0 && t.gain <= 1.0) {
-            return Err(ConfigError::Rule(format!(
-                "tracking.gain = {} must lie in (0, 1]",
-                t.gain
-            )));
+            return Err(ConfigError::TrackingGain(t.gain));
         }
         if self.run.name.trim().is_empty() || self.run.name.contains('/') {
-            return Err(ConfigError::Rule(format!(
-                "run.name = {:?} must be a non-empty name without '/'",
-                self.run.name
-            )));
+            return Err(ConfigError::RunName(self.run.name.clone()));
         }
         Ok(())
     }

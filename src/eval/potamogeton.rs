@@ -15,10 +15,11 @@ use std::time::Instant;
 
 use serde::Serialize;
 
-use crate::app::reconstruct::{GeometryOverrides, load_pair};
+use crate::app::reconstruct::load_pair;
 use crate::vision::Image;
 use crate::vision::Preset;
 use crate::vision::ReconstructionParams;
+use crate::vision::geometry::Figures;
 use crate::vision::pipeline::{ReconReport, reconstruct};
 
 /// Tilt axis of the series in the stored files (see the data's README).
@@ -121,9 +122,9 @@ pub fn reconstruct_series(
         let pair = load_pair(
             &dir.join(LEFT),
             &dir.join(right),
-            GeometryOverrides {
+            Figures {
                 tilt_axis_deg: Some(TILT_AXIS_DEG),
-                ..GeometryOverrides::default()
+                ..Figures::default()
             },
             None,
         )?;

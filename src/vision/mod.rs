@@ -5,6 +5,7 @@
 pub mod dense;
 pub mod depth;
 pub mod filter;
+pub mod geometry;
 pub mod image;
 pub mod params;
 pub mod pipeline;

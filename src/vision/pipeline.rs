@@ -14,29 +14,15 @@ use std::time::Instant;
 
 use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
-use serde::{Deserialize, Serialize};
+use serde::Serialize;
 
 use super::Image;
 use super::dense::{DenseError, DenseParams, DenseStats, dense_disparity_in_range};
 use super::depth::{DepthError, StereoGeometry, height_on_left_grid};
+use super::geometry::{MAX_TILT_DEG, PairGeometry};
 use super::params::ReconstructionParams;
 use super::precision::{self, Precision};
 use super::sparse::{SparseError, rectify_pair};
-
-/// How the pair was taken.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct PairGeometry {
-    /// θ = tilt(right) − tilt(left), degrees, in (0, 60].
-    pub tilt_deg: f64,
-    /// Pixel size of both micrographs, µm.
-    pub pixel_size_um: f64,
-    /// φ: direction of the tilt axis in the image, degrees from +x towards +y.
-    pub tilt_axis_deg: f64,
-}
-
-/// Largest tilt difference accepted: beyond it the pair hardly overlaps and
-/// the small-angle matching of the method breaks down.
-pub const MAX_TILT_DEG: f64 = 60.0;
 
 /// Why a pair cannot be reconstructed.
 #[derive(Debug, thiserror::Error)]
