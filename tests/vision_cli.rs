@@ -36,7 +36,7 @@ fn dome_pair(dir: &Path) -> (PathBuf, PathBuf, Vec<f32>) {
         ..View::default()
     };
     let shading = ShadingParams::default();
-    let mut write = |name: &str, tilt: f64, seed: u64| {
+    let write = |name: &str, tilt: f64, seed: u64| {
         let pixels = render_noisy(
             &scene,
             &view(tilt),
