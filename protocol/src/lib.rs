@@ -6,6 +6,8 @@
 //!
 //! - [`gcs`]: the PI GCS 2.0 subset spoken by the stage controller.
 //! - [`sem`]: the line protocol of the SEM imaging link.
+//! - [`sharksem`]: TESCAN SharkSEM remote control (binary, TCP): stage and imaging of TESCAN SEMs.
 
 pub mod gcs;
 pub mod sem;
+pub mod sharksem;
