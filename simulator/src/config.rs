@@ -34,6 +34,7 @@ use crate::walk::WalkParams;
 /// | `time_scale` | 1 | real seconds per simulated second: 0.01 runs motion, settling and scans 100× faster than real time; 1 is real time |
 /// | `stage` | see [`StageSimConfig`] | the PI GCS stage controller |
 /// | `sem` | see [`SemSimConfig`] | the SEM imaging server |
+/// | `sharksem` | none | when present, the same SEM and stage also speak TESCAN SharkSEM ([`crate::sharksem`]) |
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct SimConfig {
@@ -47,6 +48,9 @@ pub struct SimConfig {
     pub stage: StageSimConfig,
     /// The simulated SEM's imaging server.
     pub sem: SemSimConfig,
+    /// The SharkSEM dialect of the same SEM and stage, when present.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub sharksem: Option<crate::sharksem::SharkSemSimConfig>,
 }
 
 impl Default for SimConfig {
@@ -56,6 +60,7 @@ impl Default for SimConfig {
             time_scale: 1.0,
             stage: StageSimConfig::default(),
             sem: SemSimConfig::default(),
+            sharksem: None,
         }
     }
 }
@@ -404,7 +409,8 @@ impl SimConfig {
     pub fn validate(&self) -> Result<(), SimError> {
         positive("time_scale", self.time_scale)?;
         self.stage.validate()?;
-        self.sem.validate()
+        self.sem.validate()?;
+        self.sharksem.as_ref().map_or(Ok(()), |s| s.validate())
     }
 }
 

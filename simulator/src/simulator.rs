@@ -11,11 +11,12 @@ use tracing::{info, warn};
 
 use crate::SimError;
 use crate::clock::{Clock, ScaledClock};
-use crate::config::{SimConfig, SimEndpoint};
+use crate::config::{SimConfig, SimEndpoint, derive_seed};
 use crate::pose::PoseSource;
 use crate::scene::Scene;
 use crate::sem::{FrameRecord, SimSem};
 use crate::sem_server;
+use crate::sharksem::{self, SharkSemDevice};
 use crate::stage::SimStage;
 use crate::stage_link::{serve_pty, serve_tcp};
 use crate::stage_model::StageSnapshot;
@@ -108,6 +109,7 @@ impl Simulator {
             clock,
             stop: Arc::clone(&stop),
             config: config.clone(),
+            sharksem: None,
         };
         // On an error below, dropping `handle` stops what already runs.
         let server = match &config.stage.endpoint {
@@ -122,9 +124,22 @@ impl Simulator {
                 reason: "the SEM imaging link is TCP only".into(),
             });
         };
-        let server = sem_server::serve_tcp(sem_addr, sem, Arc::clone(&stop))?;
+        let server = sem_server::serve_tcp(sem_addr, Arc::clone(&sem), Arc::clone(&stop))?;
         handle.sem_addr = server.wake.unwrap_or(sem_addr);
         handle.add("sem", server);
+        if let Some(shark) = &config.sharksem {
+            let device = Arc::new(SharkSemDevice::new(
+                shark.clone(),
+                Arc::clone(&handle.stage),
+                config.stage.clone(),
+                sem,
+                derive_seed(config.seed, "sharksem"),
+            ));
+            let (control, data) = sharksem::serve(shark, Arc::clone(&device), Arc::clone(&stop))?;
+            handle.add("sharksem", control);
+            handle.add("sharksem-data", data);
+            handle.sharksem = Some(device);
+        }
         info!(
             seed = config.seed,
             time_scale = config.time_scale,
@@ -146,6 +161,7 @@ pub struct SimHandle {
     clock: Arc<dyn Clock>,
     stop: Arc<AtomicBool>,
     config: SimConfig,
+    sharksem: Option<Arc<SharkSemDevice>>,
 }
 
 impl SimHandle {
@@ -164,7 +180,8 @@ impl SimHandle {
             .map_or("", |e| e.address.as_str())
     }
 
-    /// Every endpoint served: `stage`, then `sem`.
+    /// Every endpoint served: `stage`, then `sem`, then `sharksem` and
+    /// `sharksem-data` when configured.
     pub fn endpoints(&self) -> &[ServiceEndpoint] {
         &self.endpoints
     }
@@ -187,6 +204,21 @@ impl SimHandle {
     /// The SEM imaging server's endpoint: `tcp://IP:PORT`.
     pub fn sem_endpoint(&self) -> &str {
         self.endpoint("sem")
+    }
+
+    /// The SharkSEM control endpoint `tcp://IP:PORT`, when configured ("" otherwise).
+    pub fn sharksem_endpoint(&self) -> &str {
+        self.endpoint("sharksem")
+    }
+
+    /// The SharkSEM data endpoint `tcp://IP:PORT`, when configured ("" otherwise).
+    pub fn sharksem_data_endpoint(&self) -> &str {
+        self.endpoint("sharksem-data")
+    }
+
+    /// The SEM as SharkSEM clients see it (view field, counters), when configured.
+    pub fn sharksem(&self) -> Option<&Arc<SharkSemDevice>> {
+        self.sharksem.as_ref()
     }
 
     /// The SEM imaging server's address as a client on this machine connects
