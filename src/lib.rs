@@ -46,5 +46,6 @@ pub mod export;
 pub mod imaging;
 pub mod memory;
 pub mod record;
+pub mod sharksem;
 pub mod stage;
 pub mod vision;

@@ -20,11 +20,26 @@ pub struct ScanSettings {
     pub dwell_us: f64,
 }
 
+/// Which protocol delivers the frames.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum ImagingProtocol {
+    /// sdsem's own line protocol ([`sdsem_protocol::sem`]): sdsem-sim or an adapter.
+    #[default]
+    SdsemLink,
+    /// TESCAN SharkSEM remote control ([`crate::imaging::SharkSemSource`]).
+    Sharksem,
+}
+
 /// How to reach the SEM and how to scan.
 ///
 /// | key | default | effect |
 /// | --- | --- | --- |
-/// | `endpoint` | `127.0.0.1:7520` | host:port of the SEM imaging server (sdsem-sim's or a microscope adapter's) |
+/// | `protocol` | `sdsem-link` | `sdsem-link` or `sharksem` (TESCAN) |
+/// | `endpoint` | `127.0.0.1:7520` | host:port of the SEM imaging server (sdsem-sim's or a microscope adapter's); sharksem: `tcp://HOST:8300`, the control port |
+/// | `data_port` | none | sharksem: the data port; none = control port + 1 |
+/// | `detector` | `""` | sharksem: detector name (`SE`, case-insensitive) or id (`DtEnumDetectors`); empty = the first listed |
+/// | `pixel_size_um` | none | sharksem: the micrograph's pixel size, set as the view field = pixel size × micrograph width; none = keep the SEM's field and read it back |
 /// | `micrograph` | 1280 × 960, 10 µs | the left and right micrographs (12.3 s per frame) |
 /// | `tracking` | 320 × 240, 1 µs | the quick frame after each tilt step (77 ms) |
 /// | `bits` | 16 | sample depth, 8 or 16 |
@@ -32,7 +47,13 @@ pub struct ScanSettings {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct ImagingConfig {
+    pub protocol: ImagingProtocol,
     pub endpoint: String,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub data_port: Option<u16>,
+    pub detector: String,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub pixel_size_um: Option<f64>,
     pub micrograph: ScanSettings,
     pub tracking: ScanSettings,
     pub bits: u8,
@@ -42,7 +63,11 @@ pub struct ImagingConfig {
 impl Default for ImagingConfig {
     fn default() -> Self {
         Self {
+            protocol: ImagingProtocol::SdsemLink,
             endpoint: format!("127.0.0.1:{DEFAULT_PORT}"),
+            data_port: None,
+            detector: String::new(),
+            pixel_size_um: None,
             micrograph: ScanSettings {
                 width: 1280,
                 height: 960,
@@ -101,6 +126,22 @@ impl ImagingConfig {
         }
         if self.bits != 8 && self.bits != 16 {
             return Err(invalid("imaging.bits", self.bits.to_string(), "8 or 16"));
+        }
+        if self.data_port == Some(0) {
+            return Err(invalid(
+                "imaging.data_port",
+                "0".to_owned(),
+                "a port number 1–65535 (or no key: control port + 1)",
+            ));
+        }
+        if let Some(p) = self.pixel_size_um
+            && !(p.is_finite() && p > 0.0)
+        {
+            return Err(invalid(
+                "imaging.pixel_size_um",
+                p.to_string(),
+                "a positive number of micrometres (or no key: keep the SEM's field)",
+            ));
         }
         if self.timeout_ms == 0 {
             return Err(invalid(

@@ -5,7 +5,8 @@
 //!   gives the vision core's [`crate::vision::Image`].
 //! - [`FrameSource`]: anything that grabs frames; [`SemLinkClient`] speaks the
 //!   SEM imaging link ([`sdsem_protocol::sem`]) over TCP to the simulator or a
-//!   microscope adapter, configured by [`ImagingConfig`].
+//!   microscope adapter, configured by [`ImagingConfig`]; [`SharkSemSource`]
+//!   scans on a TESCAN SEM over SharkSEM ([`crate::sharksem`]).
 //! - [`file`]: micrographs on disk (TIFF, PNG) with their SEM metadata ([`metadata`]).
 
 mod config;
@@ -15,10 +16,12 @@ mod file_tiff;
 mod frame;
 mod link_client;
 pub mod metadata;
+mod sharksem;
 mod source;
 
-pub use config::{DEFAULT_PORT, ImagingConfig, ScanSettings};
+pub use config::{DEFAULT_PORT, ImagingConfig, ImagingProtocol, ScanSettings};
 pub use error::ImagingError;
 pub use frame::{Frame, FrameMeta, Pixels, Role};
 pub use link_client::{GroundTruth, SemLinkClient};
+pub use sharksem::SharkSemSource;
 pub use source::{FrameSource, GrabFuture, GrabRequest};
