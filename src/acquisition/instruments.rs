@@ -9,9 +9,7 @@ use tracing::info;
 use crate::config::Config;
 use crate::imaging::{ImagingConfig, ImagingError, SemLinkClient};
 use crate::record::RecorderHandle;
-use crate::stage::{
-    StageConfig, StageDriver, StageError, StageIo, StageLink, StageObserver, StageState,
-};
+use crate::stage::{StageConfig, StageDriver, StageError, StageIo, StageObserver, StageState};
 
 /// Why the instruments cannot be reached.
 #[derive(Debug, thiserror::Error)]
@@ -81,7 +79,7 @@ impl StageObserver for RunObserver {
 
 /// The connected instruments.
 pub struct Instruments {
-    pub stage: StageDriver<StageLink>,
+    pub stage: StageDriver,
     pub imaging: SemLinkClient,
     /// Identification strings, for the record.
     pub stage_identity: String,

@@ -228,6 +228,18 @@ async fn acquire(
     }
     let mut ids = BTreeMap::new();
     ids.insert("stage".to_owned(), instruments.stage_identity.clone());
+    let stage = instruments.stage.instrument();
+    for (key, value) in [
+        ("stage_protocol", &stage.protocol),
+        ("stage_vendor", &stage.vendor),
+        ("stage_model", &stage.model),
+        ("stage_version", &stage.version),
+        ("stage_serial", &stage.serial),
+    ] {
+        if !value.is_empty() {
+            ids.insert(key.to_owned(), value.clone());
+        }
+    }
     ids.insert("sem".to_owned(), instruments.sem_identity.clone());
     let _ = rec.metadata("sdsem.instruments", ids);
 

@@ -6,14 +6,13 @@
 use std::time::Instant;
 
 use serde::Serialize;
-use tokio::io::{AsyncRead, AsyncWrite};
 use tracing::{error, info, warn};
 
 use super::cancel::Cancel;
 use super::machine::{Action, Event, FrameRole, Outcome, Series, Tracked};
 use crate::imaging::{Frame, FrameSource, ImagingConfig, Pixels as FramePixels};
 use crate::record::{self, Entry, FrameInfo, Pixels, RecorderHandle, topics};
-use crate::stage::{StageDriver, StagePosition};
+use crate::stage::{StageBackend, StageDriver, StagePosition};
 use crate::vision::Image;
 use crate::vision::registration::{PhaseCorrelationParams, phase_correlation};
 
@@ -67,7 +66,7 @@ pub struct SeriesRecord {
 }
 
 /// The instruments and the record a series works with.
-pub struct SeriesContext<'a, T> {
+pub struct SeriesContext<'a, T: StageBackend> {
     pub stage: &'a mut StageDriver<T>,
     pub imaging: &'a mut dyn FrameSource,
     pub imaging_config: &'a ImagingConfig,
@@ -85,7 +84,7 @@ pub async fn run_series<T>(
     cancel: &mut Cancel,
 ) -> SeriesRecord
 where
-    T: AsyncRead + AsyncWrite + Unpin + Send,
+    T: StageBackend,
 {
     let started = Instant::now();
     let mut run = RunState {
@@ -209,7 +208,7 @@ async fn cancellable<F: std::future::Future>(
 /// what this step exists to prevent; the driver's timeouts bound it.
 async fn return_to_safe<T>(stage: &mut StageDriver<T>, tilt_deg: f64, stop_first: bool) -> Event
 where
-    T: AsyncRead + AsyncWrite + Unpin + Send,
+    T: StageBackend,
 {
     if stop_first && let Err(e) = stage.stop().await {
         warn!("STP before returning to the safe tilt failed: {e}");
@@ -260,7 +259,7 @@ impl RunState {
         role: FrameRole,
     ) -> Event
     where
-        T: AsyncRead + AsyncWrite + Unpin + Send,
+        T: StageBackend,
     {
         (ctx.progress)(&format!(
             "step {step}: capturing the {role} frame at {tilt_deg:.3}°"
@@ -375,7 +374,7 @@ impl RunState {
         dy_um: f64,
     ) -> Event
     where
-        T: AsyncRead + AsyncWrite + Unpin + Send,
+        T: StageBackend,
     {
         let here = match self.position {
             Some(p) => p,

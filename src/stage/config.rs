@@ -67,16 +67,50 @@ impl fmt::Display for StageAxis {
     }
 }
 
+/// Which language the stage speaks (`stage.protocol`, DESIGN §7b).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub enum StageProtocol {
+    /// PI GCS 2.0 (an aftermarket stage controller). The default.
+    #[default]
+    #[serde(rename = "pi-gcs")]
+    PiGcs,
+}
+
+impl StageProtocol {
+    /// The name as written in the configuration.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::PiGcs => "pi-gcs",
+        }
+    }
+
+    /// The usual serial rate of the protocol: 115200 for PI controllers.
+    pub fn default_baud(self) -> u32 {
+        match self {
+            Self::PiGcs => 115_200,
+        }
+    }
+}
+
+impl fmt::Display for StageProtocol {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
 /// How to reach and drive the stage controller. Every field has a documented
 /// default; durations are seconds.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct StageConfig {
+    /// The stage's language: `pi-gcs` (the default).
+    pub protocol: StageProtocol,
     /// Where the controller is: a serial device (`/dev/ttyUSB0`,
     /// `/dev/serial/by-id/…`, a simulator's pty path, optionally written
     /// `serial:///dev/ttyUSB0`) or `tcp://HOST:PORT`. Default `/dev/ttyUSB0`.
     pub endpoint: String,
-    /// Serial baud rate (ignored for TCP and pseudo-terminals). Default 115200.
+    /// Serial baud rate (ignored for TCP and pseudo-terminals); 0 = the
+    /// protocol's usual rate (115200 for pi-gcs). Default 0.
     pub baud: u32,
     /// GCS identifier of the X axis. Default `1` (the simulator uses `X`).
     pub axis_x: AxisId,
@@ -133,6 +167,9 @@ pub struct StageConfig {
     pub xy_speed_um_s: f64,
     /// Tilt to return to after a run or an abort, degrees. Default 0.
     pub safe_tilt_deg: f64,
+    /// Time for the SEM to finish a watch-folder trigger (`imaging.trigger`,
+    /// e.g. `FREC`), which answers only once done. Default 60 s.
+    pub trigger_timeout_s: f64,
 }
 
 fn axis(name: &str) -> AxisId {
@@ -142,8 +179,9 @@ fn axis(name: &str) -> AxisId {
 impl Default for StageConfig {
     fn default() -> Self {
         Self {
+            protocol: StageProtocol::PiGcs,
             endpoint: "/dev/ttyUSB0".into(),
-            baud: 115_200,
+            baud: 0,
             axis_x: axis("1"),
             axis_y: axis("2"),
             axis_tilt: axis("3"),
@@ -168,6 +206,7 @@ impl Default for StageConfig {
             tilt_speed_deg_s: 1.0,
             xy_speed_um_s: 100.0,
             safe_tilt_deg: 0.0,
+            trigger_timeout_s: 60.0,
         }
     }
 }
@@ -185,6 +224,15 @@ pub(crate) fn secs(s: f64) -> Duration {
 }
 
 impl StageConfig {
+    /// The serial rate to open the port at: `baud`, or the protocol's usual one.
+    pub fn effective_baud(&self) -> u32 {
+        if self.baud == 0 {
+            self.protocol.default_baud()
+        } else {
+            self.baud
+        }
+    }
+
     /// The GCS identifier of an axis.
     pub fn axis_id(&self, axis: StageAxis) -> &AxisId {
         match axis {
@@ -246,6 +294,7 @@ impl StageConfig {
             ("stage.xy_tolerance_um", self.xy_tolerance_um),
             ("stage.tilt_speed_deg_s", self.tilt_speed_deg_s),
             ("stage.xy_speed_um_s", self.xy_speed_um_s),
+            ("stage.trigger_timeout_s", self.trigger_timeout_s),
         ] {
             if !(v.is_finite() && v > 0.0) {
                 return Err(invalid(

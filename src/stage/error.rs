@@ -5,7 +5,7 @@ use std::time::Duration;
 
 use sdsem_protocol::gcs::GcsErrorCode;
 
-use super::config::StageAxis;
+use super::config::{StageAxis, StageProtocol};
 
 /// Everything that can go wrong between sdsem and the stage controller.
 #[derive(Debug, thiserror::Error)]
@@ -163,7 +163,7 @@ pub enum StageError {
     /// A move did not reach its target in time; the stage was stopped.
     #[error(
         "`{command}` did not reach the target in {timeout:?}: {axis} at {position:?} (target \
-         {target}); the stage was stopped (STP): check for an obstruction, or lower {} / raise \
+         {target}); the stage was stopped: check for an obstruction, or lower {} / raise \
          stage.move_timeout_margin_s if the stage is slower than configured",
         .axis.speed_field()
     )]
@@ -178,6 +178,17 @@ pub enum StageError {
         position: Option<f64>,
         /// Time allowed.
         timeout: Duration,
+    },
+
+    /// The stage protocol cannot do what was asked.
+    #[error("stage.protocol = \"{protocol}\" cannot send {what}; {remedy}")]
+    Unsupported {
+        /// The protocol in use.
+        protocol: StageProtocol,
+        /// What was asked.
+        what: String,
+        /// What to do instead.
+        remedy: &'static str,
     },
 }
 

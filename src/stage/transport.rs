@@ -103,7 +103,12 @@ pub async fn open(
         }
         Endpoint::Serial(path) => {
             // On a pseudo-terminal the baud rate does nothing (DESIGN §8); harmless.
+            // 8N1 without flow control: PI controllers and RemCon32 alike [SF, ML].
             let port = tokio_serial::new(path.to_string_lossy(), baud)
+                .data_bits(tokio_serial::DataBits::Eight)
+                .parity(tokio_serial::Parity::None)
+                .stop_bits(tokio_serial::StopBits::One)
+                .flow_control(tokio_serial::FlowControl::None)
                 .timeout(connect_timeout)
                 .open_native_async()
                 .map_err(|e| serial_error(endpoint, &e))?;

@@ -652,3 +652,28 @@ async fn a_babbling_device_fails_connect_instead_of_hanging() {
     );
     assert!(t0.elapsed() < Duration::from_secs(30), "{:?}", t0.elapsed());
 }
+
+#[tokio::test(start_paused = true)]
+async fn a_watch_folder_trigger_over_pi_gcs_is_refused_and_nothing_is_sent() {
+    let (io, log) = scripted(basic);
+    let mut stage = StageDriver::connect(io, driver_config(), Arc::new(NoopObserver))
+        .await
+        .unwrap();
+    let before = lines(&log).len();
+    let err = stage.send_trigger("FREC").await.unwrap_err();
+    assert!(matches!(err, StageError::Unsupported { .. }), "{err}");
+    let msg = err.to_string();
+    assert!(
+        msg.contains("pi-gcs") && msg.contains("imaging.trigger"),
+        "{msg}"
+    );
+    // A line that is not one printable command is refused before the backend sees it.
+    for bad in ["", "FREC\r", " FREC", "MAC\n1"] {
+        let err = stage.send_trigger(bad).await.unwrap_err();
+        assert!(
+            err.to_string().contains("imaging.trigger"),
+            "{bad:?}: {err}"
+        );
+    }
+    assert_eq!(lines(&log).len(), before);
+}

@@ -163,7 +163,7 @@ fn snapshot(
 /// The lead runs the driver inside spawned tasks: its futures must be `Send`.
 /// (Checked by the compiler; the function is never called.)
 #[allow(dead_code)]
-fn driver_futures_are_send(d: &mut super::StageDriver<super::StageLink>) {
+fn driver_futures_are_send(d: &mut super::StageDriver) {
     fn send<T: Send>(_: &T) {}
     send(&d.move_tilt(1.0));
     send(&d.move_xy(1.0, 2.0));

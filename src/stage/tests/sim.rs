@@ -84,7 +84,7 @@ async fn tilt_series_over_a_pseudo_terminal() {
 #[ignore = "evaluation: prints timing figures"]
 async fn timing_figures() {
     use sdsem_protocol::gcs::PositionQuery;
-    use std::time::Instant;
+    use std::time::{Duration, Instant};
 
     let sim = Simulator::spawn(SimConfig {
         time_scale: 0.1,
@@ -96,7 +96,15 @@ async fn timing_figures() {
         poll_interval_s: 0.01,
         ..driver_config()
     };
-    let mut stage = StageDriver::open(config, Arc::new(MemoryObserver::default()))
+    // The PI GCS backend itself, for its typed queries.
+    let link = crate::stage::transport::open(
+        &config.endpoint,
+        config.effective_baud(),
+        Duration::from_secs(5),
+    )
+    .await
+    .unwrap();
+    let mut stage = StageDriver::connect(link, config, Arc::new(MemoryObserver::default()))
         .await
         .unwrap();
     let axes = PositionQuery(vec![
