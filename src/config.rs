@@ -435,6 +435,19 @@ mod tests {
     }
 
     #[test]
+    fn the_sharksem_simulator_configuration_loads() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("config/sim-sharksem.toml");
+        let c = Config::load_with_env(Some(&path), &[], std::iter::empty()).unwrap();
+        assert!(c.simulator.as_ref().is_some_and(|s| s.sharksem.is_some()));
+        assert_eq!(c.stage.protocol, crate::stage::StageProtocol::Sharksem);
+        assert_eq!(
+            c.imaging.protocol,
+            crate::imaging::ImagingProtocol::Sharksem
+        );
+        assert_eq!(c.reconstruction.tilt_axis_deg, Some(0.0));
+    }
+
+    #[test]
     fn the_simulator_configuration_loads() {
         let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("config/sim.toml");
         let c = Config::load_with_env(Some(&path), &[], std::iter::empty()).unwrap();

@@ -48,13 +48,15 @@ struct AcquisitionRunner {
 }
 
 /// What the connection to the instruments depends on: the stage section
-/// (endpoint, axes, timeouts, limits), the SEM link's endpoint and timeout,
-/// and the in-process simulator. Scan sizes and the rest apply per job.
+/// (endpoint, axes, timeouts, limits), the imaging source and how it is
+/// reached (protocol, endpoint, SharkSEM field and detector…), the tilt axis a
+/// SharkSEM source puts in its frames, and the in-process simulator. Scan
+/// sizes and the rest apply per job.
 #[derive(Debug, Clone, PartialEq)]
 struct LinkSettings {
     stage: crate::stage::StageConfig,
-    imaging_endpoint: String,
-    imaging_timeout_ms: u64,
+    imaging: crate::imaging::ImagingConfig,
+    tilt_axis_deg: Option<f64>,
     simulator: Option<sdsem_sim::SimConfig>,
 }
 
@@ -62,8 +64,8 @@ impl LinkSettings {
     fn of(config: &Config) -> Self {
         Self {
             stage: config.stage.clone(),
-            imaging_endpoint: config.imaging.endpoint.clone(),
-            imaging_timeout_ms: config.imaging.timeout_ms,
+            imaging: config.imaging.link_settings(),
+            tilt_axis_deg: config.reconstruction.tilt_axis_deg,
             simulator: config.simulator.clone(),
         }
     }

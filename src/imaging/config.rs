@@ -153,6 +153,24 @@ impl ImagingConfig {
         Ok(())
     }
 
+    /// The settings the connection depends on: all but the per-scan ones (sizes, dwell, depth),
+    /// so a reloaded configuration that changes the source or how it is reached reconnects.
+    /// SharkSEM keeps the micrograph width: its view field is pixel size × that width.
+    #[must_use]
+    pub fn link_settings(&self) -> Self {
+        let d = Self::default();
+        let mut micrograph = d.micrograph;
+        if self.protocol == ImagingProtocol::Sharksem {
+            micrograph.width = self.micrograph.width;
+        }
+        Self {
+            micrograph,
+            tracking: d.tracking,
+            bits: d.bits,
+            ..self.clone()
+        }
+    }
+
     /// The scan request for a frame of `role`: micrograph settings for left and
     /// right, tracking settings for tracking.
     #[must_use]

@@ -12,7 +12,7 @@ use sdsem_protocol::sem::{GrabRequest, Reply, ReplyDecoder, Request};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
 
-use super::{Frame, FrameSource, GrabFuture, ImagingConfig, ImagingError};
+use super::{Frame, FrameSource, GrabFuture, IdentifyFuture, ImagingConfig, ImagingError};
 
 /// The true height map of a simulated frame.
 #[derive(Clone, Debug, PartialEq)]
@@ -265,6 +265,11 @@ impl SemLinkClient {
 impl FrameSource for SemLinkClient {
     fn grab(&mut self, request: GrabRequest) -> GrabFuture<'_> {
         Box::pin(self.grab_frame(request))
+    }
+
+    fn identify(&mut self) -> IdentifyFuture<'_> {
+        // The inherent `identify` (`*IDN?`).
+        Box::pin(Self::identify(self))
     }
 }
 

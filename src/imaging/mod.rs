@@ -24,4 +24,4 @@ pub use error::ImagingError;
 pub use frame::{Frame, FrameMeta, Pixels, Role};
 pub use link_client::{GroundTruth, SemLinkClient};
 pub use sharksem::SharkSemSource;
-pub use source::{FrameSource, GrabFuture, GrabRequest};
+pub use source::{FrameSource, GrabFuture, GrabRequest, IdentifyFuture};

@@ -26,7 +26,8 @@ use sdsem_protocol::sharksem::{
 use tracing::warn;
 
 use super::{
-    Frame, FrameMeta, FrameSource, GrabFuture, GrabRequest, ImagingConfig, ImagingError, Pixels,
+    Frame, FrameMeta, FrameSource, GrabFuture, GrabRequest, IdentifyFuture, ImagingConfig,
+    ImagingError, Pixels,
 };
 use crate::sharksem::{SessionConfig, SharkError, SharkLink, SharkSession};
 use crate::stage::StageObserver;
@@ -59,6 +60,7 @@ impl SharkSemSource {
             data_port: cfg.data_port,
             connect_timeout: cfg.timeout(),
             reply_timeout: cfg.timeout(),
+            timeout_key: "imaging.timeout_ms",
         }
     }
 
@@ -117,6 +119,18 @@ impl SharkSemSource {
     #[must_use]
     pub fn link(&self) -> &SharkLink {
         &self.link
+    }
+
+    /// Checks that the SEM answers (`TcpGetVersion`; the session is set up
+    /// again if it was lost) and returns its identification.
+    ///
+    /// # Errors
+    /// [`ImagingError::SharkSem`] naming the cause and the remedy.
+    pub async fn identify(&mut self) -> Result<String, ImagingError> {
+        let mut s = self.link.lock().await;
+        let wait = s.config().reply_timeout;
+        s.call(&Request::TcpGetVersion, Flags::NONE, wait).await?;
+        Ok(s.info().to_string())
     }
 
     /// Scans one frame, once more if the first attempt failed for a transient cause.
@@ -371,6 +385,11 @@ fn pick_detector<'a>(detectors: &'a [Detector], wanted: &str) -> Result<&'a Dete
 impl FrameSource for SharkSemSource {
     fn grab(&mut self, request: GrabRequest) -> GrabFuture<'_> {
         Box::pin(self.grab_frame(request))
+    }
+
+    fn identify(&mut self) -> IdentifyFuture<'_> {
+        // The inherent `identify` (`TcpGetVersion`).
+        Box::pin(Self::identify(self))
     }
 }
 

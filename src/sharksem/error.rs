@@ -31,13 +31,14 @@ pub enum SharkError {
         "the SharkSEM server at {endpoint} did not answer {function} within {after:?}: SharkSEM \
          ignores requests it does not accept without a word (unknown to protocol {version}, \
          wrong arguments, or not allowed now), or the SEM is busy or hung; check the SEM \
-         software, or raise the timeout"
+         software, or raise {timeout_key}"
     )]
     NoReply {
         endpoint: String,
         function: String,
         after: Duration,
         version: String,
+        timeout_key: &'static str,
     },
 
     /// The connection broke.
@@ -109,6 +110,13 @@ pub enum SharkError {
         needed: Version,
         what: &'static str,
     },
+
+    /// The stage is not calibrated: it would ignore every move.
+    #[error(
+        "the SEM stage is not calibrated (StgIsCalibrated = 0), so it would ignore every move: \
+         calibrate it in the TESCAN software, then start again"
+    )]
+    NotCalibrated,
 
     /// The configured detector does not exist.
     #[error(

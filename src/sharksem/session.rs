@@ -48,6 +48,8 @@ pub struct SessionConfig {
     pub connect_timeout: Duration,
     /// Waiting for a response (requests with wait flags get more from their caller).
     pub reply_timeout: Duration,
+    /// The configuration key of `reply_timeout`, for messages (`imaging.timeout_ms`).
+    pub timeout_key: &'static str,
 }
 
 impl SessionConfig {
@@ -438,6 +440,7 @@ impl SharkSession {
                     function: command.clone(),
                     after: wait,
                     version: info.protocol.clone(),
+                    timeout_key: config.timeout_key,
                 }),
             ),
             Ok(Err(ReadError::Closed(cause))) => {

@@ -74,6 +74,9 @@ pub enum StageProtocol {
     #[default]
     #[serde(rename = "pi-gcs")]
     PiGcs,
+    /// The SEM's own stage over TESCAN SharkSEM (TCP, `tcp://HOST:8300`).
+    #[serde(rename = "sharksem")]
+    Sharksem,
 }
 
 impl StageProtocol {
@@ -81,6 +84,7 @@ impl StageProtocol {
     pub fn as_str(self) -> &'static str {
         match self {
             Self::PiGcs => "pi-gcs",
+            Self::Sharksem => "sharksem",
         }
     }
 
@@ -88,6 +92,8 @@ impl StageProtocol {
     pub fn default_baud(self) -> u32 {
         match self {
             Self::PiGcs => 115_200,
+            // TCP only: no serial rate.
+            Self::Sharksem => 0,
         }
     }
 }
@@ -103,7 +109,7 @@ impl fmt::Display for StageProtocol {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct StageConfig {
-    /// The stage's language: `pi-gcs` (the default).
+    /// The stage's language: `pi-gcs` (the default) or `sharksem` (a TESCAN SEM's own stage).
     pub protocol: StageProtocol,
     /// Where the controller is: a serial device (`/dev/ttyUSB0`,
     /// `/dev/serial/by-id/…`, a simulator's pty path, optionally written

@@ -180,6 +180,10 @@ pub enum StageError {
         timeout: Duration,
     },
 
+    /// The SEM's stage over TESCAN SharkSEM (the message names the function and the remedy).
+    #[error("{0}")]
+    SharkSem(crate::sharksem::SharkError),
+
     /// The stage protocol cannot do what was asked.
     #[error("stage.protocol = \"{protocol}\" cannot send {what}; {remedy}")]
     Unsupported {
@@ -191,6 +195,10 @@ pub enum StageError {
         remedy: &'static str,
     },
 }
+
+error_from!(StageError {
+    SharkSem(crate::sharksem::SharkError)
+});
 
 fn not_ready_message(unreferenced: &[String], servo_off: &[String]) -> String {
     let mut what = Vec::new();

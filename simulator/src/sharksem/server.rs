@@ -187,14 +187,18 @@ fn accept_control(listener: &TcpListener, server: &Arc<Server>) {
             .name("sharksem-session".into())
             .spawn(move || {
                 debug!(%peer, "SharkSEM: client connected");
-                match Session::new(&server, &client).run(stream) {
+                let mut session = Session::new(&server, &client);
+                let end = session.run(stream);
+                // Closed first: a scan blocked writing to an unread data socket fails at once.
+                client.close();
+                drop(session);
+                match end {
                     End::Unframeable(e) => {
                         info!(%peer, error = %e, "SharkSEM: closing an unframeable connection")
                     }
                     End::Io(e) => debug!(%peer, error = %e, "SharkSEM: connection lost"),
                     end => debug!(%peer, ?end, "SharkSEM: session ended"),
                 }
-                client.close();
                 lock(&server.clients).retain(|c| !Arc::ptr_eq(c, &client));
             });
         match spawned {

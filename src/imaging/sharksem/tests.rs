@@ -331,6 +331,7 @@ async fn a_silent_server_times_out_naming_the_function() {
         "{e}"
     );
     assert!(e.contains("ignores requests it does not accept"), "{e}");
+    assert!(e.contains("raise imaging.timeout_ms"), "{e}");
 }
 
 #[tokio::test]
