@@ -137,13 +137,69 @@ impl fmt::Display for SimEndpoint {
     }
 }
 
-/// The simulated PI GCS stage controller: axes X, Y (specimen translation, µm)
-/// and T (tilt, degrees).
+/// The language the simulated stage speaks on its link.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub enum SimStageProtocol {
+    /// PI GCS 2.0 (an aftermarket stage controller). The default.
+    #[default]
+    #[serde(rename = "pi-gcs")]
+    PiGcs,
+    /// Zeiss SmartSEM RemCon32 (the SEM's own stage; [`crate::remcon`]).
+    #[serde(rename = "remcon32")]
+    Remcon32,
+}
+
+impl FromStr for SimStageProtocol {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "pi-gcs" => Ok(Self::PiGcs),
+            "remcon32" => Ok(Self::Remcon32),
+            _ => Err(format!("stage protocol {s:?}: expected pi-gcs or remcon32")),
+        }
+    }
+}
+
+/// The RemCon32 dialect's own settings (`[simulator.stage.remcon]`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct RemconSimConfig {
+    /// Answer to `VER?`. Default names SmartSEM and the simulator.
+    pub version: String,
+    /// Stage type number answered by `IST?`. Default 1.
+    pub stage_type: i64,
+    /// Z, mm (set at once by `C95`, not moved). Default 10.
+    pub z_mm: f64,
+    /// Rotation, degrees (set at once by `C95`, modulo 360). Default 0.
+    pub rotation_deg: f64,
+    /// M, mm (set at once by `C95`). Default 0.
+    pub m_mm: f64,
+}
+
+impl Default for RemconSimConfig {
+    fn default() -> Self {
+        Self {
+            version: format!(
+                "SmartSEM Remote Control (sdsem-sim {} simulation)",
+                env!("CARGO_PKG_VERSION")
+            ),
+            stage_type: 1,
+            z_mm: 10.0,
+            rotation_deg: 0.0,
+            m_mm: 0.0,
+        }
+    }
+}
+
+/// The simulated stage: axes X, Y (specimen translation, µm) and T (tilt,
+/// degrees), served as a PI GCS controller (default) or over Zeiss RemCon32.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct StageSimConfig {
     /// Where the controller listens. Default `tcp://127.0.0.1:0`.
     pub endpoint: SimEndpoint,
+    /// The language on the link: `pi-gcs` (default) or `remcon32`.
+    pub protocol: SimStageProtocol,
     /// Seed of the fault draws (probabilities, garbled bytes). Default: derived
     /// from `simulator.seed`.
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -183,6 +239,8 @@ pub struct StageSimConfig {
     pub start_tilt_deg: f64,
     /// Faults injected on demand. Default: none.
     pub faults: FaultConfig,
+    /// RemCon32 settings (`protocol = "remcon32"`).
+    pub remcon: RemconSimConfig,
 }
 
 fn axis(name: &str) -> AxisId {
@@ -193,6 +251,7 @@ impl Default for StageSimConfig {
     fn default() -> Self {
         Self {
             endpoint: SimEndpoint::Tcp(SocketAddr::from(([127, 0, 0, 1], 0))),
+            protocol: SimStageProtocol::PiGcs,
             seed: None,
             idn: format!(
                 "sdsem-sim, simulated PI GCS 2.0 stage controller, SN 0, {}",
@@ -214,6 +273,7 @@ impl Default for StageSimConfig {
             start_y_um: 0.0,
             start_tilt_deg: 0.0,
             faults: FaultConfig::default(),
+            remcon: RemconSimConfig::default(),
         }
     }
 }
@@ -254,7 +314,11 @@ impl FaultTrigger {
     }
 }
 
-/// Faults on demand, each one a failure real stages show (DESIGN §7).
+/// Faults on demand, each one a failure real stages show (DESIGN §7). On a
+/// RemCon32 link (`stage.protocol = "remcon32"`) the same faults apply:
+/// `stale_on_target` is a move that starts late (the stage stands still, its
+/// moving flag at 0, for `stale_on_target_s`), and `move_error` refuses the
+/// move with `*613` (parameter unattainable).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct FaultConfig {
@@ -514,6 +578,16 @@ impl StageSimConfig {
         if s.idn.trim().is_empty() || s.idn.contains(['\n', '\r']) {
             return Err(invalid("stage.idn", "must be one non-empty line"));
         }
+        let r = &s.remcon;
+        if r.version.trim().is_empty() || !r.version.bytes().all(|b| (0x20..=0x7E).contains(&b)) {
+            return Err(invalid(
+                "stage.remcon.version",
+                "must be one non-empty line of printable ASCII",
+            ));
+        }
+        finite("stage.remcon.z_mm", r.z_mm)?;
+        finite("stage.remcon.rotation_deg", r.rotation_deg)?;
+        finite("stage.remcon.m_mm", r.m_mm)?;
         s.faults.validate()
     }
 }

@@ -25,6 +25,7 @@
 pub mod clock;
 pub mod config;
 pub mod pose;
+pub mod remcon;
 pub mod render;
 pub mod scene;
 pub mod sem;
@@ -34,14 +35,17 @@ pub mod simulator;
 pub mod stage;
 mod stage_link;
 pub mod stage_model;
+pub mod store;
 pub mod walk;
 
 pub use config::{
-    FaultConfig, FaultTrigger, SemSimConfig, SimConfig, SimEndpoint, StageSimConfig, derive_seed,
+    FaultConfig, FaultTrigger, RemconSimConfig, SemSimConfig, SimConfig, SimEndpoint,
+    SimStageProtocol, StageSimConfig, derive_seed,
 };
 pub use sem::{FrameRecord, SimSem};
 pub use simulator::{ServiceEndpoint, SimHandle, Simulator};
 pub use stage::SimStage;
+pub use store::{StoreCommand, StoreHook, StoreRequest, StoreTrigger};
 
 /// Why the simulator cannot start.
 #[derive(Debug, thiserror::Error)]

@@ -12,7 +12,7 @@ use clap::Parser;
 use sdsem_protocol::gcs::AxisId;
 use sdsem_sim::scene::SceneKind;
 use sdsem_sim::sharksem::SharkSemSimConfig;
-use sdsem_sim::{FaultTrigger, SimConfig, SimEndpoint, Simulator};
+use sdsem_sim::{FaultTrigger, SimConfig, SimEndpoint, SimStageProtocol, Simulator};
 
 const PROTOCOLS: &str = "\
 OUTPUT
@@ -24,13 +24,25 @@ OUTPUT
   Logs go to stderr (RUST_LOG filters them). The simulator stops when killed
   or when its stdin, if a pipe or a terminal, closes.
 
-STAGE LINK (PI GCS 2.0 subset; ASCII lines ending in LF)
+STAGE LINK, --stage-protocol pi-gcs (the default; PI GCS 2.0 subset; ASCII lines ending in LF)
   Axes X, Y (µm) and T (tilt, °); --axis-names renames them.
   MOV|MVR <axis> <value> ...   SVO <axis> 0|1 ...   FRF [axes]   STP
   POS? ONT? SVO? FRF? TMN? TMX? [axes]   ERR?   *IDN?
   Single bytes: 0x05 motion bitmap, 0x07 ready (0xB1), 0x18 stop all.
   Commands do not answer: ask ERR? after one. Multi-axis replies end each
   line but the last with \" \\n\". Motion has finite speed, then settles.
+
+STAGE LINK with --stage-protocol remcon32 (Zeiss SmartSEM RemCon32; ASCII,
+  requests end in CR, LF or CR LF; replies are two lines ending in CR LF)
+  @ (accepted) or # (invalid) at once, then >data (done) or *NNN (failed).
+  C95? -> x y z t r m moving (mm, mm, mm, deg, deg, mm, 1.0 = moving)
+  C95 x y z t r m (all axes, absolute; returns before the move ends)
+  STG? STG x y z  IST? (type init, 0 = initialised)  ABO  VER?  PIX? (nm)
+  MAG?  FREC (store a photo)  MAC n (run macro REMCONn)  PHN? (photo count)
+  Unknown words: @ then *600; wrong value count to C95/STG: # alone;
+  targets beyond the limits: *603; an empty line (null command): no reply.
+  Faults as for GCS; a stale on-target flag is a move that starts late (still
+  stage, moving flag 0.0), a move error answers *613.
 
 SEM LINK (TCP; one request line, one reply header line, maybe a payload)
   *IDN?                                  -> IDN <vendor>,<model>,<serial>,<version>
@@ -82,6 +94,9 @@ struct Args {
     /// Serve the stage controller on a new pseudo-terminal (its path is printed).
     #[arg(long)]
     stage_pty: bool,
+    /// The stage's language: pi-gcs (the default) or remcon32 (Zeiss SmartSEM RemCon32).
+    #[arg(long, value_name = "PROTOCOL")]
+    stage_protocol: Option<SimStageProtocol>,
     /// Serve the SEM imaging link on TCP at this address (`127.0.0.1:0` picks a free port; the default).
     #[arg(long, value_name = "ADDR")]
     sem_tcp: Option<String>,
@@ -398,6 +413,7 @@ impl Args {
         if self.stage_pty {
             c.stage.endpoint = SimEndpoint::Pty;
         }
+        set(&mut c.stage.protocol, self.stage_protocol);
         if let Some(addr) = &self.sem_tcp {
             c.sem.endpoint = tcp_endpoint("--sem-tcp", addr)?;
         }

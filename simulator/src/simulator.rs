@@ -11,15 +11,17 @@ use tracing::{info, warn};
 
 use crate::SimError;
 use crate::clock::{Clock, ScaledClock};
-use crate::config::{SimConfig, SimEndpoint, derive_seed};
+use crate::config::{SimConfig, SimEndpoint, SimStageProtocol, derive_seed};
 use crate::pose::PoseSource;
+use crate::remcon::RemconStage;
 use crate::scene::Scene;
 use crate::sem::{FrameRecord, SimSem};
 use crate::sem_server;
 use crate::sharksem::{self, SharkSemDevice};
 use crate::stage::SimStage;
-use crate::stage_link::{serve_pty, serve_tcp};
+use crate::stage_link::{SessionFactory, gcs_sessions, serve_pty, serve_tcp};
 use crate::stage_model::StageSnapshot;
+use crate::store::StoreTrigger;
 
 /// One endpoint the simulator serves, e.g. `stage` at `tcp://127.0.0.1:40123`.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -109,12 +111,29 @@ impl Simulator {
             clock,
             stop: Arc::clone(&stop),
             config: config.clone(),
+            store: Arc::new(StoreTrigger::default()),
             sharksem: None,
+        };
+        let sessions: SessionFactory = match config.stage.protocol {
+            SimStageProtocol::PiGcs => gcs_sessions(stage),
+            SimStageProtocol::Remcon32 => {
+                // PIX? is the full field width / 1024 [SF]; MAG? by this
+                // simulator's own convention: a 100 mm wide display.
+                let o = &config.sem.optics;
+                let field_um = o.pixel_size_um * o.width as f64;
+                RemconStage::sessions(Arc::new(RemconStage::new(
+                    stage,
+                    &config.stage.remcon,
+                    field_um * 1000.0 / 1024.0,
+                    100_000.0 / field_um,
+                    Arc::clone(&handle.store),
+                )))
+            }
         };
         // On an error below, dropping `handle` stops what already runs.
         let server = match &config.stage.endpoint {
-            SimEndpoint::Tcp(addr) => serve_tcp(*addr, stage, Arc::clone(&stop))?,
-            SimEndpoint::Pty => serve_pty(stage, Arc::clone(&stop))?,
+            SimEndpoint::Tcp(addr) => serve_tcp(*addr, sessions, Arc::clone(&stop))?,
+            SimEndpoint::Pty => serve_pty(&sessions, Arc::clone(&stop))?,
         };
         handle.add("stage", server);
         let SimEndpoint::Tcp(sem_addr) = config.sem.endpoint else {
@@ -131,7 +150,6 @@ impl Simulator {
             let device = Arc::new(SharkSemDevice::new(
                 shark.clone(),
                 Arc::clone(&handle.stage),
-                config.stage.clone(),
                 sem,
                 derive_seed(config.seed, "sharksem"),
             ));
@@ -161,6 +179,7 @@ pub struct SimHandle {
     clock: Arc<dyn Clock>,
     stop: Arc<AtomicBool>,
     config: SimConfig,
+    store: Arc<StoreTrigger>,
     sharksem: Option<Arc<SharkSemDevice>>,
 }
 
@@ -272,6 +291,12 @@ impl SimHandle {
     /// The number of the last frame scanned, if any.
     pub fn last_frame(&self) -> Option<u64> {
         self.sem.last_frame()
+    }
+
+    /// Where "store a micrograph now" requests from the stage link (RemCon32
+    /// `FREC`, `MAC n`) go: set a hook on it (the watch-folder writer).
+    pub fn store_trigger(&self) -> &Arc<StoreTrigger> {
+        &self.store
     }
 
     /// The simulator's clock.

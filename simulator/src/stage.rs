@@ -42,6 +42,14 @@ impl SimStage {
         model.handle(now, incoming)
     }
 
+    /// Runs `f` on the model at the time now (read under the lock, so that
+    /// time never runs backwards for the model): how other dialects drive it.
+    pub fn with_model<R>(&self, f: impl FnOnce(&mut StageModel, f64) -> R) -> R {
+        let mut model = self.model();
+        let now = self.clock.now_s();
+        f(&mut model, now)
+    }
+
     /// The whole controller state now (true positions, counters, faults fired).
     pub fn snapshot(&self) -> StageSnapshot {
         let model = self.model();

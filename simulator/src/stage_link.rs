@@ -1,5 +1,6 @@
 //! The thin I/O around the stage model: a TCP listener or a pseudo-terminal,
-//! each served on std threads. Bytes in → [`CommandFramer`] → [`SimStage`] → bytes out.
+//! each served on std threads. Bytes in → a dialect's [`Session`] (PI GCS:
+//! [`CommandFramer`] → [`SimStage`]) → bytes out.
 
 use std::io::{self, Read, Write};
 use std::net::{SocketAddr, TcpListener};
@@ -15,6 +16,7 @@ use tracing::{debug, info, warn};
 use crate::SimError;
 use crate::simulator::ServiceServer;
 use crate::stage::SimStage;
+use crate::stage_model::Response;
 
 /// How often blocked reads look at the stop flag.
 const STOP_POLL: Duration = Duration::from_millis(50);
@@ -30,14 +32,46 @@ enum LinkEnd {
     Stopped,
 }
 
+/// One connection's side of a stage dialect: bytes in, responses out.
+pub(crate) trait Session: Send {
+    /// Feeds one byte; a complete command gives the response to send.
+    fn push(&mut self, byte: u8) -> Option<Response>;
+}
+
+/// Makes the session of each new connection.
+pub(crate) type SessionFactory = Arc<dyn Fn() -> Box<dyn Session> + Send + Sync>;
+
+/// PI GCS: the command framer in front of the shared stage.
+struct GcsSession {
+    framer: CommandFramer,
+    stage: Arc<SimStage>,
+}
+
+impl Session for GcsSession {
+    fn push(&mut self, byte: u8) -> Option<Response> {
+        self.framer
+            .push(byte)
+            .map(|incoming| self.stage.handle(incoming))
+    }
+}
+
+/// Sessions speaking PI GCS to `stage`.
+pub(crate) fn gcs_sessions(stage: Arc<SimStage>) -> SessionFactory {
+    Arc::new(move || {
+        Box::new(GcsSession {
+            framer: CommandFramer::new(),
+            stage: Arc::clone(&stage),
+        })
+    })
+}
+
 /// Serves one byte stream until the peer leaves, a fault closes it or `stop` is set.
 /// Reads must time out (at about [`STOP_POLL`]) so that `stop` is noticed.
 fn serve<S: Read + Write>(
     stream: &mut S,
-    stage: &SimStage,
+    session: &mut dyn Session,
     stop: &AtomicBool,
 ) -> io::Result<LinkEnd> {
-    let mut framer = CommandFramer::new();
     let mut buf = [0u8; 512];
     loop {
         if stop.load(Ordering::Relaxed) {
@@ -58,10 +92,9 @@ fn serve<S: Read + Write>(
             Err(e) => return Err(e),
         };
         for &byte in &buf[..n] {
-            let Some(incoming) = framer.push(byte) else {
+            let Some(response) = session.push(byte) else {
                 continue;
             };
-            let response = stage.handle(incoming);
             if !response.delay.is_zero() && sleep_unless_stopped(response.delay, stop) {
                 return Ok(LinkEnd::Stopped);
             }
@@ -94,7 +127,7 @@ fn sleep_unless_stopped(d: Duration, stop: &AtomicBool) -> bool {
 /// Listens on `addr` (port 0 picks one) and serves every connection on its own thread.
 pub(crate) fn serve_tcp(
     addr: SocketAddr,
-    stage: Arc<SimStage>,
+    sessions: SessionFactory,
     stop: Arc<AtomicBool>,
 ) -> Result<ServiceServer, SimError> {
     let bind = |error| SimError::Bind {
@@ -111,7 +144,7 @@ pub(crate) fn serve_tcp(
     };
     let thread = thread::Builder::new()
         .name("stage-tcp".into())
-        .spawn(move || accept_loop(&listener, &stage, &stop))
+        .spawn(move || accept_loop(&listener, &sessions, &stop))
         .map_err(|error| SimError::Thread { error })?;
     info!(%local, "stage controller listening on TCP");
     Ok(ServiceServer {
@@ -121,7 +154,7 @@ pub(crate) fn serve_tcp(
     })
 }
 
-fn accept_loop(listener: &TcpListener, stage: &Arc<SimStage>, stop: &Arc<AtomicBool>) {
+fn accept_loop(listener: &TcpListener, sessions: &SessionFactory, stop: &Arc<AtomicBool>) {
     let mut connections: Vec<JoinHandle<()>> = Vec::new();
     for conn in listener.incoming() {
         if stop.load(Ordering::Relaxed) {
@@ -143,12 +176,12 @@ fn accept_loop(listener: &TcpListener, stage: &Arc<SimStage>, stop: &Arc<AtomicB
             warn!(error = %e, "stage link: cannot configure the connection");
             continue;
         }
-        let (stage, stop) = (Arc::clone(stage), Arc::clone(stop));
+        let (mut session, stop) = (sessions(), Arc::clone(stop));
         let spawned = thread::Builder::new()
             .name("stage-conn".into())
             .spawn(move || {
                 debug!(?peer, "stage link: client connected");
-                match serve(&mut stream, &stage, &stop) {
+                match serve(&mut stream, session.as_mut(), &stop) {
                     Ok(LinkEnd::Fault) => {
                         info!(
                             ?peer,
@@ -180,7 +213,7 @@ fn accept_loop(listener: &TcpListener, stage: &Arc<SimStage>, stop: &Arc<AtomicB
 /// disconnect fault closes both sides: the pty disappears and clients read an
 /// error, as with an unplugged USB adapter.
 pub(crate) fn serve_pty(
-    stage: Arc<SimStage>,
+    sessions: &SessionFactory,
     stop: Arc<AtomicBool>,
 ) -> Result<ServiceServer, SimError> {
     let pty_err = |e: serialport::Error| SimError::Pty {
@@ -192,10 +225,11 @@ pub(crate) fn serve_pty(
         cause: "the pseudo-terminal has no slave device name".into(),
     })?;
     let endpoint = path.clone();
+    let mut session = sessions();
     let thread = thread::Builder::new()
         .name("stage-pty".into())
         .spawn(move || {
-            match serve(&mut master, &stage, &stop) {
+            match serve(&mut master, session.as_mut(), &stop) {
                 Ok(LinkEnd::Fault) => {
                     info!(%path, "stage link: closing the pty (disconnect fault)")
                 }

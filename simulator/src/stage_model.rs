@@ -245,9 +245,7 @@ impl StageModel {
 
     /// Handles one framed command received at simulated time `now_s`.
     pub fn handle(&mut self, now_s: f64, incoming: Result<Incoming, FrameError>) -> Response {
-        self.commands += 1;
-        let k = self.commands;
-        self.finish_referencing(now_s);
+        let k = self.begin_command(now_s);
         let parsed = incoming
             .map_err(|_| GcsErrorCode::COMMAND_TOO_LONG)
             .and_then(|i| Command::parse_incoming(&i, &self.axis_ids()));
@@ -260,17 +258,9 @@ impl StageModel {
         };
         let mut response = Response::default();
         if let Some(reply) = reply {
-            response = self.deliver(k, reply);
+            response = self.deliver(k, reply.to_bytes());
         }
-        if let Some(n) = self.faults.disconnect_after_commands
-            && k >= n
-            && !self.disconnected
-        {
-            self.disconnected = true;
-            self.fired.disconnects += 1;
-            response.disconnect = true;
-        }
-        response
+        self.end_command(k, response)
     }
 
     /// The true pose at `now_s`.
@@ -448,21 +438,18 @@ impl StageModel {
                 self.last_error = GcsErrorCode::INVALID_AXIS_IDENTIFIER;
                 return;
             };
-            let a = &self.axes[i];
-            if !a.referenced || a.referencing || !a.servo {
-                self.last_error = GcsErrorCode::MOVE_WITHOUT_REF_OR_NO_SERVO;
-                return;
-            }
-            if !(a.min..=a.max).contains(target) {
-                self.last_error = GcsErrorCode::POS_OUT_OF_LIMITS;
+            if let Err(refusal) = self.check_target(i, *target) {
+                self.last_error = match refusal {
+                    MoveRefusal::NotReady => GcsErrorCode::MOVE_WITHOUT_REF_OR_NO_SERVO,
+                    MoveRefusal::OutOfLimits | MoveRefusal::Fault => {
+                        GcsErrorCode::POS_OUT_OF_LIMITS
+                    }
+                };
                 return;
             }
             idx.push((i, *target));
         }
-        self.moves += 1;
-        let m = self.moves;
-        if fires(&self.faults.move_error, m, &mut self.rng) {
-            self.fired.move_errors += 1;
+        if self.start_checked(now, &idx, false) == Err(MoveRefusal::Fault) {
             let code = GcsErrorCode(self.faults.move_error_code);
             self.last_error = code;
             if code == GcsErrorCode::MOTION_ERROR {
@@ -471,35 +458,67 @@ impl StageModel {
                     self.axes[i].servo = false;
                 }
             }
-            return;
+        }
+    }
+
+    /// Whether axis `i` may move to `target`.
+    fn check_target(&self, i: usize, target: f64) -> Result<(), MoveRefusal> {
+        let a = &self.axes[i];
+        if !a.referenced || a.referencing || !a.servo {
+            return Err(MoveRefusal::NotReady);
+        }
+        if !(a.min..=a.max).contains(&target) {
+            return Err(MoveRefusal::OutOfLimits);
+        }
+        Ok(())
+    }
+
+    /// Counts an accepted move and applies the move faults: refused
+    /// ([`MoveRefusal::Fault`]), silently ignored (`Ok(false)`), or started
+    /// (`Ok(true)`, with a stale on-target flag when that fault fires; with
+    /// `late_start`, the motion itself starts only when the flag turns honest).
+    fn start_checked(
+        &mut self,
+        now: f64,
+        idx: &[(usize, f64)],
+        late_start: bool,
+    ) -> Result<bool, MoveRefusal> {
+        self.moves += 1;
+        let m = self.moves;
+        if fires(&self.faults.move_error, m, &mut self.rng) {
+            self.fired.move_errors += 1;
+            return Err(MoveRefusal::Fault);
         }
         if fires(&self.faults.ignore_move, m, &mut self.rng) {
             self.fired.ignored_moves += 1;
-            return;
+            return Ok(false);
         }
         let stale = fires(&self.faults.stale_on_target, m, &mut self.rng);
         if stale {
             self.fired.stale_on_target += 1;
         }
-        for (i, target) in idx {
+        let stale_until = if stale {
+            now + self.faults.stale_on_target_s
+        } else {
+            now
+        };
+        let start = if late_start { stale_until } else { now };
+        for &(i, target) in idx {
             let settle = self.settle_s;
             let a = &mut self.axes[i];
-            a.start_motion(now, target, settle);
-            a.stale_until = if stale {
-                now + self.faults.stale_on_target_s
-            } else {
-                now
-            };
+            a.start_motion(start, target, settle);
+            a.stale_until = stale_until;
         }
+        Ok(true)
     }
 
-    /// Applies the reply faults of command `k` to its reply.
-    fn deliver(&mut self, k: u64, reply: Reply) -> Response {
+    /// Applies the reply faults of command `k` (numbered by
+    /// [`Self::begin_command`]) to its reply: dropped, garbled, late.
+    pub fn deliver(&mut self, k: u64, mut bytes: Vec<u8>) -> Response {
         if fires(&self.faults.drop_reply, k, &mut self.rng) {
             self.fired.dropped_replies += 1;
             return Response::default();
         }
-        let mut bytes = reply.to_bytes();
         if fires(&self.faults.garble_reply, k, &mut self.rng) {
             self.fired.garbled_replies += 1;
             garble(&mut bytes, &mut self.rng);
@@ -517,6 +536,95 @@ impl StageModel {
     }
 }
 
+/// Why the model refuses a move, whatever the dialect (PI GCS maps these to
+/// its error codes, RemCon32 to its error numbers).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum MoveRefusal {
+    /// An axis is unreferenced or referencing, or its servo is off.
+    NotReady,
+    /// A target lies outside the soft limits.
+    OutOfLimits,
+    /// The `move_error` fault fired.
+    Fault,
+}
+
+/// The model as other stage dialects (RemCon32, SharkSEM) drive it: the same
+/// axes, motion, counters and faults as PI GCS, addressed by role.
+impl StageModel {
+    /// Counts a command received at `now_s` and returns its number `k` (from 1),
+    /// which places the reply faults. Pair with [`Self::end_command`].
+    pub fn begin_command(&mut self, now_s: f64) -> u64 {
+        self.commands += 1;
+        self.finish_referencing(now_s);
+        self.commands
+    }
+
+    /// Finishes command `k`: the disconnect fault closes the link after it.
+    pub fn end_command(&mut self, k: u64, mut response: Response) -> Response {
+        if let Some(n) = self.faults.disconnect_after_commands
+            && k >= n
+            && !self.disconnected
+        {
+            self.disconnected = true;
+            self.fired.disconnects += 1;
+            response.disconnect = true;
+        }
+        response
+    }
+
+    /// Moves the axes of the given roles together to absolute targets, all or
+    /// nothing, with the move faults: `Ok(true)` started, `Ok(false)` silently
+    /// ignored (fault), or refused. With `late_start`, the stale-flag fault
+    /// delays the motion as well as the flag (a move that starts late).
+    pub fn move_roles(
+        &mut self,
+        now_s: f64,
+        targets: &[(AxisRole, f64)],
+        late_start: bool,
+    ) -> Result<bool, MoveRefusal> {
+        self.finish_referencing(now_s);
+        let mut idx = Vec::with_capacity(targets.len());
+        for &(role, target) in targets {
+            let Some(i) = self.axes.iter().position(|a| a.role == role) else {
+                continue;
+            };
+            self.check_target(i, target)?;
+            idx.push((i, target));
+        }
+        self.start_checked(now_s, &idx, late_start)
+    }
+
+    /// Halts every axis where it is (an abort).
+    pub fn halt_all(&mut self, now_s: f64) {
+        for a in &mut self.axes {
+            a.halt(now_s);
+        }
+    }
+
+    /// The instrument's "moving" flag: some axis moves or settles, unless the
+    /// stale-flag fault makes it lie (a flag set late after a move command).
+    pub fn busy(&self, now_s: f64) -> bool {
+        self.axes
+            .iter()
+            .any(|a| now_s >= a.stale_until && (a.moving(now_s) || now_s < a.settled_at))
+    }
+
+    /// Whether every axis is referenced with its servo on (moves allowed).
+    pub fn ready(&self) -> bool {
+        self.axes
+            .iter()
+            .all(|a| a.referenced && !a.referencing && a.servo)
+    }
+
+    /// The soft limits of the axis of `role`, its units.
+    pub fn limits(&self, role: AxisRole) -> Option<(f64, f64)> {
+        self.axes
+            .iter()
+            .find(|a| a.role == role)
+            .map(|a| (a.min, a.max))
+    }
+}
+
 /// Whether the trigger fires at occurrence `k`. The random draw happens only for
 /// armed probabilities, so the random stream depends on the configuration and
 /// the command sequence alone.
@@ -526,11 +634,11 @@ pub(crate) fn fires(trigger: &FaultTrigger, k: u64, rng: &mut ChaCha8Rng) -> boo
     listed || random
 }
 
-/// Replaces one content byte (never a separator or the final LF) by garbage:
-/// `#` (which no reply of the subset contains) or 0xFF (never valid on the wire).
+/// Replaces one content byte (never a separator or a line end) by garbage:
+/// `#` (which no GCS reply contains) or 0xFF (never valid on the wire).
 fn garble(bytes: &mut Vec<u8>, rng: &mut ChaCha8Rng) {
     let content: Vec<usize> = (0..bytes.len())
-        .filter(|&i| !matches!(bytes[i], b' ' | b'\n'))
+        .filter(|&i| !matches!(bytes[i], b' ' | b'\n' | b'\r'))
         .collect();
     let junk = if rng.random::<bool>() { b'#' } else { 0xFF };
     if content.is_empty() {

@@ -500,3 +500,41 @@ fn sharksem_flag_serves_the_dialect_with_its_faults() {
     );
     assert!(sim.close_stdin_and_wait().success());
 }
+
+#[test]
+fn stage_protocol_remcon32_serves_the_zeiss_dialect() {
+    let mut sim = Sim::start(&[
+        "--stage-protocol",
+        "remcon32",
+        "--time-scale",
+        "0.001",
+        "--ignore-move-at",
+        "1",
+    ]);
+    let (line, _) = sim.endpoints();
+    let (mut s, mut r) = connect(&line);
+    // Two lines per reply, each ending in CR LF.
+    let two = |s: &mut TcpStream, r: &mut BufReader<TcpStream>, request: &str| {
+        let first = ask(s, r, request);
+        let mut second = String::new();
+        r.read_line(&mut second).unwrap();
+        first + &second
+    };
+    assert!(two(&mut s, &mut r, "VER?\r").starts_with("@\r\n>SmartSEM"));
+    assert_eq!(two(&mut s, &mut r, "HELLO\r\n"), "@\r\n*600\r\n");
+    // The first move is silently ignored, the second happens.
+    assert_eq!(two(&mut s, &mut r, "C95 0 0 10 3 0 0\r"), "@\r\n>\r\n");
+    std::thread::sleep(Duration::from_millis(20));
+    assert_eq!(
+        two(&mut s, &mut r, "C95?\n"),
+        "@\r\n>0.000000 0.000000 10.000000 0.000000 0.000000 0.000000 0.0\r\n"
+    );
+    assert_eq!(two(&mut s, &mut r, "C95 0 0 10 3 0 0\r"), "@\r\n>\r\n");
+    std::thread::sleep(Duration::from_millis(20));
+    assert!(two(&mut s, &mut r, "C95?\r").ends_with(" 3.000000 0.000000 0.000000 0.0\r\n"));
+    // The wrong number of values: `#` alone, and the link stays in step.
+    assert_eq!(ask(&mut s, &mut r, "C95 1 2\r"), "#\r\n");
+    assert!(two(&mut s, &mut r, "PHN?\r").starts_with("@\r\n>0"));
+    drop((s, r));
+    assert!(sim.close_stdin_and_wait().success());
+}

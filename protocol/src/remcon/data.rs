@@ -54,8 +54,8 @@ impl StageReading {
         let v = v.ok_or_else(|| bad(Self::WHAT, data))?;
         // The flag is compared as a number: `1.0`, `1` and `1.000000` all mean moving.
         let moving = match finite(moving) {
-            Some(f) if f == 1.0 => true,
-            Some(f) if f == 0.0 => false,
+            Some(1.0) => true,
+            Some(0.0) => false,
             _ => return Err(bad(Self::WHAT, data)),
         };
         Ok(Self {

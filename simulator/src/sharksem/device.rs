@@ -7,7 +7,6 @@ use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
 
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
-use sdsem_protocol::gcs::{AxisId, Command, Incoming};
 use sdsem_protocol::sharksem::{
     Detector, Flags, Request, Response, ScanSpeed, ScanXY, StageLimits, StagePosition, Version,
 };
@@ -15,10 +14,9 @@ use tracing::{debug, info, warn};
 
 use super::config::SharkSemSimConfig;
 use crate::clock::Clock;
-use crate::config::StageSimConfig;
 use crate::sem::SimSem;
 use crate::stage::SimStage;
-use crate::stage_model::fires;
+use crate::stage_model::{AxisRole, MoveRefusal, fires};
 
 /// Z travel of the simulated stage, mm (z does not exist in the stage model: moves are instant).
 const Z_RANGE_MM: (f64, f64) = (0.0, 50.0);
@@ -114,7 +112,6 @@ pub struct SharkSemDevice {
     cfg: SharkSemSimConfig,
     version: Version,
     stage: Arc<SimStage>,
-    stage_cfg: StageSimConfig,
     sem: Arc<SimSem>,
     clock: Arc<dyn Clock>,
     state: Mutex<State>,
@@ -131,11 +128,10 @@ impl std::fmt::Debug for SharkSemDevice {
 
 impl SharkSemDevice {
     /// The SEM of `cfg` (validated) on the simulator's stage, renderer and
-    /// clock; `stage_cfg` gives the limits and axis names; `seed` the fault draws.
+    /// clock; `seed` seeds the fault draws.
     pub(crate) fn new(
         cfg: SharkSemSimConfig,
         stage: Arc<SimStage>,
-        stage_cfg: StageSimConfig,
         sem: Arc<SimSem>,
         seed: u64,
     ) -> Self {
@@ -174,7 +170,6 @@ impl SharkSemDevice {
             }),
             cfg,
             stage,
-            stage_cfg,
             sem,
             clock,
         }
@@ -276,16 +271,14 @@ impl SharkSemDevice {
         true
     }
 
+    /// `StgIsBusy`: the model's moving flag (which the stale-flag fault makes lie).
     fn stage_busy(&self) -> bool {
-        self.stage
-            .snapshot()
-            .axes
-            .iter()
-            .any(|a| a.moving || !a.on_target)
+        self.stage.with_model(|m, now| m.busy(now))
     }
 
+    /// `StgIsCalibrated`: every axis referenced with its servo on.
     fn stage_calibrated(&self) -> bool {
-        self.stage.snapshot().axes.iter().all(|a| a.referenced)
+        self.stage.with_model(|m, _| m.ready())
     }
 
     fn available(&self, request: &Request) -> bool {
@@ -333,7 +326,7 @@ impl SharkSemDevice {
             Request::StgIsBusy => reply(Response::Int(i32::from(self.stage_busy()))),
             Request::StgGetLimits { kind: 0 | 1 } => reply(Response::Limits(self.limits())),
             Request::StgStop => {
-                self.gcs(&Command::Stp);
+                self.stage.with_model(|m, now| m.halt_all(now));
                 Handled::default()
             }
             Request::StgIsCalibrated => reply(Response::Int(i32::from(self.stage_calibrated()))),
@@ -408,22 +401,23 @@ impl SharkSemDevice {
         }
     }
 
+    /// The stage model's soft limits in mm and degrees; z and rotation are this dialect's.
     fn limits(&self) -> StageLimits {
-        let c = &self.stage_cfg;
+        let (x, y, t) = self.stage.with_model(|m, _| {
+            (
+                m.limits(AxisRole::X),
+                m.limits(AxisRole::Y),
+                m.limits(AxisRole::Tilt),
+            )
+        });
+        let mm = |l: Option<(f64, f64)>| l.map_or((0.0, 0.0), |(lo, hi)| (lo * 1e-3, hi * 1e-3));
         StageLimits {
-            x_mm: (c.xy_min_um * 1e-3, c.xy_max_um * 1e-3),
-            y_mm: (c.xy_min_um * 1e-3, c.xy_max_um * 1e-3),
+            x_mm: mm(x),
+            y_mm: mm(y),
             z_mm: Z_RANGE_MM,
             rotation_deg: ROTATION_RANGE_DEG,
-            tilt_deg: (c.tilt_min_deg, c.tilt_max_deg),
+            tilt_deg: t.unwrap_or((0.0, 0.0)),
         }
-    }
-
-    fn gcs(&self, command: &Command) {
-        let mut line = command.to_bytes();
-        line.pop();
-        // The stage model answers moves and stops with nothing; its error code is GCS business.
-        let _ = self.stage.handle(Ok(Incoming::Line(line)));
     }
 
     /// `StgMoveTo`: needs a calibrated, idle stage, else ignored silently;
@@ -441,16 +435,15 @@ impl SharkSemDevice {
         }
         let l = self.limits();
         let clamp = |v: f64, (lo, hi): (f64, f64)| v.clamp(lo, hi);
-        let c = &self.stage_cfg;
-        let mut targets: Vec<(AxisId, f64)> = Vec::new();
+        let mut targets: Vec<(AxisRole, f64)> = Vec::new();
         if let Some(&x) = axes.first() {
-            targets.push((c.axis_x.clone(), clamp(x, l.x_mm) * 1e3));
+            targets.push((AxisRole::X, clamp(x, l.x_mm) * 1e3));
         }
         if let Some(&y) = axes.get(1) {
-            targets.push((c.axis_y.clone(), clamp(y, l.y_mm) * 1e3));
+            targets.push((AxisRole::Y, clamp(y, l.y_mm) * 1e3));
         }
         if let Some(&t) = axes.get(4) {
-            targets.push((c.axis_tilt.clone(), clamp(t, l.tilt_deg)));
+            targets.push((AxisRole::Tilt, clamp(t, l.tilt_deg)));
         }
         {
             let mut s = self.state();
@@ -461,8 +454,22 @@ impl SharkSemDevice {
                 s.rotation_deg = clamp(r, l.rotation_deg);
             }
         }
-        if !targets.is_empty() {
-            self.gcs(&Command::Mov(targets));
+        if targets.is_empty() {
+            return;
+        }
+        // Limited already; a refusal can only be the move_error fault: silent too.
+        match self
+            .stage
+            .with_model(|m, now| m.move_roles(now, &targets, false))
+        {
+            Ok(true) => {}
+            Ok(false)
+            | Err(MoveRefusal::Fault | MoveRefusal::NotReady | MoveRefusal::OutOfLimits) => {
+                info!(
+                    ?targets,
+                    "SharkSEM: StgMoveTo silently not executed (fault)"
+                );
+            }
         }
     }
 
