@@ -428,7 +428,9 @@ impl Config {
         imaging.validate()?;
         if let Some(sim) = &self.simulator {
             let simulated = crate::stage::StageProtocol::from(sim.stage.protocol);
-            if simulated != self.stage.protocol {
+            // A SharkSEM stage is the simulator's SharkSEM dialect, served beside its serial one.
+            let sharksem = self.stage.protocol == crate::stage::StageProtocol::Sharksem;
+            if simulated != self.stage.protocol && !sharksem {
                 return Err(ConfigError::SimulatedProtocol {
                     configured: self.stage.protocol,
                     simulated,
@@ -797,6 +799,19 @@ mod tests {
         let mut differing = differing;
         differing.sort();
         assert_eq!(noted, differing);
+    }
+
+    #[test]
+    fn the_sharksem_simulator_configuration_loads() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("config/sim-sharksem.toml");
+        let c = Config::load_with_env(Some(&path), &[], std::iter::empty()).unwrap();
+        assert!(c.simulator.as_ref().is_some_and(|s| s.sharksem.is_some()));
+        assert_eq!(c.stage.protocol, crate::stage::StageProtocol::Sharksem);
+        assert_eq!(
+            c.imaging.protocol,
+            crate::imaging::ImagingProtocol::Sharksem
+        );
+        assert_eq!(c.reconstruction.tilt_axis_deg, Some(0.0));
     }
 
     #[test]

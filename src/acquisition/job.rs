@@ -218,7 +218,7 @@ async fn acquire(
     let mut series = Series::new(plan, config.tracking, config.stage.safe_tilt_deg);
     let mut ctx = SeriesContext {
         stage: &mut instruments.stage,
-        imaging: &mut instruments.imaging,
+        imaging: instruments.imaging.as_mut(),
         imaging_config: &config.imaging,
         recorder: rec,
         phase: PhaseCorrelationParams::default(),
