@@ -1,9 +1,10 @@
 //! `sdsem reconstruct LEFT RIGHT --out DIR`: a calibrated height map, point
 //! cloud and mesh from a stereo pair of micrographs (DESIGN §4).
 //!
-//! Tilt and pixel size come from the files' SEM metadata unless given; every
-//! output is computed before the first is written, and a failed write removes
-//! what was written, so no partial set of outputs looks valid.
+//! Tilt and pixel size come from the files' SEM metadata unless given; the output
+//! directory is prepared before any work ([`super::output`]); every output is computed
+//! before the first is written, and a failed write removes what was written, so no
+//! partial set of outputs looks valid.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -12,11 +13,14 @@ use std::time::Instant;
 use anyhow::{Context, bail};
 use serde::Serialize;
 
+use crate::export::atomic::OutputDir;
 use crate::export::{self, MeshParams, ply};
 use crate::imaging::file::{Micrograph, load_micrograph};
+use crate::progress::{Observer, Stage};
 use crate::vision::Image;
 use crate::vision::pipeline::{
-    PairGeometry, ReconReport, ReconstructError, Reconstruction, ReconstructionParams, reconstruct,
+    PairGeometry, ReconReport, ReconstructError, Reconstruction, ReconstructionParams,
+    reconstruct_observed,
 };
 
 /// Output file names (DESIGN §4).
@@ -28,6 +32,15 @@ pub mod files {
     /// Beyond DESIGN §4: the per-pixel confidence of `height.tif`.
     pub const CONFIDENCE_TIFF: &str = "confidence.tif";
     pub const REPORT: &str = "report.json";
+    /// Every file a reconstruction writes, the report last.
+    pub const ALL: [&str; 6] = [
+        HEIGHT_TIFF,
+        HEIGHT_GSF,
+        POINT_CLOUD,
+        MESH,
+        CONFIDENCE_TIFF,
+        REPORT,
+    ];
 }
 
 /// What the user gave beside the two files.
@@ -193,31 +206,36 @@ pub struct ReportFile {
     pub peak_rss_mib: Option<f64>,
 }
 
-/// Reconstructs `left`/`right` into `out` (created if needed).
+/// Reconstructs `left`/`right` into `out` (prepared by [`super::output::prepare_dir`]),
+/// telling `progress` each stage.
 ///
 /// # Errors
 /// A one-line cause; nothing is left in `out` that looks like a result.
+#[allow(clippy::too_many_arguments)]
 pub fn run(
     left: &Path,
     right: &Path,
-    out: &Path,
+    out: &OutputDir,
     given: GeometryOverrides,
     default_tilt_axis_deg: Option<f64>,
     params: &ReconstructionParams,
     mesh: &MeshParams,
+    progress: Observer<'_>,
 ) -> anyhow::Result<ReportFile> {
     let t0 = Instant::now();
     let pair = load_pair(left, right, given, default_tilt_axis_deg)?;
-    let recon =
-        reconstruct(&pair.left.image, &pair.right.image, &pair.geometry, params).map_err(|e| {
-            match e {
-                // The sparse stage's refusals concern one image or the pair: name them.
-                ReconstructError::Sparse(e) => {
-                    super::rectify::name_files(e, left, right, "sparse stage: ")
-                }
-                e => e.into(),
-            }
-        })?;
+    let recon = reconstruct_observed(
+        &pair.left.image,
+        &pair.right.image,
+        &pair.geometry,
+        params,
+        progress,
+    )
+    .map_err(|e| match e {
+        // The sparse stage's refusals concern one image or the pair: name them.
+        ReconstructError::Sparse(e) => super::rectify::name_files(e, left, right, "sparse stage: "),
+        e => e.into(),
+    })?;
     let mut report = ReportFile {
         sdsem_version: env!("CARGO_PKG_VERSION"),
         left: left.to_owned(),
@@ -231,7 +249,7 @@ pub fn run(
         wall_s: 0.0,
         peak_rss_mib: None,
     };
-    write_outputs(out, &recon, &pair.left.image, mesh, &mut report, t0)?;
+    write_outputs(out, &recon, &pair.left.image, mesh, &mut report, t0, progress)?;
     Ok(report)
 }
 
@@ -243,17 +261,19 @@ pub fn run(
 ///
 /// # Errors
 /// The reconstruction's or the writing's one-line cause.
+#[allow(clippy::too_many_arguments)]
 pub fn reconstruct_recorded_pair(
     left: &Image,
     right: &Image,
     geometry: &PairGeometry,
     config: &crate::config::ReconstructionConfig,
-    out: &Path,
+    out: &OutputDir,
     rec: Option<&crate::record::RecorderHandle>,
     sources: (&Path, &Path),
+    progress: Observer<'_>,
 ) -> anyhow::Result<(ReportFile, Reconstruction)> {
     let t0 = Instant::now();
-    let recon = reconstruct(left, right, geometry, &config.params()).map_err(|e| {
+    let recon = reconstruct_observed(left, right, geometry, &config.params(), progress).map_err(|e| {
         let hint = match &e {
             ReconstructError::Sparse(s) => super::rectify::tilt_axis_hint(s),
             _ => None,
@@ -279,8 +299,9 @@ pub fn reconstruct_recorded_pair(
         wall_s: 0.0,
         peak_rss_mib: None,
     };
-    write_outputs(out, &recon, left, &config.mesh, &mut report, t0)?;
+    write_outputs(out, &recon, left, &config.mesh, &mut report, t0, progress)?;
     if let Some(rec) = rec {
+        progress(Stage::Record);
         let t = crate::stage::observer::wall_ns();
         rec.reconstruction(
             t,
@@ -297,29 +318,30 @@ pub fn reconstruct_recorded_pair(
             (files::HEIGHT_GSF, "application/x-gwyddion-gsf"),
             (files::CONFIDENCE_TIFF, "image/tiff"),
         ] {
-            let path = out.join(name);
-            let bytes = std::fs::read(&path)
-                .with_context(|| format!("cannot read back {}", path.display()))?;
+            let bytes = out
+                .read(name)
+                .with_context(|| format!("cannot read back {}", out.join(name).display()))?;
             rec.attachment(t, name, media_type, bytes)?;
         }
     }
     Ok((report, recon))
 }
 
-/// Writes every output of a reconstruction into `out`; on failure removes
-/// whatever it wrote.
+/// Writes every output of a reconstruction into `out` (under its rule for existing
+/// files: new ones only, or replaced with `--force`); on failure removes whatever it wrote.
 ///
 /// # Errors
 /// The file that could not be written and why.
 pub fn write_outputs(
-    out: &Path,
+    out: &OutputDir,
     recon: &Reconstruction,
     intensity: &Image,
     mesh_params: &MeshParams,
     report: &mut ReportFile,
     started: Instant,
+    progress: Observer<'_>,
 ) -> anyhow::Result<()> {
-    std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
+    progress(Stage::Export);
     let p = recon.report.geometry.pixel_size_um;
     let cloud = ply::cloud_from_height(&recon.height_um, p, Some(intensity));
     let mesh = ply::build_mesh(&recon.height_um, p, Some(intensity), mesh_params);
@@ -330,15 +352,14 @@ pub fn write_outputs(
     // The files are independent: written at the same time (the mesh, the
     // largest, beside the rest). The report goes last: its presence says
     // the set is complete. On any failure every file written is removed.
-    let paths = [
+    let names = [
         files::HEIGHT_TIFF,
         files::HEIGHT_GSF,
         files::POINT_CLOUD,
         files::MESH,
         files::CONFIDENCE_TIFF,
-    ]
-    .map(|name| out.join(name));
-    let [tiff, gsf, cloud_path, mesh_path, confidence_path] = &paths;
+    ];
+    let [tiff, gsf, cloud_path, mesh_path, confidence_path] = names.map(|name| out.file(name));
     let (mesh_written, (cloud_written, ((tiff_written, confidence_written), gsf_written))) =
         rayon::join(
             || ply::write_mesh_ply(mesh_path, &mesh, true),
@@ -374,30 +395,25 @@ pub fn write_outputs(
         mesh_written,
         confidence_written,
     ];
-    let written: Vec<&PathBuf> = paths
+    let written: Vec<&str> = names
         .iter()
         .zip(&results)
         .filter(|(_, r)| r.is_ok())
-        .map(|(p, _)| p)
+        .map(|(n, _)| *n)
         .collect();
     let result = (|| -> anyhow::Result<()> {
         for r in results {
             r?;
         }
-        report.outputs = paths
-            .iter()
-            .filter_map(|p| p.file_name().map(|n| n.to_string_lossy().into_owned()))
-            .chain(std::iter::once(files::REPORT.to_owned()))
-            .collect();
+        report.outputs = files::ALL.map(str::to_owned).to_vec();
         report.wall_s = started.elapsed().as_secs_f64();
         report.peak_rss_mib = peak_rss_mib();
-        let path = out.join(files::REPORT);
-        export::report::write_report_atomic(&path, report)?;
+        export::report::write_report_atomic(out.file(files::REPORT), report)?;
         Ok(())
     })();
     if result.is_err() {
-        for path in written {
-            let _ = std::fs::remove_file(path);
+        for name in written {
+            out.remove(name);
         }
     }
     result
@@ -433,14 +449,16 @@ mod tests {
     /// checking that the output directory holds nothing afterwards.
     fn refused(dir: &Path, left: &Path, right: &Path, given: GeometryOverrides) -> String {
         let out = dir.join("out");
+        let prepared = super::super::output::prepare_dir(&out, &files::ALL, false).unwrap();
         let err = run(
             left,
             right,
-            &out,
+            &prepared,
             given,
             None,
             &ReconstructionParams::default(),
             &MeshParams::default(),
+            &crate::progress::unobserved,
         )
         .expect_err("the pair must be refused");
         let line = format!("{err:#}");
@@ -526,8 +544,12 @@ mod tests {
     /// written, the GSF obeys DESIGN §7, the relief comes out raised, and the
     /// report carries the energies of every level and the flow statistics.
     /// Reconstructs the 192×144 dome pair of the tests below (written into
-    /// `dir`) into `out`.
-    fn reconstruct_dome(dir: &Path, out: &Path) -> anyhow::Result<ReportFile> {
+    /// `dir`) into `out`, telling `progress` each stage.
+    fn reconstruct_dome(
+        dir: &Path,
+        out: &OutputDir,
+        progress: Observer<'_>,
+    ) -> anyhow::Result<ReportFile> {
         let (w, h) = (192, 144);
         let pair = render(
             w,
@@ -559,6 +581,7 @@ mod tests {
             None,
             &params,
             &MeshParams::default(),
+            progress,
         )
     }
 
@@ -567,7 +590,21 @@ mod tests {
         let (w, h) = (192, 144);
         let dir = tempfile::tempdir().unwrap();
         let out = dir.path().join("out");
-        let report = reconstruct_dome(dir.path(), &out).unwrap();
+        let prepared = super::super::output::prepare_dir(&out, &files::ALL, false).unwrap();
+        let stages = crate::progress::StageLog::default();
+        let report = reconstruct_dome(dir.path(), &prepared, &|s| stages.push(s)).unwrap();
+        // Every stage is told once, in order; the dense levels coarsest first.
+        let levels = report.reconstruction.dense.levels_used - report.reconstruction.dense.finest_level;
+        let mut expected = vec![Stage::Sparse];
+        expected.extend((1..=levels).map(|level| Stage::DenseLevel { level, levels }));
+        expected.extend([
+            Stage::Refinement,
+            Stage::Consistency,
+            Stage::Filter,
+            Stage::Depth,
+            Stage::Export,
+        ]);
+        assert_eq!(stages.stages(), expected);
         for name in [
             files::HEIGHT_TIFF,
             files::HEIGHT_GSF,
@@ -661,7 +698,10 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let out = dir.path().join("out");
         std::fs::create_dir_all(out.join(files::MESH).join("occupied")).unwrap();
-        let err = reconstruct_dome(dir.path(), &out).expect_err("mesh.ply cannot be written");
+        // --force: the directory in the way is left to the writer, which cannot replace it.
+        let prepared = super::super::output::prepare_dir(&out, &files::ALL, true).unwrap();
+        let err = reconstruct_dome(dir.path(), &prepared, &crate::progress::unobserved)
+            .expect_err("mesh.ply cannot be written");
         assert!(format!("{err:#}").contains(files::MESH), "{err:#}");
         let left: Vec<String> = std::fs::read_dir(&out)
             .unwrap()

@@ -32,6 +32,7 @@ use super::fill::fill_row_gaps;
 use super::reassign::{self, ReassignParams};
 use super::sift_flow::{self, FlowParams, FlowStats, LevelReport, Mode};
 use super::subpixel::{RefineParams, upsample_flow};
+use crate::progress::{Observer, Stage, unobserved};
 
 /// Errors of the dense stage, each naming the cause and the remedy.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -339,6 +340,31 @@ pub fn dense_disparity_in_range(
     params: &DenseParams,
     range: Option<(f64, f64)>,
 ) -> Result<Disparity, DenseError> {
+    dense_disparity_observed(
+        left_rect,
+        right_rect,
+        valid_left,
+        valid_right,
+        params,
+        range,
+        &unobserved,
+    )
+}
+
+/// [`dense_disparity_in_range`], telling `progress` each stage as it begins: every
+/// [`Stage::DenseLevel`], then [`Stage::Refinement`], [`Stage::Consistency`], [`Stage::Filter`].
+///
+/// # Errors
+/// As [`dense_disparity`].
+pub fn dense_disparity_observed(
+    left_rect: &Image,
+    right_rect: &Image,
+    valid_left: Option<&[bool]>,
+    valid_right: Option<&[bool]>,
+    params: &DenseParams,
+    range: Option<(f64, f64)>,
+    progress: Observer<'_>,
+) -> Result<Disparity, DenseError> {
     let mut params = *params;
     let mut top_shift = 0.0f32;
     if let Some((lo, hi)) = range.filter(|(lo, hi)| lo.is_finite() && hi.is_finite() && hi >= lo)
@@ -364,6 +390,7 @@ pub fn dense_disparity_in_range(
         valid_right,
         &params,
         top_shift,
+        progress,
     )
 }
 
@@ -374,6 +401,7 @@ fn dense_disparity_impl(
     valid_right: Option<&[bool]>,
     params: &DenseParams,
     top_shift: f32,
+    progress: Observer<'_>,
 ) -> Result<Disparity, DenseError> {
     let t0 = Instant::now();
     let (w, h) = left_rect.dimensions();
@@ -428,7 +456,7 @@ fn dense_disparity_impl(
     // Matching: both directions at once in the improved mode (two cores, two
     // sequential sweeps: the backward field is almost free in wall time).
     let tm = Instant::now();
-    let (mut fwd, mut bwd) = engine.run(&a, &b, Some(&va), Some(&vb), improved);
+    let (mut fwd, mut bwd) = engine.run(&a, &b, Some(&va), Some(&vb), improved, progress);
     let matching_ms = ms(tm);
 
     // To full resolution: refined on the intensities (improved) or upsampled.
@@ -451,6 +479,7 @@ fn dense_disparity_impl(
     // Re-assignment beside discontinuities (improved mode), at the level of
     // the fields: the checks and the refinement below see re-assigned fields.
     let tra = Instant::now();
+    progress(Stage::Refinement);
     let reassigned_fraction = match bwd.as_mut() {
         Some(bw) if params.reassign.enabled => reassign_fields(
             (&a, &b),
@@ -566,6 +595,7 @@ fn dense_disparity_impl(
 
     // Consistency and confidence.
     let tc = Instant::now();
+    progress(Stage::Consistency);
     let ambiguity: Vec<f32> = margin
         .iter()
         .zip(&fwd_full.ncc)
@@ -632,6 +662,7 @@ fn dense_disparity_impl(
     let consistency_ms = ms(tc);
 
     let tf = Instant::now();
+    progress(Stage::Filter);
     let mut to_filter = raw.clone();
     let filled = fill_row_gaps(
         &mut to_filter,

@@ -17,11 +17,12 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::Image;
-use super::dense::{DenseError, DenseParams, DenseStats, dense_disparity_in_range};
+use super::dense::{DenseError, DenseParams, DenseStats, dense_disparity_observed};
 use super::depth::{StereoGeometry, height_on_left_grid};
 use super::precision::{self, Precision};
 use super::sift_flow::Mode;
 use super::sparse::{SparseError, SparseParams, rectify_pair};
+use crate::progress::{Observer, Stage, unobserved};
 
 /// Parameters of the whole reconstruction (`[reconstruction]` in the configuration).
 ///
@@ -213,10 +214,27 @@ pub fn reconstruct(
     geometry: &PairGeometry,
     params: &ReconstructionParams,
 ) -> Result<Reconstruction, ReconstructError> {
+    reconstruct_observed(left, right, geometry, params, &unobserved)
+}
+
+/// [`reconstruct`], telling `progress` each stage as it begins: [`Stage::Sparse`], each
+/// [`Stage::DenseLevel`], [`Stage::Refinement`], [`Stage::Consistency`], [`Stage::Filter`],
+/// [`Stage::Depth`].
+///
+/// # Errors
+/// As [`reconstruct`].
+pub fn reconstruct_observed(
+    left: &Image,
+    right: &Image,
+    geometry: &PairGeometry,
+    params: &ReconstructionParams,
+    progress: Observer<'_>,
+) -> Result<Reconstruction, ReconstructError> {
     validate(geometry)?;
     let t_total = Instant::now();
 
     let t = Instant::now();
+    progress(Stage::Sparse);
     let rect = rectify_pair(
         left,
         right,
@@ -227,17 +245,19 @@ pub fn reconstruct(
 
     let t = Instant::now();
     let range = inlier_disparity_range(&rect.sparse.inliers, &rect.sparse.rectification);
-    let disp = dense_disparity_in_range(
+    let disp = dense_disparity_observed(
         &rect.left.image,
         &rect.right.image,
         Some(&rect.left.valid),
         Some(&rect.right.valid),
         &params.dense_params(),
         range,
+        progress,
     )?;
     let dense_ms = ms(t);
 
     let t = Instant::now();
+    progress(Stage::Depth);
     let r = &rect.sparse.rectification;
     let stereo = StereoGeometry {
         tilt_deg: geometry.tilt_deg,

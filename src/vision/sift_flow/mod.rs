@@ -20,6 +20,7 @@ use super::Image;
 use super::dense::DenseError;
 use super::dense_sift::{DenseSiftParams, DescriptorImage, dense_sift, dense_sift_where};
 use super::subpixel::{RefineParams, RefinedFlow, refine_flow_down_to, upsample_flow};
+use crate::progress::{Observer, Stage, unobserved};
 
 /// Which pipeline to run.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
@@ -560,6 +561,7 @@ impl Engine {
         valid_a: Option<&[bool]>,
         valid_b: Option<&[bool]>,
         both: bool,
+        progress: Observer<'_>,
     ) -> (EngineRun, Option<EngineRun>) {
         let levels = self.plan.len();
         let sift = DenseSiftParams {
@@ -604,6 +606,10 @@ impl Engine {
         let mut fwd: Option<Direction> = None;
         let mut bwd: Option<Direction> = None;
         for l in (self.finest..levels).rev() {
+            progress(Stage::DenseLevel {
+                level: levels - l,
+                levels: levels - self.finest,
+            });
             let td = Instant::now();
             // This level's descriptors, owned: they are dropped once its data
             // terms hold what BP needs of them (the paper mode's full-resolution
@@ -925,7 +931,7 @@ pub fn sift_flow(a: &Image, b: &Image, params: &FlowParams) -> Result<Flow, Dens
     let a = fill_non_finite(a);
     let b = fill_non_finite(b);
     let engine = params.engine(None);
-    let (run, _) = engine.run(&a, &b, None, None, false);
+    let (run, _) = engine.run(&a, &b, None, None, false, &unobserved);
     let (w, h) = a.dimensions();
     let levels = run.levels.clone();
     let full = to_full_resolution(
