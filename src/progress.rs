@@ -101,7 +101,10 @@ impl fmt::Display for Stage {
                 step,
                 role,
                 tilt_deg,
-            } => write!(f, "step {step}: capturing the {role} frame at {tilt_deg:.3}°"),
+            } => write!(
+                f,
+                "step {step}: capturing the {role} frame at {tilt_deg:.3}°"
+            ),
             Self::Sparse => f.write_str("sparse stage (SIFT, matching, ORSA, rectification)"),
             Self::DenseLevel { level, levels } => {
                 write!(f, "dense stage: SIFT flow, level {level} of {levels}")

@@ -22,11 +22,11 @@ use super::runner::{Captured, SeriesContext, SeriesRecord, run_series};
 use crate::config::Config;
 use crate::export::atomic::OutputDir;
 use crate::imaging::file::{MicrographTags, SampleDepth, encode_micrograph_tiff};
+use crate::progress::Stage;
 use crate::record::{
     RecordLogSwitch, RecordSummary, Recorder, RecorderHandle, RecorderOptions, RunOutcome,
     RunStatus, topics,
 };
-use crate::progress::Stage;
 use crate::stage::StageAxis;
 use crate::stage::observer::wall_ns;
 use crate::vision::pipeline::PairGeometry;

@@ -320,6 +320,9 @@ mod tests {
         .unwrap_err();
         assert!(err.to_string().contains("exists"), "{err}");
         assert_eq!(std::fs::read(&victim).unwrap(), b"precious");
-        assert!(outputs.read("height.tif").is_err(), "read back through a link");
+        assert!(
+            outputs.read("height.tif").is_err(),
+            "read back through a link"
+        );
     }
 }

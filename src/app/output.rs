@@ -128,7 +128,10 @@ mod tests {
         let file = dir.path().join("notes.txt");
         std::fs::write(&file, "x").unwrap();
         let err = prepare_dir(&file.join("out"), &["a"], false).unwrap_err();
-        assert!(matches!(&err, OutputError::UnderAFile { file: f, .. } if *f == file), "{err}");
+        assert!(
+            matches!(&err, OutputError::UnderAFile { file: f, .. } if *f == file),
+            "{err}"
+        );
         let err = prepare_dir(&file, &["a"], false).unwrap_err().to_string();
         assert!(err.contains("is a file, not a directory"), "{err}");
     }
@@ -138,7 +141,11 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let out = dir.path().join("new/out");
         let prepared = prepare_dir(&out, &["report.json", "height.tif"], false).unwrap();
-        assert_eq!(std::fs::read_dir(&out).unwrap().count(), 0, "probe left behind");
+        assert_eq!(
+            std::fs::read_dir(&out).unwrap().count(),
+            0,
+            "probe left behind"
+        );
         prepared
             .write("report.json", |w| std::io::Write::write_all(w, b"{}"))
             .unwrap();

@@ -249,7 +249,15 @@ pub fn run(
         wall_s: 0.0,
         peak_rss_mib: None,
     };
-    write_outputs(out, &recon, &pair.left.image, mesh, &mut report, t0, progress)?;
+    write_outputs(
+        out,
+        &recon,
+        &pair.left.image,
+        mesh,
+        &mut report,
+        t0,
+        progress,
+    )?;
     Ok(report)
 }
 
@@ -273,16 +281,17 @@ pub fn reconstruct_recorded_pair(
     progress: Observer<'_>,
 ) -> anyhow::Result<(ReportFile, Reconstruction)> {
     let t0 = Instant::now();
-    let recon = reconstruct_observed(left, right, geometry, &config.params(), progress).map_err(|e| {
-        let hint = match &e {
-            ReconstructError::Sparse(s) => super::rectify::tilt_axis_hint(s),
-            _ => None,
-        };
-        match hint {
-            Some(hint) => anyhow::anyhow!("{e}{hint}"),
-            None => e.into(),
-        }
-    })?;
+    let recon =
+        reconstruct_observed(left, right, geometry, &config.params(), progress).map_err(|e| {
+            let hint = match &e {
+                ReconstructError::Sparse(s) => super::rectify::tilt_axis_hint(s),
+                _ => None,
+            };
+            match hint {
+                Some(hint) => anyhow::anyhow!("{e}{hint}"),
+                None => e.into(),
+            }
+        })?;
     let mut report = ReportFile {
         sdsem_version: env!("CARGO_PKG_VERSION"),
         left: sources.0.to_owned(),
@@ -594,7 +603,8 @@ mod tests {
         let stages = crate::progress::StageLog::default();
         let report = reconstruct_dome(dir.path(), &prepared, &|s| stages.push(s)).unwrap();
         // Every stage is told once, in order; the dense levels coarsest first.
-        let levels = report.reconstruction.dense.levels_used - report.reconstruction.dense.finest_level;
+        let levels =
+            report.reconstruction.dense.levels_used - report.reconstruction.dense.finest_level;
         let mut expected = vec![Stage::Sparse];
         expected.extend((1..=levels).map(|level| Stage::DenseLevel { level, levels }));
         expected.extend([

@@ -394,7 +394,14 @@ mod tests {
         save_png(&pair.left, &l).unwrap();
         save_png(&pair.right, &r).unwrap();
         let out = dir.path().join("out");
-        run_rectify(&l, &r, &prepared(&out), Some(-90.0), &SparseParams::default()).unwrap();
+        run_rectify(
+            &l,
+            &r,
+            &prepared(&out),
+            Some(-90.0),
+            &SparseParams::default(),
+        )
+        .unwrap();
         for f in ["rectified_left.png", "rectified_right.png", "matches.png"] {
             assert!(image::open(out.join(f)).is_ok(), "{f}");
         }

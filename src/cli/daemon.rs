@@ -10,10 +10,10 @@ use clap::Args;
 
 use crate::acquisition::{Instruments, RunDir, RunHooks, run_job};
 use crate::config::Config;
-use crate::progress::Stage;
 use crate::daemon::{
     DaemonOptions, JobContext, JobOutcome, JobRecord, JobRunner, Spool, run_daemon,
 };
+use crate::progress::Stage;
 
 #[derive(Debug, Args)]
 pub struct DaemonArgs {

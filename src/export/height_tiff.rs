@@ -144,9 +144,7 @@ fn write_field(
             reason: format!("the {what} map is empty"),
         });
     }
-    target.write(|w| {
-        encode_field(&mut *w, map, pixel_size_um, kind).map_err(std::io::Error::other)
-    })
+    target.write(|w| encode_field(&mut *w, map, pixel_size_um, kind).map_err(std::io::Error::other))
 }
 
 /// Reads a float32 height TIFF back (any single-channel float32 TIFF).
