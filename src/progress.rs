@@ -27,14 +27,8 @@ pub enum Stage {
     },
     /// The sparse stage: SIFT, matching, ORSA, rectification.
     Sparse,
-    /// SIFT flow (dual-layer BP) on pyramid level `level` of `levels`, 1 the coarsest.
-    DenseLevel { level: usize, levels: usize },
-    /// The flow carried to full resolution: re-assignment, intensity refinement or upsampling.
-    Refinement,
-    /// The left–right check and the confidence.
-    Consistency,
-    /// The bilateral grid.
-    Filter,
+    /// The dense stage: dense SIFT, SIFT flow, refinement, left–right check, bilateral grid.
+    Dense,
     /// Heights h = d·p / (2 sin(θ/2)) on the left micrograph's grid.
     Depth,
     /// Writing the output files.
@@ -50,7 +44,7 @@ pub type Observer<'a> = &'a (dyn Fn(Stage) + Sync);
 pub fn unobserved(_: Stage) {}
 
 impl Stage {
-    /// A short name, the same for every instance of the stage (`dense_level` for any level).
+    /// A short name, the same for every instance of the stage (`tilt` for any step).
     #[must_use]
     pub fn name(&self) -> &'static str {
         match self {
@@ -58,10 +52,7 @@ impl Stage {
             Self::Tilt { .. } => "tilt",
             Self::Capture { .. } => "capture",
             Self::Sparse => "sparse",
-            Self::DenseLevel { .. } => "dense_level",
-            Self::Refinement => "refinement",
-            Self::Consistency => "consistency",
-            Self::Filter => "filter",
+            Self::Dense => "dense",
             Self::Depth => "depth",
             Self::Export => "export",
             Self::Record => "record",
@@ -77,12 +68,11 @@ impl Stage {
         )
     }
 
-    /// `(done, of)` where the stage is one of a counted sequence: tilt steps, dense levels.
+    /// `(done, of)` where the stage is one of a counted sequence: the tilt steps.
     #[must_use]
     pub fn count(&self) -> Option<(usize, usize)> {
         match *self {
             Self::Tilt { step, steps, .. } => Some((step, steps)),
-            Self::DenseLevel { level, levels } => Some((level, levels)),
             _ => None,
         }
     }
@@ -106,12 +96,7 @@ impl fmt::Display for Stage {
                 "step {step}: capturing the {role} frame at {tilt_deg:.3}°"
             ),
             Self::Sparse => f.write_str("sparse stage (SIFT, matching, ORSA, rectification)"),
-            Self::DenseLevel { level, levels } => {
-                write!(f, "dense stage: SIFT flow, level {level} of {levels}")
-            }
-            Self::Refinement => f.write_str("dense stage: refinement to full resolution"),
-            Self::Consistency => f.write_str("dense stage: left–right check"),
-            Self::Filter => f.write_str("dense stage: bilateral filter"),
+            Self::Dense => f.write_str("dense stage (SIFT flow, left–right check, bilateral grid)"),
             Self::Depth => f.write_str("heights on the left micrograph's grid"),
             Self::Export => f.write_str("writing the outputs"),
             Self::Record => f.write_str("recording the results"),
@@ -181,26 +166,21 @@ mod tests {
         assert_eq!(clock.start(Stage::Sparse, t0), None);
         let t1 = t0 + Duration::from_millis(1500);
         assert_eq!(
-            clock.start(Stage::Filter, t1),
+            clock.start(Stage::Dense, t1),
             Some((Stage::Sparse, Duration::from_millis(1500)))
         );
-        assert_eq!(clock.current(), Some(Stage::Filter));
+        assert_eq!(clock.current(), Some(Stage::Dense));
         let t2 = t1 + Duration::from_millis(20);
         assert_eq!(
             clock.finish(t2),
-            Some((Stage::Filter, Duration::from_millis(20)))
+            Some((Stage::Dense, Duration::from_millis(20)))
         );
         assert_eq!(clock.finish(t2), None);
     }
 
     #[test]
     fn stages_read_as_what_they_do() {
-        let level = Stage::DenseLevel {
-            level: 2,
-            levels: 5,
-        };
-        assert_eq!(level.to_string(), "dense stage: SIFT flow, level 2 of 5");
-        assert_eq!(level.count(), Some((2, 5)));
+        assert_eq!(Stage::Dense.count(), None);
         let tilt = Stage::Tilt {
             step: 3,
             steps: 7,

@@ -7,7 +7,7 @@ use anyhow::Context;
 
 use crate::export::atomic::OutputDir;
 use crate::export::flo;
-use crate::vision::sift_flow::{Flow, FlowParams, sift_flow};
+use crate::vision::dense::sift_flow::{Flow, FlowParams, sift_flow};
 
 /// Loads `a` and `b`, computes the SIFT flow from `a` to `b` and writes it as `name` in
 /// `out` (prepared by [`super::output::prepare_file`]), atomically.

@@ -24,7 +24,7 @@ use crate::export::atomic::OutputDir;
 use crate::progress::Observer;
 use crate::record::{self, FrameRole, ReadError, RecordedMicrograph, topics};
 use crate::vision::Image;
-use crate::vision::pipeline::PairGeometry;
+use crate::vision::geometry::PairGeometry;
 
 /// The file `replay` writes beside the reconstruction outputs.
 pub const REPLAY_REPORT: &str = "replay.json";
@@ -254,6 +254,7 @@ pub fn replay(
     } else {
         PathBuf::from(&config_source)
     };
+    let config_text = crate::config::upgrade_recorded(&config_text);
     // The error names the layer at fault: the recorded configuration or a --set.
     let config = Config::from_layers(
         Some(&config_text),
@@ -262,7 +263,7 @@ pub fn replay(
         std::iter::empty(),
     )?;
 
-    let geometry = pair_geometry_of(
+    let (geometry, provenance) = pair_geometry_of(
         &config,
         end_geometry(record, left)?,
         end_geometry(record, right)?,
@@ -270,7 +271,7 @@ pub fn replay(
     let (reconstruction, recon) = reconstruct_recorded_pair(
         &left.image,
         &right.image,
-        &geometry,
+        (&geometry, provenance),
         &config.reconstruction,
         out,
         None,

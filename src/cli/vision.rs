@@ -8,8 +8,9 @@ use clap::Args;
 use super::ConfigArgs;
 use super::progress::StageDisplay;
 use crate::app::output;
-use crate::app::reconstruct::{self, GeometryOverrides};
+use crate::app::reconstruct;
 use crate::numbers;
+use crate::vision::geometry::Figures;
 
 #[derive(Debug, Args)]
 pub struct ReconstructArgs {
@@ -77,7 +78,7 @@ pub struct FlowArgs {
 pub fn run_reconstruct(args: &ReconstructArgs) -> anyhow::Result<ExitCode> {
     let config = args.config.load()?;
     let out = output::prepare_dir(&args.out, &reconstruct::files::ALL, args.force)?;
-    let given = GeometryOverrides {
+    let given = Figures {
         tilt_deg: args.tilt,
         pixel_size_um: args.pixel_size,
         tilt_axis_deg: args.tilt_axis,
@@ -197,7 +198,27 @@ fn describe_precision(p: &crate::vision::precision::Precision, relief: f64) -> S
 pub fn run_rectify(args: &RectifyArgs) -> anyhow::Result<ExitCode> {
     let config = args.config.load()?;
     let out = output::prepare_dir(&args.out, &crate::app::rectify::FILES, args.force)?;
-    let tilt_axis = args.tilt_axis.or(config.reconstruction.tilt_axis_deg);
+    // The precedence of every command: the flag, the files' metadata, the configuration.
+    let metadata = |path: &Path| {
+        crate::imaging::file::read_sem_metadata(path)
+            .map(|m| reconstruct::figures_of(&m))
+            .unwrap_or_default()
+    };
+    let tilt_axis = crate::vision::geometry::GeometrySources {
+        given: Figures {
+            tilt_axis_deg: args.tilt_axis,
+            ..Figures::default()
+        },
+        left: metadata(&args.left),
+        right: metadata(&args.right),
+        configured_tilt_axis_deg: config.reconstruction.tilt_axis_deg,
+        names: [
+            args.left.display().to_string(),
+            args.right.display().to_string(),
+        ],
+    }
+    .tilt_axis()
+    .map(|(axis, _)| axis);
     let outputs = crate::app::rectify::run_rectify(
         &args.left,
         &args.right,
@@ -219,7 +240,7 @@ pub fn run_rectify(args: &RectifyArgs) -> anyhow::Result<ExitCode> {
 pub fn run_flow(args: &FlowArgs) -> anyhow::Result<ExitCode> {
     let config = args.config.load()?;
     let (dir, name) = output::prepare_file(&args.out, args.force)?;
-    let params = config.reconstruction.params().dense_params().flow_params();
+    let params = config.reconstruction.dense.flow;
     let flow = crate::app::flow::run(&args.a, &args.b, (&dir, &name), &params)?;
     eprintln!(
         "wrote {} ({}×{} flow from {} to {})",

@@ -177,6 +177,28 @@ fn known_values(key: &str, given: &str) -> Vec<String> {
         .unwrap_or_default()
 }
 
+/// For a serde message about dotted `key` (`unknown field \`widht\`, expected …`, `unknown
+/// variant …`), the key or value meant when the given one is a near miss.
+#[must_use]
+pub fn meant(message: &str, key: &str) -> Option<String> {
+    let quoted = backquoted(message);
+    let (given, expected) = quoted.split_first()?;
+    let meant = closest(given, expected)?;
+    if message.starts_with("unknown variant") {
+        return Some(format!("\"{meant}\""));
+    }
+    if !message.starts_with("unknown field") {
+        return None;
+    }
+    // The whole key, with the part that was wrong replaced.
+    let parts: Vec<&str> = key.split('.').collect();
+    let at = parts.iter().rposition(|p| p == given)?;
+    let mut whole: Vec<&str> = parts[..at].to_vec();
+    whole.push(meant);
+    whole.extend(&parts[at + 1..]);
+    Some(whole.join("."))
+}
+
 /// The names between backquotes in a serde message, in order.
 fn backquoted(message: &str) -> Vec<&str> {
     message.split('`').skip(1).step_by(2).collect()
@@ -202,7 +224,7 @@ pub fn closest<'a>(given: &str, candidates: &[&'a str]) -> Option<&'a str> {
 
 /// A message on one line: a parser's drawing of the spot (TOML) cut down to its first and
 /// last lines.
-fn one_line(text: &str) -> String {
+pub(super) fn one_line(text: &str) -> String {
     let lines: Vec<&str> = text
         .lines()
         .map(str::trim)

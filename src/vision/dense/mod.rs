@@ -1,205 +1,44 @@
-//! The dense stage of SD-SEM as one call: rectified pair in, disparity out
-//! (steps 4–5 of DESIGN §6; step 6, depth, is [`super::depth`]).
+//! The dense stage of SD-SEM (steps 4–5 of DESIGN §6; step 6, depth, is
+//! [`crate::vision::depth`]): rectified pair in, disparity on the left canvas out.
 //!
-//! Dense SIFT at every pixel, SIFT flow with a small vertical window (the
-//! pair is rectified, so correspondences share a row up to the rectification
-//! error), then — in the improved mode — sub-pixel disparity, a left–right
-//! consistency check that masks occlusions, and a per-pixel confidence; last,
-//! the bilateral-grid filter of the disparity.
+//! [`dense_disparity_in_range`] runs, in this order:
+//! 1. `centre_search_on_sparse_range`: the search centred on the sparse matches' disparities;
+//! 2. `sift_flow_matching`: dense SIFT and SIFT flow, coarse to fine ([`sift_flow`]);
+//! 3. `reassign_beside_discontinuities` ([`reassign`]);
+//! 4. `left_right_check_at_matcher_level` ([`consistency`]);
+//! 5. `refine_to_full_resolution`: Lucas–Kanade on the intensities ([`refine`]);
+//! 6. `left_right_consistency` of the refined fields and the per-pixel confidence;
+//! 7. `bilateral_filtering` ([`fill`], then the bilateral grid).
 //!
-//! The improved mode runs BP down to half resolution only (`finest_level` 1)
-//! and takes the flow to full resolution with the Lucas–Kanade refinement of
-//! [`super::subpixel::refine_flow`] on the rectified intensities: the
-//! descriptors cannot resolve a fraction of a pixel, the intensities can, and
-//! the finest BP level and its dense SIFT were two thirds of the time. Its
-//! NCC and whether it hit its step bound feed the confidence; the left–right
-//! check runs on both the SIFT-flow and the refined fields. Given the
-//! disparity range of the sparse matches ([`dense_disparity_in_range`]), the
-//! search is centred on it and the pyramid deepened until the top window
-//! spans it.
+//! Which of them act is the parameters' choice ([`DenseParams`]); the paper preset runs 2 at
+//! full resolution with integer flow, and 7 unweighted.
+
+pub mod consistency;
+pub mod dense_sift;
+mod error;
+pub mod fill;
+mod params;
+pub mod reassign;
+pub mod refine;
+pub mod sift_flow;
+
+pub use self::error::DenseError;
+pub use self::params::DenseParams;
 
 use std::time::Instant;
 
 use rayon::prelude::*;
-use serde::{Deserialize, Serialize};
+use serde::Serialize;
 
-use super::Image;
-use super::bilateral_grid::{BilateralParams, GridInfo, bilateral_filter};
-use super::consistency::{
+use self::consistency::{
     left_right_check, left_right_residual, matcher_level_rejects, reject_beyond,
 };
-use super::fill::fill_row_gaps;
-use super::reassign::{self, ReassignParams};
-use super::sift_flow::{self, FlowParams, FlowStats, LevelReport, Mode};
-use super::subpixel::{RefineParams, upsample_flow};
-use crate::progress::{Observer, Stage, unobserved};
-
-/// Errors of the dense stage, each naming the cause and the remedy.
-#[derive(Debug, Clone, PartialEq, thiserror::Error)]
-pub enum DenseError {
-    #[error(
-        "rectified images differ in size ({left_width}×{left_height} vs {right_width}×{right_height}); rectify both onto one canvas"
-    )]
-    SizeMismatch {
-        left_width: usize,
-        left_height: usize,
-        right_width: usize,
-        right_height: usize,
-    },
-    #[error(
-        "image of {width}×{height} is too small for {levels} pyramid levels (the top level needs {min_top}×{min_top} pixels); lower `levels`"
-    )]
-    TooSmall {
-        width: usize,
-        height: usize,
-        levels: usize,
-        min_top: usize,
-    },
-    #[error("invalid dense parameter `{name}`: {reason}")]
-    InvalidParameter { name: &'static str, reason: String },
-    #[error(
-        "validity mask holds {len} entries for a {width}×{height} image; pass one entry per pixel"
-    )]
-    MaskSize {
-        width: usize,
-        height: usize,
-        len: usize,
-    },
-    #[error("no valid pixel in the rectified left image; check the rectification homographies")]
-    NoValidPixels,
-    #[error(
-        "the right rectification homography is singular; the sparse stage produced an unusable H_right"
-    )]
-    SingularHomography,
-}
-
-/// Parameters of the dense stage (SIFT flow on the rectified pair, then the
-/// filter). Names as in SIFT flow eq. (10) and the reference code.
-///
-/// | parameter | default | effect |
-/// | --- | --- | --- |
-/// | `mode` | `improved` | `paper`: integer disparity, no occlusion handling, descriptor pyramid as the reference code, plain bilateral filter; `improved`: sub-pixel, left–right check, confidence-weighted filter |
-/// | `cell_size` | none | dense SIFT cell, pixels; none = 3 (paper) or 2 (improved: on simulated SEM pairs RMSE 10.5 → 9.0 % and 7.0 → 5.5 % of the relief, height scale 0.71 → 0.79 and 0.80 → 0.87, for 0.3–0.7 % less coverage), at the finest BP level |
-/// | `keep_cell_extent` | true | improved mode: coarser levels use the cell of the same extent in full-resolution pixels (`cell_size / 2^k`, at least 1); false = `cell_size` pixels of every level (see [`level_cell_size`](crate::vision::sift_flow::level_cell_size): the simulated grids' coverage 67 → 78 % at 1024×768) |
-/// | `alpha` | 2·255 | α, truncated-L1 smoothness slope |
-/// | `finest_alpha_scale` | 4 | improved mode: α at the finest BP level is `alpha` times this (see [`FlowParams`]: Potamogeton pairs agree over 71.5/66.4/65.0 → 79.8/73.5/72.6 % of the image at the same RMSE; the simulated targets met stay the same) |
-/// | `finest_d` | none | improved mode: truncation of the smoothness at the finest BP level, none = `d` (see [`FlowParams`]: 2550 sharpens walls — simulated grid 1024×768 > 1 px 3.5 → 2.6 % — and costs the Potamogeton pairs 3.7–3.9 points of agreement area) |
-/// | `edge_d` | 2550 | improved mode: the truncation at the finest BP level on edges across strong intensity differences, where depth steps lie; `edge_d` ≥ `d` (or `finest_d`) switches it off (see [`FlowParams`]: simulated grid 1024×768 > 1 px 3.5 → 2.9 %, grid 640×480 median 0.204 → 0.198 px; Potamogeton agreement area −0.3 to −0.5 points at the same RMSE) |
-/// | `edge_contrast` | 2 | improved mode: the intensity difference, in medians of the image's neighbour differences, at which `edge_d` takes over |
-/// | `d` | 40·255 | smoothness truncation |
-/// | `gamma` | 0.005·255 | η, small-displacement weight |
-/// | `t` | none | data-term truncation |
-/// | `levels` | 4 | pyramid levels |
-/// | `top_window` / `window` | 10 / 2 | half search window of the disparity at the top / finest BP level |
-/// | `middle_window` | none | half search window at the levels in between; none = `window` (paper) or 4 (improved: the bars of simulated grids no longer stay low) |
-/// | `vertical_top_window` / `vertical_window` | 2 / 1 | half search window of the vertical flow (improved mode; the paper searches v as widely as u) |
-/// | `top_iterations` / `iterations` | none | BP iterations at the top / finest level; none = 60 / 30 (paper) or 20 / 8 (improved) |
-/// | `lr_tolerance` | 2.0 | left–right disagreement (pixels) above which a pixel is masked as occluded (1.0 rejected 6–13 % of the visible pixels of simulated scenes at 1024×768, θ = 11°; 2.0 keeps coverage ≥ 98 % there with the same RMSE on the dome) |
-/// | `lr_tolerance_smooth` | 4.0 | improved mode: the tolerance of the left–right check away from depth discontinuities (farther than `reassign.band_radius` pixels of the finest BP level from a flow gradient above `reassign.band`), pixels; values up to `lr_tolerance` change nothing. At the matcher's pyramid level the wide tolerance judges the horizontal flow alone (see [`matcher_level_rejects`]). An occlusion as wide as the tolerance lies within that band, so the wider tolerance keeps weakly textured surface whose two fields disagree by a few pixels without admitting occlusions (see the table in `config/sdsem.toml`); the confidence keeps `lr_tolerance` as the scale of the residual |
-/// | `bilateral` | σs = σr = 3 | bilateral grid filter of the disparity |
-/// | `fill_max_gap` | 0 | improved mode: runs of unknown pixels along a canvas row, at most this many pixels long and measured at both ends, are filled by linear interpolation before the filter (see [`fill_row_gaps`]); filled pixels get confidence 0 and are counted in `filled_fraction`; 0 fills nothing. Off by default: wrong beside steep walls (64 on the simulated grids 640/1024/1280: coverage 84.8/81.5/89.1 → 99.3/98.0/99.5 %, > 1 px 4.2/2.9/2.8 → 12.7/14.9/8.9 %); Potamogeton pairs agree over 86.3/80.3/79.9 → 93.3/89.2/89.0 % of the image at RMSE 0.75/0.74/0.42 → 1.00/1.01/0.58 µm (96: 94.2/90.4/90.4 % at 1.11/1.24/0.74 µm) |
-/// | `max_strips` | 4 | parallel row strips of the BP sweeps (1 = sequential BP-S) |
-/// | `finest_level` | none | finest pyramid level of BP; none = 0 (paper) or 1 (improved: the intensity refinement takes the disparity to full resolution) |
-/// | `reassign` | see [`ReassignParams`] | improved mode: re-assignment of the SIFT flow beside depth discontinuities at the finest BP level (simulated grids 640/1024/1280: RMSE 8.2/5.3/6.3 → 5.2/3.3/4.2 % of the relief, > 1 px 8.4/10.5/8.2 → 3.2/5.7/4.4 %, coverage 88.6/79.0/89.7 → 84.0/79.0/87.3 %; Potamogeton pairwise RMSE 0.83/0.85/0.45 → 0.79/0.77/0.43 µm; other scenes: RMSE within ±0.2 point, coverage at most 0.9 point lower) |
-/// | `refine` | see [`RefineParams`] | improved mode: Lucas–Kanade refinement of the flow on the rectified intensities (`iterations = 0`: none) |
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct DenseParams {
-    pub mode: Mode,
-    pub cell_size: Option<usize>,
-    pub keep_cell_extent: bool,
-    pub alpha: f32,
-    pub finest_alpha_scale: f32,
-    pub d: f32,
-    pub finest_d: Option<f32>,
-    pub edge_d: f32,
-    pub edge_contrast: f32,
-    pub gamma: f32,
-    pub t: Option<f32>,
-    pub levels: usize,
-    pub top_window: usize,
-    pub window: usize,
-    pub middle_window: Option<usize>,
-    pub vertical_top_window: usize,
-    pub vertical_window: usize,
-    pub top_iterations: Option<usize>,
-    pub iterations: Option<usize>,
-    pub lr_tolerance: f32,
-    pub lr_tolerance_smooth: f32,
-    pub bilateral: BilateralParams,
-    pub fill_max_gap: usize,
-    pub max_strips: usize,
-    pub finest_level: Option<usize>,
-    pub refine: RefineParams,
-    pub reassign: ReassignParams,
-}
-
-impl Default for DenseParams {
-    fn default() -> Self {
-        let f = FlowParams::default();
-        Self {
-            mode: Mode::default(),
-            cell_size: None,
-            keep_cell_extent: f.keep_cell_extent,
-            alpha: f.alpha,
-            finest_alpha_scale: f.finest_alpha_scale,
-            d: f.d,
-            finest_d: f.finest_d,
-            edge_d: f.edge_d,
-            edge_contrast: f.edge_contrast,
-            gamma: f.gamma,
-            t: f.t,
-            levels: f.levels,
-            top_window: f.top_window,
-            window: f.window,
-            middle_window: f.middle_window,
-            vertical_top_window: 2,
-            vertical_window: 1,
-            top_iterations: f.top_iterations,
-            iterations: f.iterations,
-            lr_tolerance: 2.0,
-            lr_tolerance_smooth: 4.0,
-            bilateral: BilateralParams::default(),
-            fill_max_gap: 0,
-            max_strips: f.max_strips,
-            finest_level: f.finest_level,
-            refine: f.refine,
-            reassign: ReassignParams::default(),
-        }
-    }
-}
-
-impl DenseParams {
-    /// The SIFT-flow part of these parameters.
-    #[must_use]
-    pub fn flow_params(&self) -> FlowParams {
-        FlowParams {
-            mode: self.mode,
-            cell_size: self.cell_size.unwrap_or(match self.mode {
-                Mode::Paper => 3,
-                Mode::Improved => 2,
-            }),
-            keep_cell_extent: self.keep_cell_extent,
-            alpha: self.alpha,
-            finest_alpha_scale: self.finest_alpha_scale,
-            d: self.d,
-            finest_d: self.finest_d,
-            edge_d: self.edge_d,
-            edge_contrast: self.edge_contrast,
-            gamma: self.gamma,
-            t: self.t,
-            levels: self.levels,
-            top_window: self.top_window,
-            window: self.window,
-            middle_window: self.middle_window,
-            top_iterations: self.top_iterations,
-            iterations: self.iterations,
-            max_strips: self.max_strips,
-            finest_level: self.finest_level,
-            refine: self.refine,
-        }
-    }
-}
+use self::fill::fill_row_gaps;
+use self::reassign::ReassignParams;
+use self::refine::{RefinedFlow, upsample_flow};
+use self::sift_flow::{Engine, EngineRun, FlowStats, LevelReport};
+use crate::vision::Image;
+use crate::vision::filter::bilateral_grid::{GridInfo, bilateral_filter};
 
 /// Timings of the dense stage, milliseconds.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Default)]
@@ -217,7 +56,6 @@ pub struct DenseTimings {
 /// Figures of the dense stage for report.json.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct DenseStats {
-    pub mode: Mode,
     /// Left-to-right SIFT flow per level, finest first (energies: Fig. 8).
     pub levels: Vec<LevelReport>,
     /// Right-to-left SIFT flow per level (improved mode only).
@@ -340,129 +178,193 @@ pub fn dense_disparity_in_range(
     params: &DenseParams,
     range: Option<(f64, f64)>,
 ) -> Result<Disparity, DenseError> {
-    dense_disparity_observed(
-        left_rect,
-        right_rect,
-        valid_left,
-        valid_right,
-        params,
-        range,
-        &unobserved,
-    )
+    let (params, top_shift) = centre_search_on_sparse_range(params, range, left_rect.dimensions());
+    let t0 = Instant::now();
+    let inputs = Inputs::checked(left_rect, right_rect, valid_left, valid_right, &params)?;
+    let tm = Instant::now();
+    let mut matched = sift_flow_matching(&inputs, &params, top_shift);
+    let matching_ms = ms(tm);
+    let margin = margin_at_full_resolution(&matched.fwd, matched.finest, inputs.w, inputs.h);
+    let tra = Instant::now();
+    let reassigned_fraction = reassign_beside_discontinuities(&inputs, &mut matched, &params);
+    let reassign_ms = ms(tra);
+    let tr = Instant::now();
+    let levels = (
+        matched.fwd.levels.clone(),
+        matched.bwd.as_ref().map(|b| b.levels.clone()),
+    );
+    let check = left_right_check_at_matcher_level(&inputs, &matched, &params);
+    let finest = matched.finest;
+    let (fwd, bwd) = refine_to_full_resolution(&inputs, matched, &check, &params);
+    let refine_ms = ms(tr);
+    let tc = Instant::now();
+    let consistent = left_right_consistency(&inputs, (fwd, bwd), &margin, check, &params);
+    let consistency_ms = ms(tc);
+    let tf = Instant::now();
+    let filtered =
+        bilateral_filtering(&consistent.raw, &consistent.confidence, &inputs.va, &params);
+    let filter_ms = ms(tf);
+
+    let Inputs { va, n_valid, .. } = inputs;
+    let fraction = |marks: &[bool]| {
+        va.iter().zip(marks).filter(|(v, m)| **v && **m).count() as f64 / n_valid as f64
+    };
+    let ncc_sum: f64 = va
+        .iter()
+        .zip(&consistent.ncc)
+        .filter(|(v, _)| **v)
+        .map(|(_, &c)| f64::from(c))
+        .sum();
+    let stats = DenseStats {
+        levels: levels.0,
+        levels_right_to_left: levels.1,
+        flow: consistent.flow_stats,
+        coverage: filtered.known as f64 / n_valid as f64,
+        filled_fraction: filtered.filled.iter().filter(|&&f| f).count() as f64 / n_valid as f64,
+        rejected_fraction: fraction(&consistent.rejected),
+        rejected_by_matching_fraction: consistent
+            .rejected_by_matching
+            .as_deref()
+            .map_or(0.0, fraction),
+        reassigned_fraction,
+        finest_level: finest,
+        levels_used: params.flow.levels,
+        search_centre_px: top_shift,
+        refine_clamped_fraction: fraction(&consistent.clamped),
+        refine_mean_ncc: ncc_sum / n_valid as f64,
+        grid: filtered.grid,
+        timings: DenseTimings {
+            matching_ms,
+            reassign_ms,
+            refine_ms,
+            consistency_ms,
+            filter_ms,
+            total_ms: ms(t0),
+        },
+    };
+    Ok(Disparity {
+        disparity: filtered.disparity,
+        raw: consistent.raw,
+        vertical: consistent.vertical,
+        confidence: consistent.confidence,
+        occluded: consistent.rejected,
+        filled: filtered.filled,
+        stats,
+    })
 }
 
-/// [`dense_disparity_in_range`], telling `progress` each stage as it begins: every
-/// [`Stage::DenseLevel`], then [`Stage::Refinement`], [`Stage::Consistency`], [`Stage::Filter`].
-///
-/// # Errors
-/// As [`dense_disparity`].
-pub fn dense_disparity_observed(
-    left_rect: &Image,
-    right_rect: &Image,
-    valid_left: Option<&[bool]>,
-    valid_right: Option<&[bool]>,
+/// With `search_from_sparse`, the search centred on the disparity range of the sparse matches
+/// (`(min, max)`, canvas pixels), and the pyramid deepened until the top window spans it (a
+/// fixed window misses the large parallax of high tilts or tall specimens): the parameters
+/// to run with and the disparity the top level is centred on.
+fn centre_search_on_sparse_range(
     params: &DenseParams,
     range: Option<(f64, f64)>,
-    progress: Observer<'_>,
-) -> Result<Disparity, DenseError> {
+    (w, h): (usize, usize),
+) -> (DenseParams, f32) {
     let mut params = *params;
     let mut top_shift = 0.0f32;
     if let Some((lo, hi)) = range.filter(|(lo, hi)| lo.is_finite() && hi.is_finite() && hi >= lo)
-        && params.mode == Mode::Improved
+        && params.search_from_sparse
     {
-        let (w, h) = left_rect.dimensions();
         let half = (hi - lo) / 2.0 * 1.25 + RANGE_MARGIN_PX;
-        while (params.top_window as f64) * f64::from(1u32 << (params.levels - 1)) < half
-            && params.levels < 8
-            && sift_flow::check_size(w, h, params.levels + 1).is_ok()
+        while (params.flow.top_window as f64) * f64::from(1u32 << (params.flow.levels - 1)) < half
+            && params.flow.levels < 8
+            && sift_flow::check_size(w, h, params.flow.levels + 1).is_ok()
         {
-            params.levels += 1;
+            params.flow.levels += 1;
         }
         // Lies within the image size.
         #[allow(clippy::cast_possible_truncation)]
         let centre = ((lo + hi) / 2.0) as f32;
         top_shift = centre;
     }
-    dense_disparity_impl(
-        left_rect,
-        right_rect,
-        valid_left,
-        valid_right,
-        &params,
-        top_shift,
-        progress,
-    )
+    (params, top_shift)
 }
 
-fn dense_disparity_impl(
-    left_rect: &Image,
-    right_rect: &Image,
-    valid_left: Option<&[bool]>,
-    valid_right: Option<&[bool]>,
-    params: &DenseParams,
-    top_shift: f32,
-    progress: Observer<'_>,
-) -> Result<Disparity, DenseError> {
-    let t0 = Instant::now();
-    let (w, h) = left_rect.dimensions();
-    if right_rect.dimensions() != (w, h) {
-        return Err(DenseError::SizeMismatch {
-            left_width: w,
-            left_height: h,
-            right_width: right_rect.width(),
-            right_height: right_rect.height(),
-        });
+/// The pair as the dense stage reads it: both rectified images with their unknown samples
+/// filled, and which of their pixels are real.
+struct Inputs {
+    a: Image,
+    b: Image,
+    va: Vec<bool>,
+    vb: Vec<bool>,
+    n_valid: usize,
+    w: usize,
+    h: usize,
+}
+
+impl Inputs {
+    /// Checks sizes, masks and parameters.
+    fn checked(
+        left_rect: &Image,
+        right_rect: &Image,
+        valid_left: Option<&[bool]>,
+        valid_right: Option<&[bool]>,
+        params: &DenseParams,
+    ) -> Result<Self, DenseError> {
+        let (w, h) = left_rect.dimensions();
+        if right_rect.dimensions() != (w, h) {
+            return Err(DenseError::SizeMismatch {
+                left_width: w,
+                left_height: h,
+                right_width: right_rect.width(),
+                right_height: right_rect.height(),
+            });
+        }
+        params.validate()?;
+        sift_flow::check_size(w, h, params.flow.levels)?;
+        let va = validity(left_rect, valid_left)?;
+        let vb = validity(right_rect, valid_right)?;
+        let n_valid = va.iter().filter(|&&v| v).count();
+        if n_valid == 0 {
+            return Err(DenseError::NoValidPixels);
+        }
+        Ok(Self {
+            a: sift_flow::fill_non_finite(left_rect),
+            b: sift_flow::fill_non_finite(right_rect),
+            va,
+            vb,
+            n_valid,
+            w,
+            h,
+        })
     }
-    let fp = params.flow_params();
-    fp.validate()?;
-    if params.vertical_window > 63 || params.vertical_top_window > 63 {
-        return Err(DenseError::InvalidParameter {
-            name: "vertical_window",
-            reason: "half windows are limited to 63 labels".to_owned(),
-        });
-    }
-    if params.lr_tolerance.is_nan() || params.lr_tolerance < 0.0 {
-        return Err(DenseError::InvalidParameter {
-            name: "lr_tolerance",
-            reason: "must be non-negative".to_owned(),
-        });
-    }
-    if params.lr_tolerance_smooth.is_nan() || params.lr_tolerance_smooth < 0.0 {
-        return Err(DenseError::InvalidParameter {
-            name: "lr_tolerance_smooth",
-            reason: "must be non-negative".to_owned(),
-        });
-    }
-    if let Some(name) = params.reassign.invalid_field() {
-        return Err(DenseError::InvalidParameter {
-            name,
-            reason: "out of its range (see the parameter table)".to_owned(),
-        });
-    }
-    sift_flow::check_size(w, h, params.levels)?;
-    let va = validity(left_rect, valid_left)?;
-    let vb = validity(right_rect, valid_right)?;
-    let n_valid = va.iter().filter(|&&v| v).count();
-    if n_valid == 0 {
-        return Err(DenseError::NoValidPixels);
-    }
-    let a = sift_flow::fill_non_finite(left_rect);
-    let b = sift_flow::fill_non_finite(right_rect);
-    let improved = params.mode == Mode::Improved;
-    let mut engine =
-        fp.engine(improved.then_some((params.vertical_window, params.vertical_top_window)));
+}
+
+/// The SIFT-flow fields at the finest BP level: left to right and, for the left–right check,
+/// right to left.
+struct Matched {
+    fwd: EngineRun,
+    bwd: Option<EngineRun>,
+    finest: usize,
+}
+
+/// Dense SIFT and SIFT flow (Liu et al. eq. 10, dual-layer BP, coarse to fine). With the
+/// left–right check both directions run at once (two cores, two sequential sweeps: the
+/// backward field is almost free in wall time).
+fn sift_flow_matching(inputs: &Inputs, params: &DenseParams, top_shift: f32) -> Matched {
+    let mut engine = Engine::new(
+        &params.flow,
+        Some((params.vertical_window, params.vertical_top_window)),
+    );
     engine.top_shift = top_shift;
+    let (fwd, bwd) = engine.run(
+        &inputs.a,
+        &inputs.b,
+        Some(&inputs.va),
+        Some(&inputs.vb),
+        params.left_right_check,
+    );
+    Matched {
+        fwd,
+        bwd,
+        finest: engine.finest,
+    }
+}
 
-    // Matching: both directions at once in the improved mode (two cores, two
-    // sequential sweeps: the backward field is almost free in wall time).
-    let tm = Instant::now();
-    let (mut fwd, mut bwd) = engine.run(&a, &b, Some(&va), Some(&vb), improved, progress);
-    let matching_ms = ms(tm);
-
-    // To full resolution: refined on the intensities (improved) or upsampled.
-    let finest = engine.finest;
-    let refine = fp.refinement();
-    let alpha = params.alpha.max(1e-6);
+/// The matcher's margin (how unambiguous its label is) at full resolution.
+fn margin_at_full_resolution(fwd: &EngineRun, finest: usize, w: usize, h: usize) -> Vec<f32> {
     let mut margin = fwd.margin.clone();
     let (mut mw, mut mh) = (fwd.width, fwd.height);
     for l in (0..finest).rev() {
@@ -476,28 +378,48 @@ fn dense_disparity_impl(
         margin = upsample_flow(&margin, mw, mh, wf, hf, 1.0);
         (mw, mh) = (wf, hf);
     }
-    // Re-assignment beside discontinuities (improved mode), at the level of
-    // the fields: the checks and the refinement below see re-assigned fields.
-    let tra = Instant::now();
-    progress(Stage::Refinement);
-    let reassigned_fraction = match bwd.as_mut() {
+    margin
+}
+
+/// Re-assignment of both fields beside depth discontinuities, at their level: the checks and
+/// the refinement after it see the re-assigned fields. The fraction of valid pixels changed.
+fn reassign_beside_discontinuities(
+    inputs: &Inputs,
+    matched: &mut Matched,
+    params: &DenseParams,
+) -> f64 {
+    match matched.bwd.as_mut() {
         Some(bw) if params.reassign.enabled => reassign_fields(
-            (&a, &b),
-            (&va, &vb),
-            (&mut fwd, bw),
-            finest,
+            (&inputs.a, &inputs.b),
+            (&inputs.va, &inputs.vb),
+            (&mut matched.fwd, bw),
+            matched.finest,
             params.lr_tolerance,
             &params.reassign,
         ),
         _ => 0.0,
-    };
-    let reassign_ms = ms(tra);
-    let tr = Instant::now();
-    let fwd_levels = fwd.levels.clone();
-    let bwd_levels = bwd.as_ref().map(|b| b.levels.clone());
-    // The left–right check of the SIFT-flow fields themselves, at their own
-    // level: the intensity refinement smooths the flow over its window, which
-    // would let a narrow occlusion pass the check on the refined fields alone.
+    }
+}
+
+/// The left–right check of the SIFT-flow fields, at their level, on the canvas grid.
+struct MatcherCheck {
+    /// Pixels away from steps of the flow, where `lr_tolerance_smooth` applies.
+    smooth: Option<Vec<bool>>,
+    /// Pixels of the left and of the right image whose matches fail the check.
+    rejected: Option<(Vec<bool>, Vec<bool>)>,
+}
+
+/// The left–right check of the SIFT-flow fields themselves, at their own level: the intensity
+/// refinement smooths the flow over its window, which would let a narrow occlusion pass the
+/// check on the refined fields alone. Away from steps of the flow the wider tolerance applies,
+/// judged on each field at its level.
+fn left_right_check_at_matcher_level(
+    inputs: &Inputs,
+    matched: &Matched,
+    params: &DenseParams,
+) -> MatcherCheck {
+    let (w, h) = (inputs.w, inputs.h);
+    let (fwd, finest) = (&matched.fwd, matched.finest);
     let scale = (1u32 << finest) as f32;
     let f = 1usize << finest;
     let (cw, ch) = (fwd.width, fwd.height);
@@ -509,8 +431,6 @@ fn dense_disparity_impl(
             })
             .collect()
     };
-    // Away from depth discontinuities the wider tolerance applies (see
-    // `lr_tolerance_smooth`), judged on each field at its level.
     let smooth_of = |field: &[f32]| -> Option<Vec<bool>> {
         (params.lr_tolerance_smooth > params.lr_tolerance).then(|| {
             reassign::near_discontinuity(
@@ -526,11 +446,10 @@ fn dense_disparity_impl(
             .collect()
         })
     };
-    let smooth: Option<Vec<bool>> = bwd.as_ref().and_then(|_| smooth_of(&fwd.u));
+    let smooth: Option<Vec<bool>> = matched.bwd.as_ref().and_then(|_| smooth_of(&fwd.u));
     let tolerances = (params.lr_tolerance, params.lr_tolerance_smooth);
-    // Both fields' left–right checks at their level, each on the grid of the
-    // image it starts from.
-    let level_rejected = bwd.as_ref().map(|bw| {
+    // Both fields' checks, each on the grid of the image it starts from.
+    let rejected = matched.bwd.as_ref().map(|bw| {
         let img = |d: &[f32]| Image::from_vec(cw, ch, d.to_vec()).expect("level size");
         let (fu, fv, bu, bv) = (img(&fwd.u), img(&fwd.v), img(&bw.u), img(&bw.v));
         let level_tolerances = (tolerances.0 / scale, tolerances.1 / scale);
@@ -548,37 +467,44 @@ fn dense_disparity_impl(
         );
         (to_canvas(&forward), to_canvas(&backward))
     });
-    let smooth = smooth.map(|s| to_canvas(&s));
-    // A pixel that fails the check at the matcher's level has no match the
-    // refinement could start from (occluded, or out of the other image's
-    // view); it takes no part in the refinement, so that the flow the
-    // matcher's smoothness left there does not spread into its neighbours'
-    // windows (Potamogeton 0°/9°: a 20-pixel ramp of the backward flow beside
-    // the edge of the field of view, which the check then rejected).
+    MatcherCheck {
+        smooth: smooth.map(|s| to_canvas(&s)),
+        rejected,
+    }
+}
+
+/// Both fields to full resolution: refined on the intensities (Lucas–Kanade) or upsampled.
+/// A pixel that fails the check at the matcher's level has no match the refinement could start
+/// from (occluded, or out of the other image's view); it takes no part in the refinement, so
+/// that the flow the matcher's smoothness left there does not spread into its neighbours'
+/// windows. The backward field serves the check within `lr_tolerance`: it is refined at the
+/// finest BP level only, then upsampled.
+fn refine_to_full_resolution(
+    inputs: &Inputs,
+    matched: Matched,
+    check: &MatcherCheck,
+    params: &DenseParams,
+) -> (RefinedFlow, Option<RefinedFlow>) {
     let refinable = |valid: &[bool], rejected: Option<&Vec<bool>>| -> Vec<bool> {
         match rejected {
             Some(r) => valid.iter().zip(r).map(|(v, r)| *v && !*r).collect(),
             None => valid.to_vec(),
         }
     };
-    let ra = refinable(&va, level_rejected.as_ref().map(|r| &r.0));
-    let rb = refinable(&vb, level_rejected.as_ref().map(|r| &r.1));
-    let matching_rejected = level_rejected.map(|r| r.0);
-    let (fwd_full, bwd_full) = rayon::join(
-        || sift_flow::to_full_resolution(&a, &b, Some(&ra), Some(&vb), fwd, finest, 0, refine),
+    let ra = refinable(&inputs.va, check.rejected.as_ref().map(|r| &r.0));
+    let rb = refinable(&inputs.vb, check.rejected.as_ref().map(|r| &r.1));
+    let refine = params.flow.refinement();
+    let Matched { fwd, bwd, finest } = matched;
+    let (a, b) = (&inputs.a, &inputs.b);
+    rayon::join(
+        || sift_flow::to_full_resolution(a, b, Some(&ra), Some(&inputs.vb), fwd, finest, 0, refine),
         || {
             bwd.map(|bw| {
-                // Refined at the finest BP level only, then upsampled: the
-                // backward field serves the check, within `lr_tolerance`
-                // (2 px), and its confidence; on the 16 simulated cases the
-                // figures move by ±0.01 px but for grid 1024×768 (coverage
-                // 68.6 → 67.1 %, median 0.64 → 0.60 px), for 15 % less CPU
-                // time and 90 MB less at 1280×960.
                 sift_flow::to_full_resolution(
-                    &b,
-                    &a,
+                    b,
+                    a,
                     Some(&rb),
-                    Some(&va),
+                    Some(&inputs.va),
                     bw,
                     finest,
                     finest,
@@ -586,37 +512,58 @@ fn dense_disparity_impl(
                 )
             })
         },
-    );
-    let refine_ms = ms(tr);
+    )
+}
 
-    let u = Image::from_vec(w, h, fwd_full.u).expect("flow has the canvas size");
-    let v = Image::from_vec(w, h, fwd_full.v).expect("flow has the canvas size");
+/// The disparity that passed the left–right check, with its confidence.
+struct Consistent {
+    /// Horizontal flow, `NaN` where rejected, unknown or landing outside the right image.
+    raw: Image,
+    vertical: Image,
+    confidence: Image,
+    rejected: Vec<bool>,
+    rejected_by_matching: Option<Vec<bool>>,
+    flow_stats: FlowStats,
+    ncc: Vec<f32>,
+    clamped: Vec<bool>,
+}
+
+/// The left–right consistency of the refined fields (together with the matcher-level check)
+/// and a confidence per pixel: the matcher's margin, the refinement's NCC (a tenth where it hit
+/// its step bound) and the agreement of both directions.
+fn left_right_consistency(
+    inputs: &Inputs,
+    (fwd, bwd): (RefinedFlow, Option<RefinedFlow>),
+    margin: &[f32],
+    check: MatcherCheck,
+    params: &DenseParams,
+) -> Consistent {
+    let (w, h) = (inputs.w, inputs.h);
+    let (va, vb) = (&inputs.va, &inputs.vb);
+    let RefinedFlow { u, v, ncc, clamped } = fwd;
+    let u = Image::from_vec(w, h, u).expect("flow has the canvas size");
+    let v = Image::from_vec(w, h, v).expect("flow has the canvas size");
     let flow_stats = FlowStats::of(&u, &v);
-
-    // Consistency and confidence.
-    let tc = Instant::now();
-    progress(Stage::Consistency);
+    let alpha = params.flow.alpha.max(1e-6);
     let ambiguity: Vec<f32> = margin
         .iter()
-        .zip(&fwd_full.ncc)
-        .zip(&fwd_full.clamped)
+        .zip(&ncc)
+        .zip(&clamped)
         .map(|((&m, &c), &cl)| {
             let a = 1.0 - (-m / alpha).exp();
             a * c * if cl { 0.1 } else { 1.0 }
         })
         .collect();
-    let (rejected, agreement) = match &bwd_full {
+    let tolerances = (params.lr_tolerance, params.lr_tolerance_smooth);
+    let rejected_by_matching = check.rejected.map(|r| r.0);
+    let (rejected, agreement) = match &bwd {
         Some(bw) => {
             let ur = Image::from_vec(w, h, bw.u.clone()).expect("flow has the canvas size");
             let vr = Image::from_vec(w, h, bw.v.clone()).expect("flow has the canvas size");
             let residual = left_right_residual(&u, &v, &ur, &vr);
             // The agreement's scale is the strict tolerance everywhere, also
             // where `lr_tolerance_smooth` accepts a larger residual: the
-            // residual is evidence against the match wherever it lies. Scaling
-            // by each pixel's own tolerance gives such pixels more weight in
-            // the bilateral filter and is slightly worse on the simulated
-            // 640×480 cases (grid > 1 px 5.3 → 5.5 %, particles RMSE 5.13 →
-            // 5.16 % of the relief, dome unchanged).
+            // residual is evidence against the match wherever it lies.
             let tol = params.lr_tolerance.max(1e-3);
             let agreement: Vec<f32> = residual
                 .data()
@@ -629,8 +576,8 @@ fn dense_disparity_impl(
                     }
                 })
                 .collect();
-            let refined = reject_beyond(&residual, tolerances, smooth.as_deref());
-            let rejected = match &matching_rejected {
+            let refined = reject_beyond(&residual, tolerances, check.smooth.as_deref());
+            let rejected = match &rejected_by_matching {
                 Some(m) => refined.iter().zip(m).map(|(a, b)| *a || *b).collect(),
                 None => refined,
             };
@@ -638,7 +585,7 @@ fn dense_disparity_impl(
         }
         None => (vec![false; w * h], vec![1.0; w * h]),
     };
-    let mut raw = u.clone();
+    let mut raw = u;
     let mut confidence = Image::zeros(w, h);
     raw.data_mut()
         .par_iter_mut()
@@ -659,17 +606,38 @@ fn dense_disparity_impl(
                 *c = ambiguity[p] * agreement[p];
             }
         });
-    let consistency_ms = ms(tc);
+    Consistent {
+        raw,
+        vertical: v,
+        confidence,
+        rejected,
+        rejected_by_matching,
+        flow_stats,
+        ncc,
+        clamped,
+    }
+}
 
-    let tf = Instant::now();
-    progress(Stage::Filter);
+/// The filtered disparity.
+struct Filtered {
+    disparity: Image,
+    filled: Vec<bool>,
+    /// Pixels with a disparity before the filter (measured or filled).
+    known: usize,
+    grid: GridInfo,
+}
+
+/// The bilateral-grid filter of the disparity (paper §2.4), after the optional fill of short
+/// gaps along the rows; measured pixels weigh by their confidence, fills hardly at all.
+fn bilateral_filtering(
+    raw: &Image,
+    confidence: &Image,
+    va: &[bool],
+    params: &DenseParams,
+) -> Filtered {
     let mut to_filter = raw.clone();
-    let filled = fill_row_gaps(
-        &mut to_filter,
-        &va,
-        if improved { params.fill_max_gap } else { 0 },
-    );
-    let weights = improved.then(|| {
+    let filled = fill_row_gaps(&mut to_filter, va, params.fill_max_gap);
+    let weights = params.weighted_filter.then(|| {
         let mut wt = confidence.clone();
         for (c, _) in wt.data_mut().iter_mut().zip(&filled).filter(|(_, f)| **f) {
             *c = FILLED_WEIGHT;
@@ -677,59 +645,12 @@ fn dense_disparity_impl(
         wt
     });
     let (disparity, grid) = bilateral_filter(&to_filter, weights.as_ref(), &params.bilateral);
-    let filter_ms = ms(tf);
-
-    let known = to_filter.data().iter().filter(|d| d.is_finite()).count();
-    let n_filled = filled.iter().filter(|&&f| f).count();
-    let n_rejected = va.iter().zip(&rejected).filter(|(v, r)| **v && **r).count();
-    let n_rejected_matching = matching_rejected
-        .as_ref()
-        .map_or(0, |m| va.iter().zip(m).filter(|(v, r)| **v && **r).count());
-    let n_clamped = va
-        .iter()
-        .zip(&fwd_full.clamped)
-        .filter(|(v, c)| **v && **c)
-        .count();
-    let ncc_sum: f64 = va
-        .iter()
-        .zip(&fwd_full.ncc)
-        .filter(|(v, _)| **v)
-        .map(|(_, &c)| f64::from(c))
-        .sum();
-    let stats = DenseStats {
-        mode: params.mode,
-        levels: fwd_levels,
-        levels_right_to_left: bwd_levels,
-        flow: flow_stats,
-        coverage: known as f64 / n_valid as f64,
-        filled_fraction: n_filled as f64 / n_valid as f64,
-        rejected_fraction: n_rejected as f64 / n_valid as f64,
-        rejected_by_matching_fraction: n_rejected_matching as f64 / n_valid as f64,
-        reassigned_fraction,
-        finest_level: finest,
-        levels_used: params.levels,
-        search_centre_px: top_shift,
-        refine_clamped_fraction: n_clamped as f64 / n_valid as f64,
-        refine_mean_ncc: ncc_sum / n_valid as f64,
-        grid,
-        timings: DenseTimings {
-            matching_ms,
-            reassign_ms,
-            refine_ms,
-            consistency_ms,
-            filter_ms,
-            total_ms: ms(t0),
-        },
-    };
-    Ok(Disparity {
+    Filtered {
         disparity,
-        raw,
-        vertical: v,
-        confidence,
-        occluded: rejected,
+        known: to_filter.data().iter().filter(|d| d.is_finite()).count(),
         filled,
-        stats,
-    })
+        grid,
+    }
 }
 
 /// [`reassign::reassign`] of both SIFT-flow fields at their own pyramid
@@ -783,8 +704,8 @@ fn reassign_fields(
         eligible(&bwd.u, &source_b, &mb),
     );
     let (ka, kb) = (
-        super::subpixel::range_key(ia.data(), w, h),
-        super::subpixel::range_key(ib.data(), w, h),
+        crate::vision::filter::cross_grid::range_key(ia.data(), w, h),
+        crate::vision::filter::cross_grid::range_key(ib.data(), w, h),
     );
     let (rf, rb) = rayon::join(
         || {
@@ -816,13 +737,12 @@ fn reassign_fields(
 mod tests {
     use super::*;
     use crate::eval::synthetic::{Layer, Texture, dome, raised_band, render};
+    use crate::vision::Preset;
 
-    fn small_params(mode: Mode) -> DenseParams {
-        DenseParams {
-            mode,
-            levels: 3,
-            ..DenseParams::default()
-        }
+    fn small_params(preset: Preset) -> DenseParams {
+        let mut p = DenseParams::preset(preset);
+        p.flow.levels = 3;
+        p
     }
 
     fn errors(d: &Image, truth: &Image, visible: &[bool]) -> (Vec<f32>, usize) {
@@ -851,7 +771,7 @@ mod tests {
             &pair.right,
             None,
             None,
-            &small_params(Mode::Improved),
+            &small_params(Preset::Improved),
         )
         .unwrap();
         let (e, n) = errors(&out.raw, &pair.disparity, &pair.visible);
@@ -864,7 +784,7 @@ mod tests {
             &pair.right,
             None,
             None,
-            &small_params(Mode::Paper),
+            &small_params(Preset::Paper),
         )
         .unwrap();
         let (ep, np) = errors(&paper.raw, &pair.disparity, &pair.visible);
@@ -909,7 +829,7 @@ mod tests {
             &pair.right,
             None,
             None,
-            &small_params(Mode::Improved),
+            &small_params(Preset::Improved),
         )
         .unwrap();
         (w, h, pair, out)
@@ -954,7 +874,7 @@ mod tests {
         let (w, h, pair, plain) = improved_on_occluded_band();
         assert!(!plain.filled.contains(&true));
         assert_eq!(plain.stats.filled_fraction, 0.0);
-        let mut params = small_params(Mode::Improved);
+        let mut params = small_params(Preset::Improved);
         params.fill_max_gap = 64;
         let out = dense_disparity(&pair.left, &pair.right, None, None, &params).unwrap();
         let filled: Vec<usize> = (0..w * h).filter(|&p| out.filled[p]).collect();
@@ -1030,7 +950,7 @@ mod tests {
         let pair = occluded_band_pair(w, h);
         let params = DenseParams {
             lr_tolerance_smooth: 100.0,
-            ..small_params(Mode::Improved)
+            ..small_params(Preset::Improved)
         };
         let out = dense_disparity(&pair.left, &pair.right, None, None, &params).unwrap();
         let interior = |p: usize| {
@@ -1057,13 +977,13 @@ mod tests {
         let (w, h) = (320, 192);
         let pair = occluded_band_pair(w, h);
         let run_with = |enabled: bool, edge_truncation: bool| {
-            let mut params = small_params(Mode::Improved);
+            let mut params = small_params(Preset::Improved);
             params.reassign.enabled = enabled;
             // The check's own tolerance alone, so that only the
             // re-assignment differs.
             params.lr_tolerance_smooth = params.lr_tolerance;
             if !edge_truncation {
-                params.edge_d = params.d;
+                params.flow.edge_d = params.flow.d;
             }
             dense_disparity(&pair.left, &pair.right, None, None, &params).unwrap()
         };
@@ -1076,8 +996,8 @@ mod tests {
         assert_eq!(off.stats.reassigned_fraction, 0.0);
         // It works on the SIFT-flow fields, so it does not depend on the
         // intensity refinement being on.
-        let mut unrefined = small_params(Mode::Improved);
-        unrefined.refine.iterations = 0;
+        let mut unrefined = small_params(Preset::Improved);
+        unrefined.flow.refine.iterations = 0;
         let plain = dense_disparity(&pair.left, &pair.right, None, None, &unrefined).unwrap();
         assert!(plain.stats.reassigned_fraction > 0.0);
         let masked = |d: &Disparity| {
@@ -1129,7 +1049,7 @@ mod tests {
             over(&e_on)
         );
         // Out-of-range parameters are refused by name.
-        let mut bad = small_params(Mode::Improved);
+        let mut bad = small_params(Preset::Improved);
         bad.reassign.window_step = 0;
         match dense_disparity(&pair.left, &pair.right, None, None, &bad) {
             Err(DenseError::InvalidParameter { name, .. }) => {
@@ -1155,7 +1075,7 @@ mod tests {
             &pair.right,
             None,
             None,
-            &small_params(Mode::Improved),
+            &small_params(Preset::Improved),
         )
         .unwrap();
         let (e, n) = errors(&out.disparity, &pair.disparity, &pair.visible);
@@ -1203,11 +1123,8 @@ mod tests {
             0.2,
             0.01,
         );
-        for mode in [Mode::Paper, Mode::Improved] {
-            let params = DenseParams {
-                mode,
-                ..DenseParams::default()
-            };
+        for mode in [Preset::Paper, Preset::Improved] {
+            let params = DenseParams::preset(mode);
             let t = Instant::now();
             let out = dense_disparity(&pair.left, &pair.right, None, None, &params).unwrap();
             let (e, n) = errors(&out.disparity, &pair.disparity, &pair.visible);

@@ -13,7 +13,7 @@
 
 use rayon::prelude::*;
 
-use crate::vision::dense_sift::{DescriptorImage, l1_distance};
+use crate::vision::dense::dense_sift::{DescriptorImage, l1_distance};
 
 /// Parameters of eq. (10) at one pyramid level.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -527,7 +527,7 @@ mod tests {
     #[test]
     fn pixels_without_a_data_term_cost_nothing_and_stay_out_of_the_median() {
         use crate::vision::Image;
-        use crate::vision::dense_sift::{DenseSiftParams, dense_sift};
+        use crate::vision::dense::dense_sift::{DenseSiftParams, dense_sift};
         let (w, h) = (20, 12);
         let img = Image::from_vec(
             w,

@@ -19,18 +19,16 @@
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::Image;
+use super::blur::BINOMIAL_5 as KERNEL;
+use crate::vision::Image;
 
 /// Parameters of the bilateral filter of the disparity (SD-SEM §2.4).
-///
-/// | parameter | default | effect |
-/// | --- | --- | --- |
-/// | `sigma_s` | 3 | spatial σ, pixels: larger smooths over a wider area |
-/// | `sigma_r` | 3 | range σ, disparity pixels: disparity steps much larger than this are kept sharp |
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct BilateralParams {
+    /// Spatial σ, pixels: larger smooths over a wider area.
     pub sigma_s: f32,
+    /// Range σ, disparity pixels: steps much larger than this stay sharp.
     pub sigma_r: f32,
 }
 
@@ -48,9 +46,6 @@ impl Default for BilateralParams {
 const MAX_RANGE_CELLS: usize = 512;
 /// Cells of padding on every side, so the 5-tap blur never meets a border.
 const PAD: usize = 2;
-/// The binomial kernel [1 4 6 4 1]/16 (variance one cell²), also the blur of
-/// the refinement's cross-bilateral grid.
-pub(super) const KERNEL: [f32; 5] = [1.0 / 16.0, 4.0 / 16.0, 6.0 / 16.0, 4.0 / 16.0, 1.0 / 16.0];
 
 /// The shape of the grid used, for the report.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]

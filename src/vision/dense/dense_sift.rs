@@ -17,7 +17,7 @@
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::Image;
+use crate::vision::Image;
 
 /// Length of one descriptor: 4 × 4 cells × 8 orientations.
 pub const DESCRIPTOR_LEN: usize = 128;
@@ -28,14 +28,10 @@ const N_BINS: usize = 8;
 const NORM_EPSILON: f32 = 1e-4;
 
 /// Parameters of the dense descriptor.
-///
-/// | parameter | default | effect |
-/// | --- | --- | --- |
-/// | `cell_size` | 3 | side of one of the 4 × 4 cells, pixels; the descriptor spans `4 · cell_size` pixels. Larger is more robust on weak texture, blurs depth edges. |
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct DenseSiftParams {
-    /// Cell size in pixels (reference code: 3).
+    /// Side of one of the 4 × 4 cells, pixels (reference code 3): larger is steadier on weak texture, blurs depth edges.
     pub cell_size: usize,
 }
 

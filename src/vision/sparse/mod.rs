@@ -2,7 +2,7 @@
 //! call: SIFT in both micrographs → ratio-test matching → ORSA fundamental matrix →
 //! quasi-Euclidean rectification → (optionally) both images warped onto one canvas.
 //!
-//! # Beyond the paper ([`SparseParams::paper`] turns the first three off)
+//! # Beyond the paper (the paper preset, [`SparseParams::preset`], turns the first three off)
 //! - Half Lowe's DoG threshold (capped at 2000 keypoints): more true matches on weakly textured
 //!   and repetitive specimens.
 //! - The ORSA inliers' right positions refined to sub-pixel accuracy ([`refine`]) before the
@@ -35,16 +35,20 @@ use nalgebra::{Matrix3, Vector2};
 use serde::{Deserialize, Serialize};
 
 use crate::vision::Image;
-use crate::vision::fundamental::FundamentalModel;
-use crate::vision::matching::{MatchParams, match_keypoints};
-use crate::vision::orsa::{ModelFilter, OrsaError, OrsaParams, orsa_filtered};
+use crate::vision::rectify::warp::{Warped, warp};
 use crate::vision::rectify::{
     Rectification, RectifyError, RectifyParams, epipolar_direction, rectify,
 };
-use crate::vision::sift::{SiftParams, SiftParamsError, sift};
-use crate::vision::warp::{Warped, warp};
+use crate::vision::sparse::fundamental::FundamentalModel;
+use crate::vision::sparse::matching::{MatchParams, match_keypoints};
+use crate::vision::sparse::orsa::{ModelFilter, OrsaError, OrsaParams, orsa_filtered};
+use crate::vision::sparse::sift::{SiftParams, SiftParamsError, sift};
 
+pub mod fundamental;
+pub mod matching;
+pub mod orsa;
 pub mod refine;
+pub mod sift;
 pub use refine::RefineParams;
 
 /// Parameters of the sparse stage.
@@ -93,15 +97,17 @@ impl Default for SparseParams {
 }
 
 impl SparseParams {
-    /// The paper's path (Baghaie et al. 2017 with Monasse's rectification): Lowe's DoG
-    /// threshold, SIFT positions straight into the rectification (no sub-pixel refinement),
-    /// least squares only (no robust pass). The rest as [`SparseParams::default`].
+    /// The parameters of a preset. The paper's path (Baghaie et al. 2017 with Monasse's
+    /// rectification): Lowe's DoG threshold, SIFT positions straight into the rectification
+    /// (no sub-pixel refinement), least squares only (no robust pass); the rest as improved.
     #[must_use]
-    pub fn paper() -> Self {
+    pub fn preset(preset: crate::vision::Preset) -> Self {
         let mut p = Self::default();
-        p.sift.c_dog = 0.04 / 3.0;
-        p.refine.enabled = false;
-        p.rectify.cauchy_scale_px = 0.0;
+        if preset == crate::vision::Preset::Paper {
+            p.sift.c_dog = 0.04 / 3.0;
+            p.refine.enabled = false;
+            p.rectify.cauchy_scale_px = 0.0;
+        }
         p
     }
 }
@@ -399,7 +405,7 @@ struct Stage<'a> {
 
 /// ORSA's model, its inliers (right positions refined) and their rectification.
 struct Geometry {
-    orsa: crate::vision::orsa::OrsaResult,
+    orsa: crate::vision::sparse::orsa::OrsaResult,
     left: Vec<Vector2<f64>>,
     right: Vec<Vector2<f64>>,
     refined: usize,
@@ -549,9 +555,9 @@ impl Stage<'_> {
 /// otherwise count several times in ORSA (inflating the NFA's evidence) and can make minimal
 /// samples degenerate.
 fn distinct_positions(
-    kl: &[crate::vision::sift::Keypoint],
-    kr: &[crate::vision::sift::Keypoint],
-    matches: &[crate::vision::matching::Match],
+    kl: &[crate::vision::sparse::sift::Keypoint],
+    kr: &[crate::vision::sparse::sift::Keypoint],
+    matches: &[crate::vision::sparse::matching::Match],
 ) -> (Vec<Vector2<f64>>, Vec<Vector2<f64>>, Vec<f64>) {
     let mut seen = std::collections::HashSet::new();
     let (mut pl, mut pr, mut sigmas) = (Vec::new(), Vec::new(), Vec::new());
@@ -600,8 +606,8 @@ pub fn rectify_pair(
 #[cfg(test)]
 pub(crate) mod tests {
     use super::*;
+    use crate::vision::filter::blur::gaussian_blur;
     use crate::vision::rectify::transform;
-    use crate::vision::sift::scale_space::gaussian_blur;
     use rand::{Rng, SeedableRng};
 
     /// A parallel-projection (SEM) pair of a textured surface with a bump, after DESIGN §3's

@@ -29,39 +29,29 @@
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::Image;
+use crate::vision::Image;
 
-/// Parameters of [`reassign`], in pixels of the grid it runs on (the dense
-/// stage: the finest BP level, half resolution by default).
-///
-/// | parameter | default | effect |
-/// | --- | --- | --- |
-/// | `enabled` | true | false: the fields are left as BP found them |
-/// | `window_radius` | 4 | half-width of the matching window |
-/// | `window_step` | 2 | sample spacing inside the window (1 on the simulated grids: RMSE −0.1 point, coverage +0.4–0.7 point, for four times the taps) |
-/// | `window_sigma` | 2.0 | σ of the window's spatial weight |
-/// | `range_sigma` | 0.5 | σ of its intensity weight, standard deviations of the image (0 = spatial weight only) |
-/// | `reach` | 16 | farthest candidate (candidates at 2, 4, 8, … up to it, in eight directions) |
-/// | `band` | 1.0 | flow gradient (px per px) above which a pixel is taken for a depth step |
-/// | `band_radius` | 3 | pixels within this distance of a masked pixel or of a depth step are examined |
-/// | `min_gain` | 1.0 | a reliable pixel keeps its own flow unless a candidate costs less than this times its own (1: the best candidate wins) |
-///
-/// Measured on the simulated grids: with the squared-difference cost of an
-/// earlier version, reach 32, band radius 6, window radius 3 or 6, range σ 1
-/// or band 0.5 moved no figure by more than 0.4 point; with the correlation,
-/// `min_gain` 0.8 / 0.5 gain 0.2–1.3 points of coverage for RMSE up to
-/// +0.4 point and > 1 px up to +0.8 point.
+/// Parameters of [`reassign`], in pixels of the grid it runs on (the finest BP level).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct ReassignParams {
+    /// Re-assign; false leaves the fields as BP found them (paper false).
     pub enabled: bool,
+    /// Half-width of the matching window.
     pub window_radius: usize,
+    /// Sample spacing inside the window.
     pub window_step: usize,
+    /// σ of the window's spatial weight.
     pub window_sigma: f32,
+    /// σ of its intensity weight, standard deviations of the image (0 = spatial weight only).
     pub range_sigma: f32,
+    /// Farthest candidate (at 2, 4, 8, … up to it, in eight directions).
     pub reach: usize,
+    /// Flow gradient (px per px) above which a pixel is taken for a depth step.
     pub band: f32,
+    /// Pixels within this distance of a masked pixel or of a depth step are examined.
     pub band_radius: usize,
+    /// A reliable pixel keeps its flow unless a candidate costs less than this times its own.
     pub min_gain: f32,
 }
 
@@ -422,7 +412,7 @@ pub fn reassign(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::vision::subpixel::range_key;
+    use crate::vision::filter::cross_grid::range_key;
 
     /// Blurred uniform noise (3×3 box), deterministic.
     fn noise(w: usize, h: usize, seed: u64) -> Vec<f32> {

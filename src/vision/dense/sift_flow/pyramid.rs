@@ -8,9 +8,8 @@
 use rayon::prelude::*;
 
 use crate::vision::Image;
-use crate::vision::dense_sift::{DESCRIPTOR_LEN, DescriptorImage};
-
-const BINOMIAL: [f32; 5] = [1.0 / 16.0, 4.0 / 16.0, 6.0 / 16.0, 4.0 / 16.0, 1.0 / 16.0];
+use crate::vision::dense::dense_sift::{DESCRIPTOR_LEN, DescriptorImage};
+use crate::vision::filter::blur::BINOMIAL_5 as BINOMIAL;
 
 /// Size of the next coarser level.
 #[must_use]

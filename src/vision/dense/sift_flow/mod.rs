@@ -8,110 +8,26 @@
 
 pub mod bp;
 pub mod energy;
+mod params;
 pub mod pyramid;
+pub mod subpixel;
+
+pub(crate) use self::params::check_size;
+pub use self::params::{DescriptorPyramid, FlowParams, WarmStartGrids, level_cell_size};
+use self::params::{LevelPlan, MIN_STRIP_ROWS};
 
 use std::time::Instant;
 
-use serde::{Deserialize, Serialize};
+use serde::Serialize;
 
-use self::bp::{DualLayerBp, MAX_STATES};
+use self::bp::DualLayerBp;
 use self::energy::{DataTerm, EnergyWeights, LabelSpace};
-use super::Image;
-use super::dense::DenseError;
-use super::dense_sift::{DenseSiftParams, DescriptorImage, dense_sift, dense_sift_where};
-use super::subpixel::{RefineParams, RefinedFlow, refine_flow_down_to, upsample_flow};
-use crate::progress::{Observer, Stage, unobserved};
-
-/// Which pipeline to run.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum Mode {
-    /// The SD-SEM paper's pipeline as published (Liu et al.'s public code):
-    /// descriptors computed once at full resolution and their images blurred
-    /// and subsampled for the pyramid, integer flow, no occlusion handling.
-    Paper,
-    /// This implementation's improvements: descriptors recomputed on each
-    /// level of an image pyramid, sub-pixel flow, and for stereo a left–right
-    /// consistency check, confidence-weighted filtering.
-    #[default]
-    Improved,
-}
-
-/// Parameters of SIFT flow, names as in eq. (10) and the reference code.
-///
-/// | parameter | default | effect |
-/// | --- | --- | --- |
-/// | `mode` | `improved` | `paper` reproduces the published pipeline (see [`Mode`]) |
-/// | `cell_size` | 3 | dense SIFT cell, pixels (descriptor spans 4 cells) |
-/// | `keep_cell_extent` | true | improved mode: the levels above the finest BP level compute their descriptors with the cell of the same extent in full-resolution pixels, `cell_size / 2^k` `k` levels up (rounded, at least 1), as the paper's descriptor pyramid keeps it; false = `cell_size` pixels of every level (see [`level_cell_size`]) |
-/// | `alpha` | 2·255 | α, slope of the truncated L1 smoothness: larger is smoother |
-/// | `d` | 40·255 | truncation of the smoothness: lower keeps flow discontinuities sharper |
-/// | `finest_alpha_scale` | 4 | improved mode: α at the finest BP level is this many times `alpha` (the levels above keep `alpha`, which must let the flow jump between the bars of tall structures). There the flow searches ±`window` labels around the upsampled one, and a stronger pull between neighbours removes the label speckle on which the forward and backward fields disagree in weakly textured areas. 1 → 4: Potamogeton pairs agree over 71.5/66.4/65.0 → 79.8/73.5/72.6 % of the image at the same RMSE (0.73/0.72/0.40 → 0.74/0.72/0.40 µm); on the 16 simulated cases the targets met stay the same (grid 640×480 > 1 px 4.3 → 4.7 %, dome 1024×768 1.3 → 1.5 %, the rest within ±0.1 point), RubberWhale EPE 0.135 px either way. α itself raised instead (×2 at every level) breaks the grid at 1024×768 (RMSE 3.4 → 11.4 % at ×4 α) |
-/// | `finest_d` | none | improved mode: truncation of the smoothness at the finest BP level; none = `d`. Lower lets the flow step sharply at walls (a step of `finest_d / (alpha · finest_alpha_scale)` labels or more costs the same as any larger one) but frees label speckle on weakly textured surface: 2550 (1.25 labels) takes the simulated grid 1024×768 from 3.5 to 2.6 % of pixels off by more than 1 px and grid 640×480's median from 0.204 to 0.196 px, and costs the Potamogeton pairs 3.7–3.9 points of the image where they agree (86.6/80.8/80.3 → 82.9/77.2/76.4 %), measured against `d` with `edge_d` off (a `finest_d` at or below `edge_d` switches `edge_d` off; the contrast-sensitive `edge_d` keeps most of the gain at a tenth of the loss) |
-/// | `edge_d` | 2550 | improved mode, finest BP level: the truncation on the edges between pixels whose intensities differ strongly, where depth steps lie (contrast-sensitive: `edge_d + (d′ − edge_d)·exp(−(ΔI / (edge_contrast · median ΔI))²)`, `d′` = `finest_d` or `d`; `edge_d` ≥ `d′` switches it off). The flow steps sharply at walls without the label speckle a uniformly low truncation frees on weakly textured surface (see `finest_d`): simulated grid 1024×768 > 1 px 3.5 → 2.9 %, grid 640×480 median 0.204 → 0.198 px and RMSE 6.3 → 5.8 % of the relief, grid 1280×960 coverage 89.3 → 89.1 %; the Potamogeton pairs agree over 86.6/80.8/80.3 → 86.3/80.3/79.9 % of the image at the same RMSE; RubberWhale EPE 0.135 px either way |
-/// | `edge_contrast` | 2 | improved mode: the intensity difference, in medians of all neighbour differences of the image, at which `edge_d` takes over (3: grid 1024×768 > 1 px 3.1 %) |
-/// | `gamma` | 0.005·255 | η, weight of the small-displacement term \|u\| + \|v\| (doubled per coarser level) |
-/// | `t` | none | truncation of the data term; none = plain L1 as the reference code |
-/// | `levels` | 4 | pyramid levels (the top is 1/2^(levels−1) of the image) |
-/// | `top_window` | 10 | half search window at the top level, top-level pixels |
-/// | `window` | 2 | half search window around the upsampled flow at the finest BP level |
-/// | `middle_window` | none | half search window at the levels between the top and the finest BP level; none = `window` (paper) or [`IMPROVED_MIDDLE_WINDOW`] (improved) |
-/// | `top_iterations` | none | BP iterations at the top level; none = 60 (paper) or 20 (improved) |
-/// | `iterations` | none | BP iterations at the finest level (falling to 60 % at the coarsest but one); none = 30 (paper) or 8 (improved) |
-/// | `max_strips` | 4 | parallel row strips of the BP sweeps; 1 = strictly sequential BP-S |
-/// | `finest_level` | none | the finest pyramid level BP runs on; none = 0 (paper) or 1 (improved, where the intensity refinement takes the flow to full resolution) |
-/// | `refine` | see [`RefineParams`] | improved mode: Lucas–Kanade refinement of the flow on the intensities (`iterations = 0`: none) |
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct FlowParams {
-    pub mode: Mode,
-    pub cell_size: usize,
-    pub keep_cell_extent: bool,
-    pub alpha: f32,
-    pub finest_alpha_scale: f32,
-    pub d: f32,
-    pub finest_d: Option<f32>,
-    pub edge_d: f32,
-    pub edge_contrast: f32,
-    pub gamma: f32,
-    pub t: Option<f32>,
-    pub levels: usize,
-    pub top_window: usize,
-    pub window: usize,
-    pub middle_window: Option<usize>,
-    pub top_iterations: Option<usize>,
-    pub iterations: Option<usize>,
-    pub max_strips: usize,
-    pub finest_level: Option<usize>,
-    pub refine: RefineParams,
-}
-
-impl Default for FlowParams {
-    fn default() -> Self {
-        Self {
-            mode: Mode::default(),
-            cell_size: 3,
-            keep_cell_extent: true,
-            alpha: 2.0 * 255.0,
-            finest_alpha_scale: 4.0,
-            d: 40.0 * 255.0,
-            finest_d: None,
-            edge_d: 10.0 * 255.0,
-            edge_contrast: 2.0,
-            gamma: 0.005 * 255.0,
-            t: None,
-            levels: 4,
-            top_window: 10,
-            window: 2,
-            middle_window: None,
-            top_iterations: None,
-            iterations: None,
-            max_strips: 4,
-            finest_level: None,
-            refine: RefineParams::default(),
-        }
-    }
-}
+use super::error::DenseError;
+use crate::vision::Image;
+use crate::vision::dense::dense_sift::{
+    DenseSiftParams, DescriptorImage, dense_sift, dense_sift_where,
+};
+use crate::vision::dense::refine::{RefineParams, RefinedFlow, refine_flow_down_to, upsample_flow};
 
 /// What one pyramid level did (goes into report.json).
 #[derive(Debug, Clone, PartialEq, Serialize)]
@@ -187,93 +103,34 @@ impl FlowStats {
     }
 }
 
-/// Per-level plan of the coarse-to-fine engine.
-#[derive(Debug, Clone, Copy)]
-pub(crate) struct LevelPlan {
-    pub window: [usize; 2],
-    /// Dense SIFT cell of the level (improved mode), its pixels.
-    pub cell_size: usize,
-    pub iterations: usize,
-    /// Coarser grids of the multigrid BP initialisation.
-    pub hierarchy: usize,
-}
-
-/// Half search window of the improved mode between the top and the finest
-/// BP level. The top level cannot place a tall, steep-walled structure
-/// exactly (its descriptors mix the walls, seen on one side in each view),
-/// and a window of 2 cannot catch up level by level: on the simulated grid
-/// of 1024×768 at θ = 11° the bars stayed 7 px low (median error 2.26 px,
-/// RMSE 21 % of the relief); with 4, 0.64 px and 13.5 %, other scenes
-/// unchanged, for a few per cent more matching time (these levels are small).
-pub const IMPROVED_MIDDLE_WINDOW: usize = 4;
-
-/// The dense SIFT cell of pyramid level `l` in the improved mode, where each
-/// level computes its own descriptors: `cell_size` at the finest BP level
-/// `finest` and, with `keep_cell_extent`, the same extent in full-resolution
-/// pixels above it, `cell_size / 2^(l − finest)` rounded, at least 1 (the
-/// paper's descriptor pyramid keeps that extent too). A cell of fixed size in
-/// every level's pixels doubles the descriptor's footprint per level, so near
-/// a wall the coarse levels match descriptors that mostly see the wall, one
-/// side in each view. On the 16 simulated cases keeping the extent lifts the
-/// grids (1024×768: coverage 67.3 → 78.4 %, RMSE 8.3 → 5.7 % of the relief,
-/// median 0.32 → 0.24 px; 1280×960: 83.1 → 90.2 %, 7.6 → 6.8 %) and leaves
-/// the others within ±0.1 % RMSE; Potamogeton's pairs agree better (RMSE
-/// 0.86 / 1.03 / 0.51 → 0.83 / 0.85 / 0.45 µm).
-#[must_use]
-pub fn level_cell_size(cell_size: usize, l: usize, finest: usize, keep_cell_extent: bool) -> usize {
-    if !keep_cell_extent || l <= finest {
-        return cell_size;
-    }
-    let k = (l - finest).min(31) as i32;
-    #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
-    let c = (cell_size as f64 / 2f64.powi(k)).round() as usize;
-    c.max(1)
-}
-
-/// Multigrid grids below the top level in the improved mode (the upsampled
-/// flow already starts BP near the solution there).
-const IMPROVED_LOWER_HIERARCHY: usize = 3;
-
-/// Improved mode: BP at a coarser level stops once the labels of both layers
-/// have not changed for this many iterations (such a level hands on only its
-/// labels). On the 16 simulated cases, RubberWhale and the Potamogeton pairs
-/// every figure stays the same to the last digit (on the simulated cases with
-/// 2 as well), for 27 % fewer BP iterations over the 16 cases (528 → 386); at
-/// the top level of the 1280×960 pair 20 → 10 iterations, 188 → 114 ms.
-const SETTLED_ITERATIONS: usize = 3;
-
-/// BP iterations on each coarser grid of the multigrid initialisation in the
-/// improved mode (half the reference's: RubberWhale's EPE does not change).
-const IMPROVED_HIERARCHY_ITERATIONS: usize = 10;
-
-/// BP iterations on each coarser grid of the multigrid initialisation (reference code).
-const HIERARCHY_ITERATIONS: usize = 20;
-
-/// Everything the engine needs besides the images.
+/// The engine: the parameters and the plan of every level.
 #[derive(Debug, Clone)]
 pub(crate) struct Engine {
-    pub mode: Mode,
-    pub cell_size: usize,
-    pub alpha: f32,
-    /// α at the finest BP level is `alpha` times this (improved mode).
-    pub finest_alpha_scale: f32,
-    pub d: f32,
-    /// Truncation at the finest BP level (improved mode; none = `d`).
-    pub finest_d: Option<f32>,
-    /// Contrast-sensitive truncation at the finest BP level (improved mode):
-    /// the tight value and its intensity scale (see [`energy::contrast_truncation`]).
-    pub edge_d: f32,
-    pub edge_contrast: f32,
-    pub gamma: f32,
-    pub t: Option<f32>,
+    pub params: FlowParams,
     /// Finest first.
     pub plan: Vec<LevelPlan>,
-    pub max_strips: usize,
     /// The finest level BP runs on (0 = full resolution).
     pub finest: usize,
     /// Horizontal displacement the top level's window is centred on, from A
     /// to B, full-resolution pixels (B to A: the opposite); 0 = none.
     pub top_shift: f32,
+}
+
+impl Engine {
+    /// The engine of `params`; `vertical` as in [`FlowParams::plan`].
+    pub(crate) fn new(params: &FlowParams, vertical: Option<(usize, usize)>) -> Self {
+        Self {
+            params: *params,
+            plan: params.plan(vertical),
+            finest: params.finest(),
+            top_shift: 0.0,
+        }
+    }
+
+    /// Whether the contrast-sensitive truncation acts at the finest level, whose truncation is `d`.
+    fn edge_truncation(&self, d: f32) -> bool {
+        self.params.edge_d < d
+    }
 }
 
 /// The finest level's result of the engine.
@@ -289,191 +146,8 @@ pub(crate) struct EngineRun {
     pub levels: Vec<LevelReport>,
 }
 
-/// Rows per BP strip at least (strips below this height would lose more to
-/// late boundary messages than they gain).
-const MIN_STRIP_ROWS: usize = 48;
-/// Smallest side of the top level.
-const MIN_TOP_SIDE: usize = 8;
-
 fn ms(t: Instant) -> f64 {
     t.elapsed().as_secs_f64() * 1e3
-}
-
-impl FlowParams {
-    /// Iterations of level `l` (0 = finest) as the reference code spreads
-    /// them: the top gets `top_iterations`, the others fall linearly from
-    /// `iterations` at the finest to 60 % of it at the coarsest.
-    fn iterations_at(&self, l: usize) -> usize {
-        // With the multigrid warm start the energy barely moves after a few
-        // sweeps (RubberWhale: EPE 0.289 px with 30/60 iterations, 0.288 with 3/10).
-        let (fine, top) = match self.mode {
-            Mode::Paper => (30, 60),
-            Mode::Improved => (8, 20),
-        };
-        if l + 1 == self.levels {
-            return self.top_iterations.unwrap_or(top);
-        }
-        let n = self.iterations.unwrap_or(fine) as f64;
-        let frac = if self.levels > 1 {
-            l as f64 / (self.levels - 1) as f64
-        } else {
-            0.0
-        };
-        (n - 0.4 * n * frac).round() as usize
-    }
-
-    pub(crate) fn validate(&self) -> Result<(), DenseError> {
-        let bad = |name: &'static str, reason: &str| {
-            Err(DenseError::InvalidParameter {
-                name,
-                reason: reason.to_owned(),
-            })
-        };
-        let max_w = (MAX_STATES - 1) / 2;
-        if self.levels == 0 {
-            return bad("levels", "needs at least 1 pyramid level");
-        }
-        if self.cell_size == 0 {
-            return bad("cell_size", "must be at least 1 pixel");
-        }
-        if self.window > max_w
-            || self.top_window > max_w
-            || self.middle_window.is_some_and(|m| m > max_w)
-        {
-            return bad("window", "half windows are limited to 63 labels");
-        }
-        let usable = |v: f32| v.is_finite() && v >= 0.0;
-        if !(usable(self.alpha) && usable(self.d) && usable(self.gamma)) {
-            return bad("alpha/d/gamma", "must be finite and non-negative");
-        }
-        if !usable(self.finest_alpha_scale) || self.finest_alpha_scale > 100.0 {
-            return bad("finest_alpha_scale", "must be between 0 and 100");
-        }
-        if self.finest_d.is_some_and(|d| !usable(d)) {
-            return bad("finest_d", "must be finite and non-negative");
-        }
-        if !usable(self.edge_d) {
-            return bad("edge_d", "must be finite and non-negative");
-        }
-        if !(self.edge_contrast.is_finite() && self.edge_contrast > 0.0) {
-            return bad("edge_contrast", "must be a positive number");
-        }
-        if self.t.is_some_and(|t| t.is_nan() || t < 0.0) {
-            return bad("t", "must be non-negative");
-        }
-        if self.max_strips == 0 {
-            return bad("max_strips", "must be at least 1");
-        }
-        if self.finest_level.is_some_and(|f| f >= self.levels) {
-            return bad("finest_level", "must be below `levels`");
-        }
-        if let Some(name) = self.refine.invalid_field() {
-            return bad(name, "out of its range (see the parameter table)");
-        }
-        Ok(())
-    }
-
-    /// The half search window of the levels between the top and the finest.
-    #[must_use]
-    pub fn middle_window(&self) -> usize {
-        self.middle_window.unwrap_or(match self.mode {
-            Mode::Paper => self.window,
-            Mode::Improved => IMPROVED_MIDDLE_WINDOW.max(self.window),
-        })
-    }
-
-    /// The finest BP level of this mode.
-    #[must_use]
-    pub fn finest(&self) -> usize {
-        match self.mode {
-            Mode::Paper => self.finest_level.unwrap_or(0),
-            Mode::Improved => self.finest_level.unwrap_or(1),
-        }
-        .min(self.levels.saturating_sub(1))
-    }
-
-    /// The intensity refinement of this mode, if any.
-    #[must_use]
-    pub fn refinement(&self) -> Option<&RefineParams> {
-        (self.mode == Mode::Improved && self.refine.iterations > 0).then_some(&self.refine)
-    }
-
-    pub(crate) fn engine(&self, vertical: Option<(usize, usize)>) -> Engine {
-        let plan = (0..self.levels)
-            .map(|l| {
-                let top = l + 1 == self.levels;
-                let wu = if top {
-                    self.top_window
-                } else if l > self.finest() {
-                    self.middle_window()
-                } else {
-                    self.window
-                };
-                let wv = match vertical {
-                    Some((w_low, w_top)) => {
-                        if top {
-                            w_top
-                        } else {
-                            w_low
-                        }
-                    }
-                    None => wu,
-                };
-                LevelPlan {
-                    window: [wu, wv],
-                    cell_size: match self.mode {
-                        Mode::Paper => self.cell_size,
-                        Mode::Improved => {
-                            level_cell_size(self.cell_size, l, self.finest(), self.keep_cell_extent)
-                        }
-                    },
-                    iterations: self.iterations_at(l),
-                    // The reference code: 2 grids at the top, levels − 1 − l below.
-                    hierarchy: if top {
-                        2
-                    } else if self.mode == Mode::Paper {
-                        self.levels - 1 - l
-                    } else {
-                        IMPROVED_LOWER_HIERARCHY
-                    },
-                }
-            })
-            .collect();
-        Engine {
-            mode: self.mode,
-            cell_size: self.cell_size,
-            alpha: self.alpha,
-            finest_alpha_scale: self.finest_alpha_scale,
-            d: self.d,
-            finest_d: self.finest_d,
-            edge_d: self.edge_d,
-            edge_contrast: self.edge_contrast,
-            gamma: self.gamma,
-            t: self.t,
-            plan,
-            max_strips: self.max_strips,
-            finest: self.finest(),
-            top_shift: 0.0,
-        }
-    }
-}
-
-/// Checks that the top level of `levels` still has a usable size.
-pub(crate) fn check_size(w: usize, h: usize, levels: usize) -> Result<(), DenseError> {
-    let (mut tw, mut th) = (w, h);
-    for _ in 1..levels {
-        tw = pyramid::half_size(tw);
-        th = pyramid::half_size(th);
-    }
-    if tw < MIN_TOP_SIDE || th < MIN_TOP_SIDE {
-        return Err(DenseError::TooSmall {
-            width: w,
-            height: h,
-            levels,
-            min_top: MIN_TOP_SIDE,
-        });
-    }
-    Ok(())
 }
 
 /// The flow of the coarser level and its size.
@@ -561,44 +235,44 @@ impl Engine {
         valid_a: Option<&[bool]>,
         valid_b: Option<&[bool]>,
         both: bool,
-        progress: Observer<'_>,
     ) -> (EngineRun, Option<EngineRun>) {
         let levels = self.plan.len();
+        let p = &self.params;
         let sift = DenseSiftParams {
-            cell_size: self.cell_size,
+            cell_size: p.cell_size,
         };
         let sizes = level_sizes(a, b, levels);
         let masks_a = mask_pyramid(valid_a, a.width(), a.height(), levels);
         let masks_b = mask_pyramid(valid_b, b.width(), b.height(), levels);
 
-        // Paper: descriptors at full resolution, their images blurred and
-        // subsampled (reference code). Improved: an image pyramid, descriptors
-        // computed per level.
+        // Halved: descriptors at full resolution, their images blurred and
+        // subsampled (reference code). Per level: an image pyramid,
+        // descriptors computed on each level. The image pyramid also serves
+        // the contrast-sensitive truncation.
+        let halved = p.descriptors == DescriptorPyramid::Halved;
         let t0 = Instant::now();
         let mut desc_pyramid: Vec<(DescriptorImage, DescriptorImage)> = Vec::new();
         let mut img_pyramid: Vec<(Image, Image)> = Vec::new();
-        match self.mode {
-            Mode::Paper => {
-                desc_pyramid.push(rayon::join(
-                    || dense_sift(a, &sift),
-                    || dense_sift(b, &sift),
-                ));
-                for l in 1..levels {
-                    let (da, db) = &desc_pyramid[l - 1];
-                    let next = rayon::join(
-                        || pyramid::halve_descriptors(da),
-                        || pyramid::halve_descriptors(db),
-                    );
-                    desc_pyramid.push(next);
-                }
+        if halved {
+            desc_pyramid.push(rayon::join(
+                || dense_sift(a, &sift),
+                || dense_sift(b, &sift),
+            ));
+            for l in 1..levels {
+                let (da, db) = &desc_pyramid[l - 1];
+                let next = rayon::join(
+                    || pyramid::halve_descriptors(da),
+                    || pyramid::halve_descriptors(db),
+                );
+                desc_pyramid.push(next);
             }
-            Mode::Improved => {
-                img_pyramid.push((a.clone(), b.clone()));
-                for l in 1..levels {
-                    let (ia, ib) = &img_pyramid[l - 1];
-                    let next = (pyramid::halve_image(ia), pyramid::halve_image(ib));
-                    img_pyramid.push(next);
-                }
+        }
+        if !halved || self.edge_truncation(p.finest_d.unwrap_or(p.d)) {
+            img_pyramid.push((a.clone(), b.clone()));
+            for l in 1..levels {
+                let (ia, ib) = &img_pyramid[l - 1];
+                let next = (pyramid::halve_image(ia), pyramid::halve_image(ib));
+                img_pyramid.push(next);
             }
         }
         let pyramid_ms = ms(t0);
@@ -606,15 +280,11 @@ impl Engine {
         let mut fwd: Option<Direction> = None;
         let mut bwd: Option<Direction> = None;
         for l in (self.finest..levels).rev() {
-            progress(Stage::DenseLevel {
-                level: levels - l,
-                levels: levels - self.finest,
-            });
             let td = Instant::now();
             // This level's descriptors, owned: they are dropped once its data
-            // terms hold what BP needs of them (the paper mode's full-resolution
-            // pair alone is 256 bytes a canvas pixel).
-            let (da, db) = if self.mode == Mode::Paper {
+            // terms hold what BP needs of them (the halved pyramid's
+            // full-resolution pair alone is 256 bytes a canvas pixel).
+            let (da, db) = if halved {
                 // Built finest first, taken coarsest first.
                 desc_pyramid
                     .pop()
@@ -749,7 +419,7 @@ impl Engine {
             offset,
         };
         let tdata = Instant::now();
-        let data = DataTerm::compute(da, db, &space, mask_a, mask_b, self.t);
+        let data = DataTerm::compute(da, db, &space, mask_a, mask_b, self.params.t);
         LevelData {
             space,
             data,
@@ -773,56 +443,49 @@ impl Engine {
             data_term_ms,
         } = level;
         let (w, h) = (space.width, space.height);
-        // Improved mode: a stronger smoothness at the finest BP level only,
-        // and there its own truncation if one is set.
-        let finest_improved = l == self.finest && self.mode == Mode::Improved;
-        let (alpha, d) = if finest_improved {
-            (
-                self.alpha * self.finest_alpha_scale,
-                self.finest_d.unwrap_or(self.d),
-            )
+        // A stronger smoothness at the finest BP level, and there its own
+        // truncation if one is set.
+        let p = &self.params;
+        let finest = l == self.finest;
+        let (alpha, d) = if finest {
+            (p.alpha * p.finest_alpha_scale, p.finest_d.unwrap_or(p.d))
         } else {
-            (self.alpha, self.d)
+            (p.alpha, p.d)
         };
         let weights = EnergyWeights {
             alpha,
             d,
-            gamma: self.gamma * (1u32 << l.min(31)) as f32,
+            gamma: p.gamma * (1u32 << l.min(31)) as f32,
         };
         let tbp = Instant::now();
-        let mut bp = DualLayerBp::new(&space, &data, weights, MIN_STRIP_ROWS, self.max_strips);
+        let mut bp = DualLayerBp::new(&space, &data, weights, MIN_STRIP_ROWS, p.max_strips);
         let spans = mask_a.map(|m| bp::active_spans(m, w, h, ACTIVE_MARGIN));
         if let Some(spans) = &spans {
             bp.restrict(spans.clone());
         }
-        // Contrast-sensitive truncation at the finest improved level: the
-        // level's own source image says where depth may step.
+        // Contrast-sensitive truncation at the finest level: the level's own
+        // source image says where depth may step.
         let edges =
             match source {
-                Some(img) if finest_improved && self.edge_d < d => Some(
-                    energy::contrast_truncation(img, d, self.edge_d, self.edge_contrast),
+                Some(img) if finest && self.edge_truncation(d) => Some(
+                    energy::contrast_truncation(img, d, p.edge_d, p.edge_contrast),
                 ),
                 _ => None,
             };
         if let Some(e) = &edges {
             bp.truncate_edges(e);
         }
-        if self.mode == Mode::Improved {
+        if p.dual_init_from_data {
             bp.init_dual_from_data();
         }
-        let warm_iterations = match self.mode {
-            Mode::Paper => HIERARCHY_ITERATIONS,
-            Mode::Improved => IMPROVED_HIERARCHY_ITERATIONS,
-        };
-        bp.warm_start(plan.hierarchy, warm_iterations);
-        // Improved mode, coarser levels (which hand on their labels only):
-        // no more iterations once the labels have settled.
-        let patience =
-            (self.mode == Mode::Improved && l > self.finest).then_some(SETTLED_ITERATIONS);
+        bp.warm_start(plan.hierarchy, p.warm_start_iterations);
+        // Coarser levels hand on their labels only: no more iterations once
+        // the labels have settled.
+        let patience = (p.settle_iterations > 0 && l > self.finest).then_some(p.settle_iterations);
         let outcome = bp.run_until_stable(plan.iterations, patience);
         let bp_ms = ms(tbp);
-        let flow = if l == self.finest && self.mode == Mode::Improved {
-            super::subpixel::refine(&data, &space, &outcome.labels)
+        let flow = if finest && p.subpixel {
+            subpixel::refine(&data, &space, &outcome.labels)
         } else {
             [0, 1].map(|k| {
                 (0..w * h)
@@ -930,8 +593,8 @@ pub fn sift_flow(a: &Image, b: &Image, params: &FlowParams) -> Result<Flow, Dens
     let t0 = Instant::now();
     let a = fill_non_finite(a);
     let b = fill_non_finite(b);
-    let engine = params.engine(None);
-    let (run, _) = engine.run(&a, &b, None, None, false, &unobserved);
+    let engine = Engine::new(params, None);
+    let (run, _) = engine.run(&a, &b, None, None, false);
     let (w, h) = a.dimensions();
     let levels = run.levels.clone();
     let full = to_full_resolution(
@@ -1046,6 +709,7 @@ pub(crate) fn fill_non_finite(img: &Image) -> Image {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::vision::Preset;
 
     #[test]
     fn fields_extend_from_the_nearest_swept_pixel() {
@@ -1067,31 +731,30 @@ mod tests {
     }
 
     #[test]
-    fn middle_levels_search_wider_in_the_improved_mode_only() {
-        let improved = FlowParams::default();
-        let plan = improved.engine(Some((1, 2))).plan;
+    fn every_level_searches_its_own_window() {
+        let windows = |p: &FlowParams, k: usize| -> Vec<usize> {
+            p.plan(Some((1, 2))).iter().map(|l| l.window[k]).collect()
+        };
         // Level 0 (below the finest BP level), 1 (the finest), 2, 3 (top).
-        let windows: Vec<usize> = plan.iter().map(|p| p.window[0]).collect();
-        assert_eq!(windows, vec![2, 2, IMPROVED_MIDDLE_WINDOW, 10]);
-        let paper = FlowParams {
-            mode: Mode::Paper,
-            ..FlowParams::default()
-        };
-        let windows: Vec<usize> = paper
-            .engine(None)
-            .plan
-            .iter()
-            .map(|p| p.window[0])
-            .collect();
-        assert_eq!(windows, vec![2, 2, 2, 10]);
+        let improved = FlowParams::default();
+        assert_eq!(windows(&improved, 0), vec![2, 2, 4, 10]);
+        assert_eq!(windows(&improved, 1), vec![1, 1, 1, 2]);
+        let paper = FlowParams::preset(Preset::Paper);
+        assert_eq!(windows(&paper, 0), vec![2, 2, 2, 10]);
+        let as_u: Vec<usize> = paper.plan(None).iter().map(|l| l.window[1]).collect();
+        assert_eq!(
+            as_u,
+            vec![2, 2, 2, 10],
+            "no vertical windows: v searches as u"
+        );
         let set = FlowParams {
-            middle_window: Some(3),
-            ..FlowParams::default()
+            middle_window: 3,
+            ..improved
         };
-        assert_eq!(set.engine(None).plan[2].window[0], 3);
+        assert_eq!(windows(&set, 0)[2], 3);
         let too_wide = FlowParams {
-            middle_window: Some(64),
-            ..FlowParams::default()
+            middle_window: 64,
+            ..improved
         };
         assert!(matches!(
             too_wide.validate(),
@@ -1099,23 +762,34 @@ mod tests {
         ));
     }
 
+    /// The multigrid start descends a fixed number of grids below every
+    /// level, or (the reference code) down to the top level's resolution.
     #[test]
-    fn coarse_levels_keep_the_cells_extent_in_the_improved_mode_only() {
-        let cells = |p: &FlowParams| -> Vec<usize> {
-            p.engine(None).plan.iter().map(|l| l.cell_size).collect()
-        };
+    fn warm_start_grids_are_fixed_or_reach_the_top() {
+        let grids =
+            |p: &FlowParams| -> Vec<usize> { p.plan(None).iter().map(|l| l.hierarchy).collect() };
+        assert_eq!(grids(&FlowParams::default()), vec![3, 3, 3, 2]);
+        assert_eq!(grids(&FlowParams::preset(Preset::Paper)), vec![3, 2, 1, 2]);
+    }
+
+    #[test]
+    fn per_level_descriptors_keep_the_cells_extent() {
+        let cells =
+            |p: &FlowParams| -> Vec<usize> { p.plan(None).iter().map(|l| l.cell_size).collect() };
         // Finest BP level 1: levels 0 and 1 keep the cell, coarser ones halve it.
-        let two = FlowParams {
-            cell_size: 2,
-            ..FlowParams::default()
-        };
+        let two = FlowParams::default();
+        assert_eq!(two.cell_size, 2);
         assert_eq!(cells(&two), vec![2, 2, 1, 1]);
         // 3 / 2 rounds to 2, 3 / 4 to 1.
-        assert_eq!(cells(&FlowParams::default()), vec![3, 3, 2, 1]);
+        let three = FlowParams {
+            cell_size: 3,
+            ..two
+        };
+        assert_eq!(cells(&three), vec![3, 3, 2, 1]);
         let eight_at_full = FlowParams {
             cell_size: 8,
-            finest_level: Some(0),
-            ..FlowParams::default()
+            finest_level: 0,
+            ..two
         };
         assert_eq!(cells(&eight_at_full), vec![8, 4, 2, 1]);
         let fixed = FlowParams {
@@ -1123,12 +797,12 @@ mod tests {
             ..two
         };
         assert_eq!(cells(&fixed), vec![2, 2, 2, 2]);
-        // The paper mode halves descriptor images, not cells.
-        let paper = FlowParams {
-            mode: Mode::Paper,
+        // The halved pyramid halves descriptor images, not cells.
+        let halved = FlowParams {
+            descriptors: DescriptorPyramid::Halved,
             ..two
         };
-        assert_eq!(cells(&paper), vec![2, 2, 2, 2]);
+        assert_eq!(cells(&halved), vec![2, 2, 2, 2]);
     }
 
     /// Smooth random texture (sum of a few hundred random blobs).
@@ -1172,10 +846,9 @@ mod tests {
     }
 
     /// `finest_alpha_scale`, `finest_d` and `edge_d` change the finest BP
-    /// level of the improved mode only: the coarser levels run the same BP,
-    /// the paper mode ignores them.
+    /// level only: the coarser levels run the same BP.
     #[test]
-    fn the_finest_alpha_scale_and_truncation_act_on_the_finest_improved_level_only() {
+    fn the_finest_alpha_scale_and_truncation_act_on_the_finest_level_only() {
         let (w, h) = (64, 48);
         // Unrelated images: the flow is noise, so the smoothness term is not 0.
         let a = texture(w, h, 3);
@@ -1193,52 +866,39 @@ mod tests {
                 .map(|l| l.energy)
                 .collect()
         };
-        let base = |mode: Mode| FlowParams {
-            mode,
-            ..FlowParams::default()
-        };
-        let energies = |mode: Mode, scale: f32| {
+        let energies = |scale: f32| {
             run(FlowParams {
                 finest_alpha_scale: scale,
-                ..base(mode)
+                ..FlowParams::default()
             })
         };
-        let (one, four) = (energies(Mode::Improved, 1.0), energies(Mode::Improved, 4.0));
+        let (one, four) = (energies(1.0), energies(4.0));
         // Finest first.
         assert_ne!(one[0], four[0], "the finest level must change");
         assert_eq!(one[1..], four[1..], "coarser levels must not change");
-        assert_eq!(energies(Mode::Paper, 1.0), energies(Mode::Paper, 4.0));
-        // `finest_d` likewise: the finest improved level only, none = `d`.
-        let truncated = |mode: Mode, finest_d: Option<f32>| {
+        // `finest_d` likewise, none = `d`.
+        let truncated = |finest_d: Option<f32>| {
             run(FlowParams {
                 finest_d,
-                ..base(mode)
+                ..FlowParams::default()
             })
         };
-        let (loose, tight) = (
-            truncated(Mode::Improved, None),
-            truncated(Mode::Improved, Some(2.0 * 255.0)),
-        );
+        let (loose, tight) = (truncated(None), truncated(Some(2.0 * 255.0)));
         assert_eq!(loose, four, "none must mean `d`");
         assert_ne!(loose[0], tight[0], "the finest level must change");
         assert_eq!(loose[1..], tight[1..], "coarser levels must not change");
-        assert_eq!(
-            truncated(Mode::Paper, None),
-            truncated(Mode::Paper, Some(2.0 * 255.0))
-        );
         // `edge_d` likewise; at or above the finest level's `d` it is off.
-        let edged = |mode: Mode, edge_d: f32| {
+        let edged = |edge_d: f32| {
             run(FlowParams {
                 edge_d,
-                ..base(mode)
+                ..FlowParams::default()
             })
         };
         let d = FlowParams::default().d;
-        let (off, on) = (edged(Mode::Improved, d), edged(Mode::Improved, 255.0));
-        assert_eq!(off, edged(Mode::Improved, 2.0 * d));
+        let (off, on) = (edged(d), edged(255.0));
+        assert_eq!(off, edged(f32::INFINITY));
         assert_ne!(off[0], on[0], "the finest level must change");
         assert_eq!(off[1..], on[1..], "coarser levels must not change");
-        assert_eq!(edged(Mode::Paper, d), edged(Mode::Paper, 255.0));
         for (name, bad) in [
             (
                 "edge_d",
@@ -1291,18 +951,18 @@ mod tests {
         let a = Image::from_fn(w, h, |x, y| big.get(x + 10, y + 10));
         // b(x + 3, y − 2) = a(x, y): the flow is (3, −2).
         let b = Image::from_fn(w, h, |x, y| big.get(x + 7, y + 12));
-        for mode in [Mode::Paper, Mode::Improved] {
+        for mode in [Preset::Paper, Preset::Improved] {
             let params = FlowParams {
-                mode,
                 levels: 3,
-                ..FlowParams::default()
+                cell_size: 3,
+                ..FlowParams::preset(mode)
             };
             let f = sift_flow(&a, &b, &params).unwrap();
             // Finest first: BP levels 1 and 2 (improved), 0 to 2 (paper).
             let cells: Vec<usize> = f.levels.iter().map(|l| l.cell_size).collect();
             let expected = match mode {
-                Mode::Paper => vec![3, 3, 3],
-                Mode::Improved => vec![3, 2],
+                Preset::Paper => vec![3, 3, 3],
+                Preset::Improved => vec![3, 2],
             };
             assert_eq!(cells, expected, "{mode:?}");
             let good = (10..h - 10)

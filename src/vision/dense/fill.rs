@@ -18,7 +18,7 @@
 
 use rayon::prelude::*;
 
-use super::Image;
+use crate::vision::Image;
 
 /// Fills the runs of non-finite values of `disparity` that are bounded on
 /// both ends by finite values of the same row, lie inside `inside` (the

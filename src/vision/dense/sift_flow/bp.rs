@@ -781,7 +781,7 @@ impl<'a> DualLayerBp<'a> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::vision::sift_flow::energy::energy;
+    use crate::vision::dense::sift_flow::energy::energy;
 
     /// The min-sum message by its definition, O(n²):
     /// `m(l1) = min_lp h(lp) + min(s |lp − (l1 + shift)|, d)`, normalised.

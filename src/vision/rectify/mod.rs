@@ -15,6 +15,9 @@
 //! (any tilt axis) rectify too. Rotations compose as `R = R_x · R_y · R_z`: the in-plane
 //! rotation first, then the small corrections in the rectified frame.
 
+mod lm;
+pub mod warp;
+
 use nalgebra::{Matrix3, SMatrix, Vector2, Vector3};
 use serde::{Deserialize, Serialize};
 
@@ -781,15 +784,16 @@ fn check(what: &'static str, value: f64, limit: f64) -> Result<(), RectifyError>
     }
 }
 
-const MAX_ANGLE_STEP: f64 = 0.1;
 /// The focal exponent of the second start: `f = 3⁴ (w + h)`, a field of view well under a
 /// degree.
 const LONG_FOCAL_G: f64 = 4.0;
-const MAX_G_STEP: f64 = 0.5;
+/// Largest step of one Levenberg–Marquardt iteration: 0.1 rad for the five angles, 0.5 in `g`.
+/// The cost has nearly flat directions (common rotations of both cameras) along which an
+/// undamped step would leave the basin.
+const MAX_STEP: [f64; 6] = [0.1, 0.1, 0.1, 0.1, 0.1, 0.5];
 
-/// Levenberg–Marquardt (Marquardt's diagonal damping) on the Sampson residuals, with a
-/// central-difference Jacobian; `g` is kept inside `params.g_range`. Only the first `n_free`
-/// unknowns move (5: `g` fixed).
+/// [`lm::minimise`] of the Sampson residuals (with the prior) over the quasi-Euclidean unknowns,
+/// `g` kept inside `params.g_range`. Only the first `n_free` unknowns move (5: `g` fixed).
 fn levenberg_marquardt(
     frame: &Frame,
     start: QuasiEuclidean,
@@ -799,119 +803,26 @@ fn levenberg_marquardt(
     prior: &Prior,
     n_free: usize,
 ) -> (QuasiEuclidean, usize) {
-    let clamp_g = |mut v: [f64; 6]| {
-        v[5] = v[5].clamp(params.g_range.0, params.g_range.1);
-        v
-    };
-    let mut p = clamp_g(start.to_vec());
-    let mut r = Vec::new();
-    let mut r_try = Vec::new();
-    let mut r_plus = Vec::new();
-    let mut r_minus = Vec::new();
-    let cost = |v: &[f64; 6], buf: &mut Vec<f64>| {
-        residuals_with_prior(frame, &QuasiEuclidean::from_vec(v), left, right, prior, buf);
-        buf.iter().map(|x| x * x).sum::<f64>()
-    };
-    let mut c = cost(&p, &mut r);
-    let mut lambda = 1e-3;
-    let mut it = 0;
-    while it < params.max_iterations {
-        it += 1;
-        // Jacobian columns by central differences.
-        let mut jtj = SMatrix::<f64, 6, 6>::zeros();
-        let mut jtr = SMatrix::<f64, 6, 1>::zeros();
-        let mut cols: Vec<Vec<f64>> = Vec::with_capacity(6);
-        for k in 0..6 {
-            if k >= n_free {
-                cols.push(vec![0.0; r.len()]);
-                continue;
-            }
-            let step = 1e-6;
-            let (mut a, mut b) = (p, p);
-            a[k] += step;
-            b[k] -= step;
-            residuals_with_prior(
-                frame,
-                &QuasiEuclidean::from_vec(&a),
-                left,
-                right,
-                prior,
-                &mut r_plus,
-            );
-            residuals_with_prior(
-                frame,
-                &QuasiEuclidean::from_vec(&b),
-                left,
-                right,
-                prior,
-                &mut r_minus,
-            );
-            cols.push(
-                r_plus
-                    .iter()
-                    .zip(&r_minus)
-                    .map(|(u, v)| (u - v) / (2.0 * step))
-                    .collect(),
-            );
-        }
-        for a in 0..6 {
-            jtr[a] = cols[a].iter().zip(&r).map(|(j, e)| j * e).sum();
-            for b in a..6 {
-                let v: f64 = cols[a].iter().zip(&cols[b]).map(|(x, y)| x * y).sum();
-                jtj[(a, b)] = v;
-                jtj[(b, a)] = v;
-            }
-        }
-        let mut improved = false;
-        for _ in 0..12 {
-            let mut damped = jtj;
-            for d in 0..6 {
-                damped[(d, d)] += lambda * jtj[(d, d)].max(1e-12);
-                if d >= n_free {
-                    damped[(d, d)] = 1.0;
-                }
-            }
-            let Some(delta) = damped.cholesky().map(|ch| ch.solve(&(-jtr))) else {
-                lambda *= 10.0;
-                continue;
-            };
-            // A bounded step (0.1 rad, 0.5 in g): the cost has nearly flat directions (common
-            // rotations of both cameras) along which an undamped step would leave the basin.
-            let scale = (0..5)
-                .map(|k| delta[k].abs() / MAX_ANGLE_STEP)
-                .chain(std::iter::once(delta[5].abs() / MAX_G_STEP))
-                .fold(1.0f64, f64::max);
-            let mut trial = p;
-            for k in 0..6 {
-                trial[k] += delta[k] / scale;
-            }
-            let trial = clamp_g(trial);
-            let ct = cost(&trial, &mut r_try);
-            if ct < c {
-                let rel = (c - ct) / c.max(1e-300);
-                p = trial;
-                c = ct;
-                std::mem::swap(&mut r, &mut r_try);
-                lambda = (lambda / 10.0).max(1e-15);
-                improved = true;
-                if rel < params.tolerance {
-                    return (QuasiEuclidean::from_vec(&p), it);
-                }
-                break;
-            }
-            lambda *= 10.0;
-        }
-        if !improved {
-            break;
-        }
-    }
+    let (p, it) = lm::minimise(
+        |v: &[f64; 6], buf: &mut Vec<f64>| {
+            residuals_with_prior(frame, &QuasiEuclidean::from_vec(v), left, right, prior, buf);
+        },
+        start.to_vec(),
+        &lm::Options {
+            max_iterations: params.max_iterations,
+            tolerance: params.tolerance,
+            n_free,
+            max_step: MAX_STEP,
+            last_range: params.g_range,
+        },
+    );
     (QuasiEuclidean::from_vec(&p), it)
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::vision::fundamental::eight_point;
+    use crate::vision::sparse::fundamental::eight_point;
     use rand::{Rng, SeedableRng};
 
     /// An SEM-like pair: parallel projection, tilt about an axis at `phi` (DESIGN §3), plus an

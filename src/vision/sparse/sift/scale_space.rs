@@ -9,6 +9,7 @@ use rayon::prelude::*;
 
 use super::SiftParams;
 use crate::vision::Image;
+use crate::vision::filter::blur::gaussian_blur;
 
 /// One octave: `n_spo + 3` Gaussian images and `n_spo + 2` differences.
 #[derive(Debug, Clone)]
@@ -122,127 +123,9 @@ pub fn resample_bilinear(image: &Image, delta: f64) -> Image {
     out
 }
 
-/// Normalised Gaussian kernel of standard deviation `sigma`, radius ⌈4σ⌉.
-#[must_use]
-pub fn gaussian_kernel(sigma: f64) -> Vec<f32> {
-    #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
-    let radius = (4.0 * sigma).ceil().max(1.0) as usize;
-    let mut k: Vec<f64> = (0..=2 * radius)
-        .map(|i| {
-            let d = i as f64 - radius as f64;
-            (-d * d / (2.0 * sigma * sigma)).exp()
-        })
-        .collect();
-    let sum: f64 = k.iter().sum();
-    k.iter_mut().for_each(|v| *v /= sum);
-    #[allow(clippy::cast_possible_truncation)]
-    k.into_iter().map(|v| v as f32).collect()
-}
-
-/// Index into `[0, n)` with symmetric (half-sample) mirroring at both ends.
-#[inline]
-fn mirror(i: isize, n: usize) -> usize {
-    let n = n as isize;
-    let period = 2 * n;
-    let mut j = i.rem_euclid(period);
-    if j >= n {
-        j = period - 1 - j;
-    }
-    #[allow(clippy::cast_sign_loss)]
-    let j = j as usize;
-    j
-}
-
-/// Separable Gaussian blur with symmetric boundary, parallel over rows.
-///
-/// `sigma ≤ 0` returns a copy.
-#[must_use]
-pub fn gaussian_blur(image: &Image, sigma: f64) -> Image {
-    if sigma <= 0.0 || image.is_empty() {
-        return image.clone();
-    }
-    let kernel = gaussian_kernel(sigma);
-    let r = kernel.len() / 2;
-    let (w, h) = image.dimensions();
-
-    // Horizontal pass: pad each row by mirroring, then a straight dot product.
-    let mut tmp = Image::zeros(w, h);
-    tmp.data_mut().par_chunks_mut(w).enumerate().for_each_init(
-        || vec![0.0f32; w + 2 * r],
-        |padded, (y, out)| {
-            let row = image.row(y);
-            padded[r..r + w].copy_from_slice(row);
-            for i in (0..r).chain(r + w..w + 2 * r) {
-                padded[i] = row[mirror(i as isize - r as isize, w)];
-            }
-            // Tap by tap over the whole row: the inner loop vectorises.
-            for (k, &g) in kernel.iter().enumerate() {
-                for (o, &v) in out.iter_mut().zip(&padded[k..k + w]) {
-                    *o += g * v;
-                }
-            }
-        },
-    );
-
-    // Vertical pass: accumulate whole rows so the inner loop runs along x (vectorises).
-    let mut out = Image::zeros(w, h);
-    out.data_mut()
-        .par_chunks_mut(w)
-        .enumerate()
-        .for_each(|(y, orow)| {
-            for (k, &g) in kernel.iter().enumerate() {
-                let sy = mirror(y as isize + k as isize - r as isize, h);
-                for (o, &v) in orow.iter_mut().zip(tmp.row(sy)) {
-                    *o += g * v;
-                }
-            }
-        });
-    out
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    /// Direct 2-D convolution with the same kernel and boundary: the reference.
-    fn naive_blur(image: &Image, sigma: f64) -> Image {
-        let k = gaussian_kernel(sigma);
-        let r = (k.len() / 2) as isize;
-        let (w, h) = image.dimensions();
-        Image::from_fn(w, h, |x, y| {
-            let mut acc = 0.0f64;
-            for (j, kj) in k.iter().enumerate() {
-                for (i, ki) in k.iter().enumerate() {
-                    let sx = mirror(x as isize + i as isize - r, w);
-                    let sy = mirror(y as isize + j as isize - r, h);
-                    acc += f64::from(*ki) * f64::from(*kj) * f64::from(image.get(sx, sy));
-                }
-            }
-            acc as f32
-        })
-    }
-
-    #[test]
-    fn separable_blur_matches_direct_convolution() {
-        let img = Image::from_fn(13, 9, |x, y| ((x * 7 + y * 13) % 11) as f32 / 10.0);
-        for sigma in [0.6, 1.3, 3.0] {
-            let fast = gaussian_blur(&img, sigma);
-            let slow = naive_blur(&img, sigma);
-            for (a, b) in fast.data().iter().zip(slow.data()) {
-                assert!((a - b).abs() < 1e-5, "σ={sigma}: {a} vs {b}");
-            }
-        }
-    }
-
-    #[test]
-    fn blur_preserves_mean_of_constant_and_mirror_is_symmetric() {
-        let img = Image::filled(5, 4, 0.25);
-        let b = gaussian_blur(&img, 2.0);
-        assert!(b.data().iter().all(|v| (v - 0.25).abs() < 1e-6));
-        assert_eq!(mirror(-1, 5), 0);
-        assert_eq!(mirror(5, 5), 4);
-        assert_eq!(mirror(-6, 5), 4);
-    }
 
     #[test]
     fn octave_count_and_sizes_follow_ipol() {

@@ -19,7 +19,7 @@ use rand::SeedableRng;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use crate::vision::fundamental::{FundamentalModel, symmetric_epipolar_error};
+use crate::vision::sparse::fundamental::{FundamentalModel, symmetric_epipolar_error};
 
 /// Parameters of ORSA.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -397,7 +397,7 @@ pub fn orsa_filtered(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::vision::fundamental::tests::{affine_pair, projective_pair};
+    use crate::vision::sparse::fundamental::tests::{affine_pair, projective_pair};
     use rand::Rng;
 
     /// `n_in` true matches with 0.3 px noise, then `n_out` random pairs.

@@ -8,7 +8,7 @@
 
 use rayon::prelude::*;
 
-use super::Image;
+use crate::vision::Image;
 
 /// Result of [`left_right_check`].
 #[derive(Debug, Clone)]

@@ -4,7 +4,7 @@
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use crate::vision::sift::{DESCRIPTOR_LEN, Keypoint};
+use crate::vision::sparse::sift::{DESCRIPTOR_LEN, Keypoint};
 
 /// Parameters of descriptor matching.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
