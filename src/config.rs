@@ -8,6 +8,7 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
+pub use self::layers::Layer;
 use crate::acquisition::{PlanError, SeriesConfig, SeriesPlan, TrackingConfig};
 use crate::daemon::DaemonConfig;
 use crate::export::MeshParams;
@@ -242,6 +243,8 @@ pub struct Config {
     pub daemon: DaemonConfig,
 }
 
+pub mod layers;
+
 /// Why a configuration cannot be used.
 #[derive(Debug, thiserror::Error)]
 pub enum ConfigError {
@@ -250,9 +253,10 @@ pub enum ConfigError {
         path: PathBuf,
         source: std::io::Error,
     },
-    #[error("invalid configuration{}: {message}", origin.as_ref().map(|p| format!(" in {}", p.display())).unwrap_or_default())]
+    /// A key or value that one layer gives (or, without a layer, the layers together).
+    #[error("invalid configuration{}: {message}", layer.as_ref().map(|l| format!(" in {l}")).unwrap_or_default())]
     Invalid {
-        origin: Option<PathBuf>,
+        layer: Option<Layer>,
         message: String,
     },
     #[error("--set {arg:?}: expected key=value, for example series.end_tilt_deg=5")]
@@ -339,29 +343,28 @@ impl Config {
         overrides: &[String],
         env: impl IntoIterator<Item = (String, String)>,
     ) -> Result<Self, ConfigError> {
-        let invalid = |e: config::ConfigError| ConfigError::Invalid {
-            origin: origin.map(Path::to_owned),
-            message: e.to_string(),
-        };
+        let file_layer = Layer::File(
+            origin.map_or_else(|| PathBuf::from("the configuration text"), Path::to_owned),
+        );
         let mut file = match text {
             Some(text) => {
                 toml::from_str::<toml::Table>(text).map_err(|e| ConfigError::Invalid {
-                    origin: origin.map(Path::to_owned),
-                    message: e.message().to_owned(),
+                    layer: Some(file_layer.clone()),
+                    message: layers::one_line(&e.to_string()),
                 })?
             }
             None => toml::Table::new(),
         };
-        // The environment and the command line are typed alike (TOML-ish values).
-        let mut later = Vec::new();
+        // Then each variable and --set, in the order they apply: (layer, key, value), the
+        // environment and the command line typed alike (TOML-ish values).
+        let mut later: Vec<(Layer, String, config::Value)> = Vec::new();
         for (name, value) in env {
             if let Some(rest) = name.strip_prefix(ENV_PREFIX)
                 && rest.contains("__")
             {
-                later.push((
-                    rest.to_ascii_lowercase().replace("__", "."),
-                    parse_override_value(value.trim()),
-                ));
+                let key = rest.to_ascii_lowercase().replace("__", ".");
+                let typed = parse_override_value(value.trim());
+                later.push((Layer::Env { name, value }, key, typed));
             }
         }
         for arg in overrides {
@@ -369,13 +372,17 @@ impl Config {
                 .split_once('=')
                 .filter(|(k, _)| !k.trim().is_empty())
                 .ok_or_else(|| ConfigError::BadOverride { arg: arg.clone() })?;
-            later.push((key.trim().to_owned(), parse_override_value(value.trim())));
+            later.push((
+                Layer::Set(arg.clone()),
+                key.trim().to_owned(),
+                parse_override_value(value.trim()),
+            ));
         }
         // The built-in defaults are the first layer, so a file may give part
         // of a table (`[imaging.micrograph] width = 640`) and keep the rest;
         // they are the values of the preset the layers end with. A file's keys
         // still at its own preset's values follow a later layer's preset.
-        let layered = |defaults: &Self, file: &toml::Table| {
+        let layered = |defaults: &Self, file: &toml::Table, upto: usize| {
             let mut builder = config::Config::builder()
                 .add_source(config::File::from_str(
                     &defaults.to_toml(),
@@ -385,28 +392,54 @@ impl Config {
                     &toml::to_string(file).unwrap_or_default(),
                     config::FileFormat::Toml,
                 ));
-            for (key, value) in &later {
-                builder = builder.set_override(key, value.clone())?;
+            for (layer, key, value) in &later[..upto] {
+                builder =
+                    builder
+                        .set_override(key, value.clone())
+                        .map_err(|e| ConfigError::Invalid {
+                            layer: Some(layer.clone()),
+                            message: format!("{key}: {e}"),
+                        })?;
             }
-            builder.build()
+            Ok::<_, ConfigError>(builder)
         };
-        let mut merged = layered(&Self::default(), &file).map_err(invalid)?;
-        let preset: Preset = merged.get("reconstruction.mode").map_err(invalid)?;
+        // The file on its own first: its errors are its own.
+        if text.is_some() {
+            build(layered(&Self::default(), &file, 0)?).map_err(|e| ConfigError::Invalid {
+                message: layers::explain(&e, &file_layer, None),
+                layer: Some(file_layer.clone()),
+            })?;
+        }
+        let blame = |defaults: &Self, file: &toml::Table, e: &config::ConfigError| match layered(
+            defaults, file, 0,
+        ) {
+            Ok(base) => blame_override(&base, &later, e),
+            Err(e) => e,
+        };
+        let mut builder = layered(&Self::default(), &file, later.len())?;
+        let preset = builder
+            .clone()
+            .build()
+            .and_then(|merged| merged.get::<Preset>("reconstruction.mode"))
+            .map_err(|e| blame(&Self::default(), &file, &e))?;
         let file_preset = file
             .get("reconstruction")
             .and_then(|r| r.get("mode"))
             .and_then(|m| m.clone().try_into::<Preset>().ok())
             .unwrap_or_default();
+        let mut defaults = Self::default();
         if preset != Preset::default() || file_preset != preset {
             rebase_reconstruction(&mut file, preset);
-            let defaults = Self {
+            defaults = Self {
                 reconstruction: ReconstructionConfig::preset(preset),
                 ..Self::default()
             };
-            merged = layered(&defaults, &file).map_err(invalid)?;
+            builder = layered(&defaults, &file, later.len())?;
         }
-        let config: Self = merged.try_deserialize().map_err(invalid)?;
-        config.validate()?;
+        let config = build(builder).map_err(|e| blame(&defaults, &file, &e))?;
+        config
+            .validate()
+            .map_err(|e| blame_rule(e, text, &file_layer, &later))?;
         Ok(config)
     }
 
@@ -470,6 +503,92 @@ impl Config {
     #[must_use]
     pub fn to_toml(&self) -> String {
         toml::to_string(self).unwrap_or_else(|e| format!("# cannot render: {e}\n"))
+    }
+}
+
+/// Deserializes the layers of `builder`.
+fn build(
+    builder: config::ConfigBuilder<config::builder::DefaultState>,
+) -> Result<Config, config::ConfigError> {
+    builder.build().and_then(config::Config::try_deserialize)
+}
+
+/// Names the variable or `--set` a deserialization error comes from: the first that fails
+/// on its own over `base` (the error itself does not say which layer gave the value).
+fn blame_override(
+    base: &config::ConfigBuilder<config::builder::DefaultState>,
+    set: &[(Layer, String, config::Value)],
+    error: &config::ConfigError,
+) -> ConfigError {
+    for (layer, key, value) in set {
+        let Ok(single) = base.clone().set_override(key, value.clone()) else {
+            continue;
+        };
+        if let Err(e) = build(single) {
+            return ConfigError::Invalid {
+                message: layers::explain(&e, layer, Some(key)),
+                layer: Some(layer.clone()),
+            };
+        }
+    }
+    ConfigError::Invalid {
+        layer: None,
+        message: error.to_string(),
+    }
+}
+
+/// A rule across keys, named with the layer that set the key it names: the last variable or
+/// `--set` that sets it, else the file when it does.
+fn blame_rule(
+    error: ConfigError,
+    text: Option<&str>,
+    file: &Layer,
+    set: &[(Layer, String, config::Value)],
+) -> ConfigError {
+    let message = match &error {
+        ConfigError::Read { .. }
+        | ConfigError::Invalid { .. }
+        | ConfigError::BadOverride { .. } => {
+            return error;
+        }
+        rule => rule.to_string(),
+    };
+    let message = message
+        .strip_prefix("invalid configuration: ")
+        .map_or_else(|| message.clone(), str::to_owned);
+    let named = |key: &str| {
+        message.match_indices(key).any(|(i, _)| {
+            !message[i + key.len()..].starts_with(|c: char| c.is_alphanumeric() || c == '_')
+        })
+    };
+    let from_override = set
+        .iter()
+        .rev()
+        .find(|(_, key, _)| named(key))
+        .map(|(layer, _, _)| layer.clone());
+    let from_file = || {
+        let table: toml::Table = toml::from_str(text?).ok()?;
+        let mut keys = Vec::new();
+        leaves("", &toml::Value::Table(table), &mut keys);
+        keys.iter().any(|k| named(k)).then(|| file.clone())
+    };
+    match from_override.or_else(from_file) {
+        Some(layer) => ConfigError::Invalid {
+            layer: Some(layer),
+            message,
+        },
+        None => error,
+    }
+}
+
+/// The dotted keys of a TOML value's leaves.
+fn leaves(prefix: &str, v: &toml::Value, out: &mut Vec<String>) {
+    if let toml::Value::Table(t) = v {
+        for (k, v) in t {
+            leaves(&format!("{prefix}{k}."), v, out);
+        }
+    } else {
+        out.push(prefix.trim_end_matches('.').to_owned());
     }
 }
 
@@ -588,6 +707,93 @@ mod tests {
         )
         .unwrap();
         assert_eq!(c.tracking.stage_to_image, [[1.0, 0.0], [0.0, 1.0]]);
+    }
+
+    /// Each error names the layer it comes from and the key; a near miss names the key meant.
+    #[test]
+    fn errors_name_their_layer_and_the_key_meant() {
+        let err = load("[series]\nend_tilt = 5.0\n", &[], &[])
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.starts_with("invalid configuration in ")
+                && err.contains(
+                    "c.toml: unknown key series.end_tilt: did you mean series.end_tilt_deg?"
+                ),
+            "{err}"
+        );
+        // A bad --set or environment value is not blamed on the file.
+        let err = load("", &["series.end_tilt_deg=abc"], &[])
+            .unwrap_err()
+            .to_string();
+        assert_eq!(
+            err,
+            "invalid configuration in --set series.end_tilt_deg=abc: series.end_tilt_deg: \
+             expected a floating point, found string \"abc\""
+        );
+        let err = load("", &[], &[("SDSEM_SERIES__END_TILT_DEG", "abc")])
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.starts_with(
+                "invalid configuration in environment variable SDSEM_SERIES__END_TILT_DEG=\"abc\": \
+                 series.end_tilt_deg: expected"
+            ),
+            "{err}"
+        );
+        assert!(!err.contains("c.toml"), "{err}");
+        // Unknown keys: the whole key as the layer writes it.
+        let err = load("", &["seris.end_tilt_deg=5"], &[])
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.ends_with("unknown key seris: did you mean series.end_tilt_deg?"),
+            "{err}"
+        );
+        let err = load("", &[], &[("SDSEM_SERIES__END_TILTDEG", "5")])
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.ends_with(
+                "unknown key series.end_tiltdeg: did you mean SDSEM_SERIES__END_TILT_DEG?"
+            ),
+            "{err}"
+        );
+        let err = load("[series]\ncolour = 1\n", &[], &[])
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.ends_with(
+                "unknown key series.colour (series has start_tilt_deg, end_tilt_deg, step_deg)"
+            ),
+            "{err}"
+        );
+        // A value out of its set, and a rule across keys, name the layer too.
+        let err = load("", &["reconstruction.mode=papr"], &[])
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.ends_with(
+                "reconstruction.mode = \"papr\" is not a known value: did you mean \"paper\"?"
+            ),
+            "{err}"
+        );
+        let err = load("", &["series.end_tilt_deg=80"], &[])
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.starts_with(
+                "invalid configuration in --set series.end_tilt_deg=80: series.end_tilt_deg = 80"
+            ),
+            "{err}"
+        );
+        let err = load("[series]\nend_tilt_deg = 80\n", &[], &[])
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("c.toml: series.end_tilt_deg = 80"), "{err}");
+        // A TOML syntax error: one line with where it is.
+        let err = load("[series\n", &[], &[]).unwrap_err().to_string();
+        assert!(!err.contains('\n') && err.contains("line 1"), "{err}");
     }
 
     #[test]

@@ -46,6 +46,7 @@ pub mod export;
 pub mod imaging;
 pub mod memory;
 pub mod numbers;
+pub mod progress;
 pub mod record;
 pub mod sharksem;
 pub mod stage;

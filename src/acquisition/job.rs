@@ -20,7 +20,9 @@ use super::plan::SeriesPlan;
 use super::run_dir::RunDir;
 use super::runner::{Captured, SeriesContext, SeriesRecord, run_series};
 use crate::config::Config;
+use crate::export::atomic::OutputDir;
 use crate::imaging::file::{MicrographTags, SampleDepth, encode_micrograph_tiff};
+use crate::progress::Stage;
 use crate::record::{
     RecordLogSwitch, RecordSummary, Recorder, RecorderHandle, RecorderOptions, RunOutcome,
     RunStatus, topics,
@@ -65,8 +67,9 @@ pub struct RunHooks<'a> {
     pub cancel: Cancel,
     /// Sends the run's log events into its record while it lasts.
     pub logs: Option<&'a RecordLogSwitch>,
-    /// One line per milestone ("step 3/7: tilt 3.000°"), e.g. for systemd's STATUS.
-    pub progress: &'a (dyn Fn(&str) + Send + Sync),
+    /// Each stage as it begins (tilt steps, frames, the reconstruction's stages), e.g. for
+    /// the progress display or systemd's STATUS.
+    pub progress: &'a (dyn Fn(Stage) + Send + Sync),
 }
 
 impl RunHooks<'_> {
@@ -165,9 +168,9 @@ async fn acquire(
     run_dir: &RunDir,
     rec: &RecorderHandle,
     mut cancel: Cancel,
-    progress: &(dyn Fn(&str) + Send + Sync),
+    progress: &(dyn Fn(Stage) + Send + Sync),
 ) -> (Outcome, Option<SeriesRecord>) {
-    progress("connecting to the instruments");
+    progress(Stage::Connect);
     let plan = match config.plan() {
         Ok(plan) => plan,
         Err(e) => return (failed(format!("invalid series: {e}")), None),
@@ -237,8 +240,7 @@ async fn acquire(
         if let Some(reason) = cancel.reason() {
             outcome = Outcome::Interrupted { reason };
         } else {
-            progress("reconstructing the pair");
-            if let Err(e) = reconstruct_series(config, &record, run_dir.path(), rec).await {
+            if let Err(e) = reconstruct_series(config, &record, run_dir, rec, progress).await {
                 outcome = failed(format!("reconstruction failed: {e:#}"));
             }
         }
@@ -246,13 +248,15 @@ async fn acquire(
     (outcome, Some(record))
 }
 
-/// Reconstructs the end micrographs into the run directory and the record.
-/// CPU-bound: runs on the blocking pool so the async side stays responsive.
+/// Reconstructs the end micrographs into the run directory (every file new) and the
+/// record, telling `progress` each stage. CPU-bound: runs on the blocking pool so the async
+/// side stays responsive; the stages come back over a channel.
 async fn reconstruct_series(
     config: &Config,
     record: &SeriesRecord,
-    run_dir: &Path,
+    run_dir: &RunDir,
     rec: &RecorderHandle,
+    progress: &(dyn Fn(Stage) + Send + Sync),
 ) -> anyhow::Result<()> {
     let (Some(left), Some(right)) = (&record.left, &record.right) else {
         anyhow::bail!("the pair is incomplete");
@@ -260,8 +264,10 @@ async fn reconstruct_series(
     let (geometry, provenance) = pair_geometry(config, left, right)?;
     let (l, r) = (left.image.clone(), right.image.clone());
     let recon_config = config.reconstruction.clone();
-    let (out, rec) = (run_dir.to_owned(), rec.clone());
-    let report = tokio::task::spawn_blocking(move || {
+    let out: OutputDir = run_dir.outputs()?;
+    let rec = rec.clone();
+    let (stages, mut told) = tokio::sync::mpsc::unbounded_channel();
+    let mut work = tokio::task::spawn_blocking(move || {
         crate::app::reconstruct::reconstruct_recorded_pair(
             &l,
             &r,
@@ -270,10 +276,22 @@ async fn reconstruct_series(
             &out,
             Some(&rec),
             (Path::new(files::LEFT), Path::new(files::RIGHT)),
+            &|stage| {
+                let _ = stages.send(stage);
+            },
         )
         .map(|(report, _)| report)
-    })
-    .await??;
+    });
+    let report = loop {
+        tokio::select! {
+            biased;
+            Some(stage) = told.recv() => progress(stage),
+            done = &mut work => break done??,
+        }
+    };
+    while let Ok(stage) = told.try_recv() {
+        progress(stage);
+    }
     let t = &report.reconstruction.timings;
     info!(
         total_s = crate::numbers::secs(t.total_ms / 1e3),

@@ -14,7 +14,7 @@ use std::time::SystemTime;
 
 use rustix::fs::{Mode, OFlags};
 
-use crate::export::atomic::{Existing, create_new_at, open_dir, write_atomic_at};
+use crate::export::atomic::{Existing, OutputDir, create_new_at, open_dir, write_atomic_at};
 
 /// Longest run name accepted, in characters.
 pub const MAX_NAME_LEN: usize = 64;
@@ -191,6 +191,19 @@ impl RunDir {
         create_new_at(self.dir.as_fd(), OsStr::new(name), None)
     }
 
+    /// The directory as the target of exports (the reconstruction's outputs): every file
+    /// new, created exclusively through the one atomic writer, never through a link.
+    ///
+    /// # Errors
+    /// The system's error when the directory's descriptor cannot be duplicated.
+    pub fn outputs(&self) -> io::Result<OutputDir> {
+        Ok(OutputDir::from_fd(
+            self.path.clone(),
+            self.dir.try_clone()?,
+            Existing::Refuse,
+        ))
+    }
+
     /// Writes the new file `name` atomically (the one atomic writer), refusing an existing one.
     ///
     /// # Errors
@@ -296,5 +309,20 @@ mod tests {
         assert_eq!(std::fs::read(&victim).unwrap(), b"precious");
         run.write_new("left.tif", |w| w.write_all(b"tiff")).unwrap();
         assert_eq!(std::fs::read(run.join("left.tif")).unwrap(), b"tiff");
+        // The reconstruction's outputs too: a link placed at height.tif is left alone.
+        std::os::unix::fs::symlink(&victim, run.join("height.tif")).unwrap();
+        let outputs = run.outputs().unwrap();
+        let err = crate::export::height_tiff::write_height_tiff(
+            outputs.file("height.tif"),
+            &crate::vision::Image::zeros(2, 2),
+            None,
+        )
+        .unwrap_err();
+        assert!(err.to_string().contains("exists"), "{err}");
+        assert_eq!(std::fs::read(&victim).unwrap(), b"precious");
+        assert!(
+            outputs.read("height.tif").is_err(),
+            "read back through a link"
+        );
     }
 }

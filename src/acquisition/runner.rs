@@ -13,6 +13,7 @@ use super::machine::{Action, Event, FrameRole, Outcome, Series, Tracked};
 use super::stage_trigger::StageTrigger;
 use crate::imaging::{Frame, FrameSource, GrabContext, ImagingConfig, Pixels as FramePixels};
 use crate::numbers;
+use crate::progress::Stage;
 use crate::record::{self, Entry, FrameInfo, Pixels, RecorderHandle, topics};
 use crate::stage::{StageBackend, StageDriver, StagePosition};
 use crate::vision::Image;
@@ -74,8 +75,8 @@ pub struct SeriesContext<'a, T: StageBackend> {
     pub imaging_config: &'a ImagingConfig,
     pub recorder: &'a RecorderHandle,
     pub phase: PhaseCorrelationParams,
-    /// Told one line per milestone.
-    pub progress: &'a (dyn Fn(&str) + Send + Sync),
+    /// Told each stage of the series (tilt steps, frames) as it begins.
+    pub progress: &'a (dyn Fn(Stage) + Send + Sync),
 }
 
 /// Runs `series` to its end: completed, failed (with the stage stopped and
@@ -112,7 +113,11 @@ where
                 break;
             }
             Action::MoveTilt { step, tilt_deg } => {
-                (ctx.progress)(&format!("step {step}/{steps}: tilting to {tilt_deg:.3}°"));
+                (ctx.progress)(Stage::Tilt {
+                    step,
+                    steps,
+                    tilt_deg,
+                });
                 let t0 = Instant::now();
                 let result = cancellable(cancel, ctx.stage.move_tilt(tilt_deg)).await;
                 run.record.timings.tilt_moves_s += t0.elapsed().as_secs_f64();
@@ -263,9 +268,11 @@ impl RunState {
     where
         T: StageBackend,
     {
-        (ctx.progress)(&format!(
-            "step {step}: capturing the {role} frame at {tilt_deg:.3}°"
-        ));
+        (ctx.progress)(Stage::Capture {
+            step,
+            role: role.as_str(),
+            tilt_deg,
+        });
         let request = ctx.imaging_config.request(role);
         let t0 = Instant::now();
         // The verified position lets a file-based source check the tilt its file records;

@@ -5,23 +5,29 @@ use std::path::Path;
 
 use anyhow::Context;
 
+use crate::export::atomic::OutputDir;
 use crate::export::flo;
 use crate::vision::dense::sift_flow::{Flow, FlowParams, sift_flow};
 
-/// Loads `a` and `b`, computes the SIFT flow from `a` to `b` and writes it to `out`.
+/// Loads `a` and `b`, computes the SIFT flow from `a` to `b` and writes it as `name` in
+/// `out` (prepared by [`super::output::prepare_file`]), atomically.
 ///
 /// # Errors
 /// When an image cannot be read, the flow fails (e.g. an image too small for
 /// the pyramid) or the file cannot be written; the message names the file.
-pub fn run(a: &Path, b: &Path, out: &Path, params: &FlowParams) -> anyhow::Result<Flow> {
+pub fn run(
+    a: &Path,
+    b: &Path,
+    (out, name): (&OutputDir, &str),
+    params: &FlowParams,
+) -> anyhow::Result<Flow> {
     let ia = super::rectify::load_gray(a)?;
     let ib = super::rectify::load_gray(b)?;
     let flow = sift_flow(&ia, &ib, params)
         .with_context(|| format!("SIFT flow from {} to {}", a.display(), b.display()))?;
-    let file =
-        std::fs::File::create(out).with_context(|| format!("cannot create {}", out.display()))?;
-    flo::write(std::io::BufWriter::new(file), &flow.u, &flow.v)
-        .with_context(|| format!("cannot write {}", out.display()))?;
+    out.write(name, |w| {
+        flo::write(w, &flow.u, &flow.v).map_err(std::io::Error::other)
+    })?;
     Ok(flow)
 }
 
@@ -47,10 +53,11 @@ mod tests {
             levels: 2,
             ..FlowParams::default()
         };
+        let (prepared, name) = crate::app::output::prepare_file(&out, false).unwrap();
         let flow = run(
             &dir.path().join("a.png"),
             &dir.path().join("b.png"),
-            &out,
+            (&prepared, &name),
             &params,
         )
         .unwrap();
@@ -63,7 +70,7 @@ mod tests {
             run(
                 &dir.path().join("missing.png"),
                 &dir.path().join("b.png"),
-                &out,
+                (&prepared, &name),
                 &params
             )
             .is_err()

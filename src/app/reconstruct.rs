@@ -1,9 +1,10 @@
 //! `sdsem reconstruct LEFT RIGHT --out DIR`: a calibrated height map, point
 //! cloud and mesh from a stereo pair of micrographs (DESIGN §4).
 //!
-//! Tilt and pixel size come from the files' SEM metadata unless given; every
-//! output is computed before the first is written, and a failed write removes
-//! what was written, so no partial set of outputs looks valid.
+//! Tilt and pixel size come from the files' SEM metadata unless given; the output
+//! directory is prepared before any work ([`super::output`]); every output is computed
+//! before the first is written, and a failed write removes what was written, so no
+//! partial set of outputs looks valid.
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -11,12 +12,16 @@ use std::time::Instant;
 use anyhow::bail;
 use serde::Serialize;
 
+use crate::export::atomic::OutputDir;
 use crate::export::{self, ExportError, MeshParams, ply};
 use crate::imaging::file::{Micrograph, load_micrograph};
 use crate::imaging::metadata::SemMetadata;
+use crate::progress::{Observer, Stage};
 use crate::record::RecordError;
 use crate::vision::geometry::{Figures, GeometrySources, PairGeometry, Provenance};
-use crate::vision::pipeline::{ReconReport, ReconstructError, Reconstruction, reconstruct};
+use crate::vision::pipeline::{
+    ReconReport, ReconstructError, Reconstruction, reconstruct_observed,
+};
 use crate::vision::{Image, ReconstructionParams};
 
 /// Output file names (DESIGN §4).
@@ -28,6 +33,15 @@ pub mod files {
     /// Beyond DESIGN §4: the per-pixel confidence of `height.tif`.
     pub const CONFIDENCE_TIFF: &str = "confidence.tif";
     pub const REPORT: &str = "report.json";
+    /// Every file a reconstruction writes, the report last.
+    pub const ALL: [&str; 6] = [
+        HEIGHT_TIFF,
+        HEIGHT_GSF,
+        POINT_CLOUD,
+        MESH,
+        CONFIDENCE_TIFF,
+        REPORT,
+    ];
 }
 
 /// A pair ready to reconstruct, with where each geometric figure came from.
@@ -104,11 +118,6 @@ pub enum OutputError {
         error: ReconstructError,
         hint: &'static str,
     },
-    #[error("cannot create {path}: {source}")]
-    CreateDir {
-        path: PathBuf,
-        source: std::io::Error,
-    },
     #[error("{0}")]
     Export(ExportError),
     #[error("cannot read back {path}: {source}")]
@@ -146,31 +155,36 @@ pub struct ReportFile {
     pub peak_rss_mib: Option<f64>,
 }
 
-/// Reconstructs `left`/`right` into `out` (created if needed).
+/// Reconstructs `left`/`right` into `out` (prepared by [`super::output::prepare_dir`]),
+/// telling `progress` each stage.
 ///
 /// # Errors
 /// A one-line cause; nothing is left in `out` that looks like a result.
+#[allow(clippy::too_many_arguments)]
 pub fn run(
     left: &Path,
     right: &Path,
-    out: &Path,
+    out: &OutputDir,
     given: Figures,
     configured_tilt_axis_deg: Option<f64>,
     params: &ReconstructionParams,
     mesh: &MeshParams,
+    progress: Observer<'_>,
 ) -> anyhow::Result<ReportFile> {
     let t0 = Instant::now();
     let pair = load_pair(left, right, given, configured_tilt_axis_deg)?;
-    let recon =
-        reconstruct(&pair.left.image, &pair.right.image, &pair.geometry, params).map_err(|e| {
-            match e {
-                // The sparse stage's refusals concern one image or the pair: name them.
-                ReconstructError::Sparse(e) => {
-                    super::rectify::name_files(e, left, right, "sparse stage: ")
-                }
-                e => e.into(),
-            }
-        })?;
+    let recon = reconstruct_observed(
+        &pair.left.image,
+        &pair.right.image,
+        &pair.geometry,
+        params,
+        progress,
+    )
+    .map_err(|e| match e {
+        // The sparse stage's refusals concern one image or the pair: name them.
+        ReconstructError::Sparse(e) => super::rectify::name_files(e, left, right, "sparse stage: "),
+        e => e.into(),
+    })?;
     let mut report = ReportFile {
         sdsem_version: env!("CARGO_PKG_VERSION"),
         left: left.to_owned(),
@@ -184,7 +198,15 @@ pub fn run(
         wall_s: 0.0,
         peak_rss_mib: None,
     };
-    write_outputs(out, &recon, &pair.left.image, mesh, &mut report, t0)?;
+    write_outputs(
+        out,
+        &recon,
+        &pair.left.image,
+        mesh,
+        &mut report,
+        t0,
+        progress,
+    )?;
     Ok(report)
 }
 
@@ -196,23 +218,28 @@ pub fn run(
 ///
 /// # Errors
 /// The reconstruction's or the writing's one-line cause.
+#[allow(clippy::too_many_arguments)]
 pub fn reconstruct_recorded_pair(
     left: &Image,
     right: &Image,
     (geometry, provenance): (&PairGeometry, Provenance),
     config: &crate::config::ReconstructionConfig,
-    out: &Path,
+    out: &OutputDir,
     rec: Option<&crate::record::RecorderHandle>,
     sources: (&Path, &Path),
+    progress: Observer<'_>,
 ) -> Result<(ReportFile, Reconstruction), OutputError> {
     let t0 = Instant::now();
-    let recon = reconstruct(left, right, geometry, &config.params()).map_err(|e| match &e {
-        ReconstructError::Sparse(s) => match super::rectify::tilt_axis_hint(s) {
-            Some(hint) => OutputError::Hinted { error: e, hint },
-            None => e.into(),
-        },
-        _ => e.into(),
-    })?;
+    let recon =
+        reconstruct_observed(left, right, geometry, &config.params(), progress).map_err(|e| {
+            match &e {
+                ReconstructError::Sparse(s) => match super::rectify::tilt_axis_hint(s) {
+                    Some(hint) => OutputError::Hinted { error: e, hint },
+                    None => e.into(),
+                },
+                _ => e.into(),
+            }
+        })?;
     let mut report = ReportFile {
         sdsem_version: env!("CARGO_PKG_VERSION"),
         left: sources.0.to_owned(),
@@ -226,8 +253,9 @@ pub fn reconstruct_recorded_pair(
         wall_s: 0.0,
         peak_rss_mib: None,
     };
-    write_outputs(out, &recon, left, &config.mesh, &mut report, t0)?;
+    write_outputs(out, &recon, left, &config.mesh, &mut report, t0, progress)?;
     if let Some(rec) = rec {
+        progress(Stage::Record);
         let t = crate::stage::observer::wall_ns();
         rec.reconstruction(
             t,
@@ -244,32 +272,31 @@ pub fn reconstruct_recorded_pair(
             (files::HEIGHT_GSF, "application/x-gwyddion-gsf"),
             (files::CONFIDENCE_TIFF, "image/tiff"),
         ] {
-            let path = out.join(name);
-            let bytes =
-                std::fs::read(&path).map_err(|source| OutputError::ReadBack { path, source })?;
+            let bytes = out.read(name).map_err(|source| OutputError::ReadBack {
+                path: out.join(name),
+                source,
+            })?;
             rec.attachment(t, name, media_type, bytes)?;
         }
     }
     Ok((report, recon))
 }
 
-/// Writes every output of a reconstruction into `out`; on failure removes
-/// whatever it wrote.
+/// Writes every output of a reconstruction into `out` (under its rule for existing
+/// files: new ones only, or replaced with `--force`); on failure removes whatever it wrote.
 ///
 /// # Errors
 /// The file that could not be written and why.
 pub fn write_outputs(
-    out: &Path,
+    out: &OutputDir,
     recon: &Reconstruction,
     intensity: &Image,
     mesh_params: &MeshParams,
     report: &mut ReportFile,
     started: Instant,
+    progress: Observer<'_>,
 ) -> Result<(), OutputError> {
-    std::fs::create_dir_all(out).map_err(|source| OutputError::CreateDir {
-        path: out.to_owned(),
-        source,
-    })?;
+    progress(Stage::Export);
     let p = recon.report.geometry.pixel_size_um;
     let cloud = ply::cloud_from_height(&recon.height_um, p, Some(intensity));
     let mesh = ply::build_mesh(&recon.height_um, p, Some(intensity), mesh_params);
@@ -280,15 +307,14 @@ pub fn write_outputs(
     // The files are independent: written at the same time (the mesh, the
     // largest, beside the rest). The report goes last: its presence says
     // the set is complete. On any failure every file written is removed.
-    let paths = [
+    let names = [
         files::HEIGHT_TIFF,
         files::HEIGHT_GSF,
         files::POINT_CLOUD,
         files::MESH,
         files::CONFIDENCE_TIFF,
-    ]
-    .map(|name| out.join(name));
-    let [tiff, gsf, cloud_path, mesh_path, confidence_path] = &paths;
+    ];
+    let [tiff, gsf, cloud_path, mesh_path, confidence_path] = names.map(|name| out.file(name));
     let (mesh_written, (cloud_written, ((tiff_written, confidence_written), gsf_written))) =
         rayon::join(
             || ply::write_mesh_ply(mesh_path, &mesh, true),
@@ -324,30 +350,25 @@ pub fn write_outputs(
         mesh_written,
         confidence_written,
     ];
-    let written: Vec<&PathBuf> = paths
+    let written: Vec<&str> = names
         .iter()
         .zip(&results)
         .filter(|(_, r)| r.is_ok())
-        .map(|(p, _)| p)
+        .map(|(n, _)| *n)
         .collect();
     let result = (|| -> Result<(), OutputError> {
         for r in results {
             r?;
         }
-        report.outputs = paths
-            .iter()
-            .filter_map(|p| p.file_name().map(|n| n.to_string_lossy().into_owned()))
-            .chain(std::iter::once(files::REPORT.to_owned()))
-            .collect();
+        report.outputs = files::ALL.map(str::to_owned).to_vec();
         report.wall_s = started.elapsed().as_secs_f64();
         report.peak_rss_mib = peak_rss_mib();
-        let path = out.join(files::REPORT);
-        export::report::write_report_atomic(&path, report)?;
+        export::report::write_report_atomic(out.file(files::REPORT), report)?;
         Ok(())
     })();
     if result.is_err() {
-        for path in written {
-            let _ = std::fs::remove_file(path);
+        for name in written {
+            out.remove(name);
         }
     }
     result
@@ -383,14 +404,16 @@ mod tests {
     /// checking that the output directory holds nothing afterwards.
     fn refused(dir: &Path, left: &Path, right: &Path, given: Figures) -> String {
         let out = dir.join("out");
+        let prepared = super::super::output::prepare_dir(&out, &files::ALL, false).unwrap();
         let err = run(
             left,
             right,
-            &out,
+            &prepared,
             given,
             None,
             &ReconstructionParams::default(),
             &MeshParams::default(),
+            &crate::progress::unobserved,
         )
         .expect_err("the pair must be refused");
         let line = format!("{err:#}");
@@ -476,8 +499,12 @@ mod tests {
     /// written, the GSF obeys DESIGN §7, the relief comes out raised, and the
     /// report carries the energies of every level and the flow statistics.
     /// Reconstructs the 192×144 dome pair of the tests below (written into
-    /// `dir`) into `out`.
-    fn reconstruct_dome(dir: &Path, out: &Path) -> anyhow::Result<ReportFile> {
+    /// `dir`) into `out`, telling `progress` each stage.
+    fn reconstruct_dome(
+        dir: &Path,
+        out: &OutputDir,
+        progress: Observer<'_>,
+    ) -> anyhow::Result<ReportFile> {
         let (w, h) = (192, 144);
         let pair = render(
             w,
@@ -504,6 +531,7 @@ mod tests {
             None,
             &params,
             &MeshParams::default(),
+            progress,
         )
     }
 
@@ -512,7 +540,12 @@ mod tests {
         let (w, h) = (192, 144);
         let dir = tempfile::tempdir().unwrap();
         let out = dir.path().join("out");
-        let report = reconstruct_dome(dir.path(), &out).unwrap();
+        let prepared = super::super::output::prepare_dir(&out, &files::ALL, false).unwrap();
+        let stages = crate::progress::StageLog::default();
+        let report = reconstruct_dome(dir.path(), &prepared, &|s| stages.push(s)).unwrap();
+        // Every stage is told once, in order.
+        let expected = [Stage::Sparse, Stage::Dense, Stage::Depth, Stage::Export];
+        assert_eq!(stages.stages(), expected);
         for name in [
             files::HEIGHT_TIFF,
             files::HEIGHT_GSF,
@@ -606,7 +639,10 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let out = dir.path().join("out");
         std::fs::create_dir_all(out.join(files::MESH).join("occupied")).unwrap();
-        let err = reconstruct_dome(dir.path(), &out).expect_err("mesh.ply cannot be written");
+        // --force: the directory in the way is left to the writer, which cannot replace it.
+        let prepared = super::super::output::prepare_dir(&out, &files::ALL, true).unwrap();
+        let err = reconstruct_dome(dir.path(), &prepared, &crate::progress::unobserved)
+            .expect_err("mesh.ply cannot be written");
         assert!(format!("{err:#}").contains(files::MESH), "{err:#}");
         let left: Vec<String> = std::fs::read_dir(&out)
             .unwrap()

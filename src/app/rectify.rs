@@ -3,6 +3,10 @@
 use std::path::Path;
 
 use anyhow::{Context, bail};
+use image::codecs::png::PngEncoder;
+use image::{ExtendedColorType, ImageEncoder};
+
+use crate::export::atomic::OutputDir;
 
 use crate::vision::Image;
 use crate::vision::rectify::RectifyError;
@@ -152,7 +156,7 @@ fn relabel_palette_as_grey(bytes: &mut [u8]) -> bool {
 pub fn run_rectify(
     left: &Path,
     right: &Path,
-    out: &Path,
+    out: &OutputDir,
     tilt_axis_deg: Option<f64>,
     params: &SparseParams,
 ) -> anyhow::Result<RectifyOutputs> {
@@ -160,30 +164,46 @@ pub fn run_rectify(
     let r = load_gray(right)?;
     let pair =
         rectify_pair(&l, &r, tilt_axis_deg, params).map_err(|e| name_files(e, left, right, ""))?;
-    std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
-    save_png(&pair.left.filled(0.0), &out.join("rectified_left.png"))?;
-    save_png(&pair.right.filled(0.0), &out.join("rectified_right.png"))?;
-    let matches = draw_matches(&l, &r, &pair.sparse.inliers);
-    let path = out.join("matches.png");
-    matches
-        .save(&path)
-        .with_context(|| format!("cannot write {}", path.display()))?;
-    let json = rectification_json(&pair.sparse, tilt_axis_deg, params);
-    crate::export::report::write_report_atomic(&out.join("rectification.json"), &json)?;
+    let [left_name, right_name, matches_name, json_name] = FILES;
+    let written = (|| -> anyhow::Result<()> {
+        write_gray_png(out, left_name, &pair.left.filled(0.0))?;
+        write_gray_png(out, right_name, &pair.right.filled(0.0))?;
+        let matches = draw_matches(&l, &r, &pair.sparse.inliers);
+        out.write(matches_name, |w| {
+            PngEncoder::new(w)
+                .write_image(
+                    matches.as_raw(),
+                    matches.width(),
+                    matches.height(),
+                    ExtendedColorType::Rgb8,
+                )
+                .map_err(std::io::Error::other)
+        })?;
+        let json = rectification_json(&pair.sparse, tilt_axis_deg, params);
+        crate::export::report::write_report_atomic(out.file(json_name), &json)?;
+        Ok(())
+    })();
+    if let Err(e) = written {
+        for name in FILES {
+            out.remove(name);
+        }
+        return Err(e);
+    }
     Ok(RectifyOutputs {
-        files: [
-            "rectified_left.png",
-            "rectified_right.png",
-            "matches.png",
-            "rectification.json",
-        ]
-        .map(|name| out.join(name))
-        .to_vec(),
+        files: FILES.map(|name| out.join(name)).to_vec(),
         inliers: pair.sparse.inliers.len(),
         initial_error_px: pair.sparse.rectification.initial_error_px,
         final_error_px: pair.sparse.rectification.final_error_px,
     })
 }
+
+/// The files `sdsem rectify` writes, in order.
+pub const FILES: [&str; 4] = [
+    "rectified_left.png",
+    "rectified_right.png",
+    "matches.png",
+    "rectification.json",
+];
 
 /// What `sdsem rectify` wrote, and the figures of its summary line.
 #[derive(Debug, Clone, PartialEq)]
@@ -293,12 +313,17 @@ pub fn rectification_json(
     })
 }
 
-fn save_png(img: &Image, path: &Path) -> anyhow::Result<()> {
+/// Writes `img` as an 8-bit grey PNG named `name` in `out`.
+fn write_gray_png(out: &OutputDir, name: &str, img: &Image) -> anyhow::Result<()> {
     let (w, h) = img.dimensions();
-    let buf = image::GrayImage::from_raw(u32::try_from(w)?, u32::try_from(h)?, img.to_u8())
-        .context("image buffer size")?;
-    buf.save(path)
-        .with_context(|| format!("cannot write {}", path.display()))
+    let (w, h) = (u32::try_from(w)?, u32::try_from(h)?);
+    let bytes = img.to_u8();
+    out.write(name, |file| {
+        PngEncoder::new(file)
+            .write_image(&bytes, w, h, ExtendedColorType::L8)
+            .map_err(std::io::Error::other)
+    })?;
+    Ok(())
 }
 
 /// Both originals side by side (left | right) with each inlier match drawn as a line.
@@ -350,6 +375,17 @@ fn draw_line(img: &mut image::RgbImage, a: [f64; 2], b: [f64; 2], colour: image:
 mod tests {
     use super::*;
 
+    fn save_png(img: &Image, path: &Path) -> anyhow::Result<()> {
+        let (w, h) = img.dimensions();
+        let buf = image::GrayImage::from_raw(u32::try_from(w)?, u32::try_from(h)?, img.to_u8())
+            .context("image buffer size")?;
+        Ok(buf.save(path)?)
+    }
+
+    fn prepared(out: &Path) -> OutputDir {
+        crate::app::output::prepare_dir(out, &FILES, true).unwrap()
+    }
+
     #[test]
     fn rectify_command_writes_images_and_json() {
         let pair = crate::vision::sparse::tests::sem_pair(256, 200, -90.0, (-4.0, 4.0), 0.5, false);
@@ -358,7 +394,14 @@ mod tests {
         save_png(&pair.left, &l).unwrap();
         save_png(&pair.right, &r).unwrap();
         let out = dir.path().join("out");
-        run_rectify(&l, &r, &out, Some(-90.0), &SparseParams::default()).unwrap();
+        run_rectify(
+            &l,
+            &r,
+            &prepared(&out),
+            Some(-90.0),
+            &SparseParams::default(),
+        )
+        .unwrap();
         for f in ["rectified_left.png", "rectified_right.png", "matches.png"] {
             assert!(image::open(out.join(f)).is_ok(), "{f}");
         }
@@ -424,9 +467,10 @@ mod tests {
         save_png(&Image::filled(200, 160, 0.4), &blank).unwrap();
         let out = dir.path().join("out");
         let p = SparseParams::default();
+        let out_dir = prepared(&out);
         // What `main` prints: the cause chain on one line.
         let fail = |a: &Path, b: &Path| {
-            let e = run_rectify(a, b, &out, Some(-90.0), &p).unwrap_err();
+            let e = run_rectify(a, b, &out_dir, Some(-90.0), &p).unwrap_err();
             format!("{e:#}")
         };
         let e = fail(&l, &notes);
@@ -449,7 +493,11 @@ mod tests {
             "{e}"
         );
         assert!(!e.contains('\n'), "{e}");
-        assert!(!out.exists(), "nothing is written for a refused pair");
+        assert_eq!(
+            std::fs::read_dir(&out).unwrap().count(),
+            0,
+            "nothing is written for a refused pair"
+        );
     }
 
     #[test]

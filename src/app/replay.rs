@@ -20,12 +20,20 @@ use serde::Serialize;
 use super::reconstruct::{ReportFile, reconstruct_recorded_pair};
 use crate::acquisition::job::{EndGeometry, pair_geometry_of};
 use crate::config::Config;
+use crate::export::atomic::OutputDir;
+use crate::progress::Observer;
 use crate::record::{self, FrameRole, ReadError, RecordedMicrograph, topics};
 use crate::vision::Image;
 use crate::vision::geometry::PairGeometry;
 
 /// The file `replay` writes beside the reconstruction outputs.
 pub const REPLAY_REPORT: &str = "replay.json";
+
+/// Every file `replay` writes.
+pub const FILES: [&str; 7] = {
+    let r = super::reconstruct::files::ALL;
+    [r[0], r[1], r[2], r[3], r[4], r[5], REPLAY_REPORT]
+};
 
 /// What a replay did and found (`DIR/replay.json`, `sdsem replay --json`).
 #[derive(Debug, Clone, Serialize)]
@@ -190,15 +198,21 @@ pub fn compare_heights(recorded: &Image, replayed: &Image) -> Comparison {
     Comparison::Differs(d)
 }
 
-/// Reconstructs the run recorded in `record` into `out` with the recorded
-/// configuration (and `overrides` over it), and compares the height map
-/// with the recorded one.
+/// Reconstructs the run recorded in `record` into `out` (prepared by
+/// [`super::output::prepare_dir`] for [`FILES`]) with the recorded configuration (and
+/// `overrides` over it), telling `progress` each stage, and compares the height map with
+/// the recorded one.
 ///
 /// # Errors
 /// One line naming the cause: not an MCAP file, no end micrographs (with
 /// where the record was cut off, if it was), no recorded configuration, an
 /// invalid override, or the reconstruction's own error.
-pub fn replay(record: &Path, out: &Path, overrides: &[String]) -> anyhow::Result<ReplayReport> {
+pub fn replay(
+    record: &Path,
+    out: &OutputDir,
+    overrides: &[String],
+    progress: Observer<'_>,
+) -> anyhow::Result<ReplayReport> {
     let inputs = record::read_replay_inputs(record).map_err(|e| match e {
         ReadError::NotMcap { .. } => {
             anyhow::anyhow!("{e} (give the run.mcap of a run directory, e.g. runs/sim-…/run.mcap)")
@@ -241,22 +255,13 @@ pub fn replay(record: &Path, out: &Path, overrides: &[String]) -> anyhow::Result
         PathBuf::from(&config_source)
     };
     let config_text = crate::config::upgrade_recorded(&config_text);
+    // The error names the layer at fault: the recorded configuration or a --set.
     let config = Config::from_layers(
         Some(&config_text),
         Some(&origin),
         overrides,
         std::iter::empty(),
-    )
-    .with_context(|| {
-        if overrides.is_empty() {
-            format!(
-                "the configuration recorded in {} is unusable",
-                record.display()
-            )
-        } else {
-            "the recorded configuration with the --set overrides is invalid".to_owned()
-        }
-    })?;
+    )?;
 
     let (geometry, provenance) = pair_geometry_of(
         &config,
@@ -274,6 +279,7 @@ pub fn replay(record: &Path, out: &Path, overrides: &[String]) -> anyhow::Result
             &PathBuf::from(format!("{}#left", record.display())),
             &PathBuf::from(format!("{}#right", record.display())),
         ),
+        progress,
     )?;
 
     let comparison = match &inputs.height {
@@ -300,7 +306,7 @@ pub fn replay(record: &Path, out: &Path, overrides: &[String]) -> anyhow::Result
     };
     let report = ReplayReport {
         record: record.to_owned(),
-        out: out.to_owned(),
+        out: out.path().to_owned(),
         config_source,
         overrides: overrides.to_vec(),
         record_complete: end.complete,
@@ -310,7 +316,7 @@ pub fn replay(record: &Path, out: &Path, overrides: &[String]) -> anyhow::Result
         comparison,
         reconstruction,
     };
-    crate::export::report::write_report_atomic(&out.join(REPLAY_REPORT), &report)?;
+    crate::export::report::write_report_atomic(out.file(REPLAY_REPORT), &report)?;
     Ok(report)
 }
 

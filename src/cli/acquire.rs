@@ -24,12 +24,15 @@ pub fn run(args: &ConfigArgs) -> anyhow::Result<ExitCode> {
         let run_dir = RunDir::create(&config.run.output_dir, &name, std::time::SystemTime::now())?;
         let (handle, cancel) = cancel_pair();
         tokio::spawn(cancel_on_signals(handle));
+        let display = super::progress::StageDisplay::on_stderr();
         let hooks = RunHooks {
             cancel,
             logs: logging::record_logs(),
-            progress: &|_| {},
+            progress: &|stage| display.observe(stage),
         };
-        let report = run_job(&config, None, &run_dir, hooks).await?;
+        let report = run_job(&config, None, &run_dir, hooks).await;
+        display.finish();
+        let report = report?;
         if let Err(e) = &report.record {
             eprintln!("warning: the run record is incomplete: {e}");
         }

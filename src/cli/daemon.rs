@@ -13,6 +13,7 @@ use crate::config::Config;
 use crate::daemon::{
     DaemonOptions, JobContext, JobOutcome, JobRecord, JobRunner, Spool, run_daemon,
 };
+use crate::progress::Stage;
 
 #[derive(Debug, Args)]
 pub struct DaemonArgs {
@@ -193,8 +194,18 @@ impl JobRunner for AcquisitionRunner {
                 reason: "the instruments are not connected".into(),
             };
         };
+        // The stage becomes the STATUS= line and `sdsem status`; the reconstruction's
+        // stages also go to the journal and the record, each with its time.
         let progress = ctx.progress.clone();
-        let report = move |line: &str| progress.report(line);
+        let lines = super::progress::StageDisplay::log_lines();
+        let report = |stage: Stage| {
+            lines.observe(stage);
+            progress.report(if stage.is_acquisition() {
+                stage.to_string()
+            } else {
+                format!("reconstructing: {stage}")
+            });
+        };
         let hooks = RunHooks {
             cancel: ctx.cancel,
             logs: super::logging::record_logs(),
@@ -206,6 +217,7 @@ impl JobRunner for AcquisitionRunner {
                 reason: e.to_string(),
             },
         };
+        lines.finish();
         if !outcome.is_completed() {
             // Whatever went wrong may have been the link: start the next job afresh.
             self.instruments = None;

@@ -22,6 +22,9 @@ use crate::record::{RecordLogSwitch, record_log_layer};
 
 static RECORD_LOGS: OnceLock<RecordLogSwitch> = OnceLock::new();
 
+/// Whether the log on stderr is text on a terminal that can show a progress display.
+static TERMINAL: OnceLock<bool> = OnceLock::new();
+
 /// Installs the global subscriber once. `RUST_LOG` beats `filter`.
 pub fn init(format: LogFormat, filter: Option<&str>) {
     let filter = EnvFilter::try_from_default_env()
@@ -55,6 +58,13 @@ pub fn init(format: LogFormat, filter: Option<&str>) {
             })
             .with_writer(std::io::stderr)
             .boxed()
+    } else if std::io::stderr().is_terminal() {
+        // Around the progress display, if one is shown (`super::progress`).
+        fmt::layer()
+            .with_target(false)
+            .with_ansi(colours())
+            .with_writer(super::progress::TerminalLog)
+            .boxed()
     } else {
         fmt::layer()
             .with_target(false)
@@ -62,6 +72,12 @@ pub fn init(format: LogFormat, filter: Option<&str>) {
             .with_writer(std::io::stderr)
             .boxed()
     };
+    let _ = TERMINAL.set(
+        !json
+            && !journal
+            && std::io::stderr().is_terminal()
+            && std::env::var_os("TERM").is_none_or(|t| t != "dumb"),
+    );
     let (record_layer, switch) = record_log_layer(Level::INFO);
     let installed = tracing_subscriber::registry()
         .with(stderr.with_filter(filter))
@@ -77,6 +93,12 @@ pub fn init(format: LogFormat, filter: Option<&str>) {
 /// `NO_COLOR` and `CLICOLOR=0` turn colours off, `CLICOLOR_FORCE` on, else a terminal.
 fn colours() -> bool {
     anstream::AutoStream::choice(&std::io::stderr()) != anstream::ColorChoice::Never
+}
+
+/// True when the log on stderr is text on a terminal (not the journal, not `TERM=dumb`): a
+/// progress display can be shown there; elsewhere the stages are log lines.
+pub fn terminal() -> bool {
+    TERMINAL.get().copied().unwrap_or(false)
 }
 
 /// The switch that sends log events into the record of the current run.

@@ -16,6 +16,7 @@ mod eval;
 mod inspect;
 pub(crate) mod logging;
 mod manual;
+mod progress;
 mod replay;
 mod status;
 mod submit;

@@ -17,6 +17,9 @@ pub struct ReplayArgs {
     /// confidence.tif, report.json, and replay.json with the comparison.
     #[arg(long, short)]
     pub out: PathBuf,
+    /// Replace the outputs of an earlier replay in the output directory.
+    #[arg(long)]
+    pub force: bool,
     /// Change a parameter of the recorded configuration, e.g.
     /// `--set reconstruction.mode=paper` (repeatable); the comparison is then
     /// informative, not a failure.
@@ -31,7 +34,13 @@ pub struct ReplayArgs {
 const EXIT_MISMATCH: u8 = 2;
 
 pub fn run(args: &ReplayArgs) -> anyhow::Result<ExitCode> {
-    let report = replay::replay(&args.record, &args.out, &args.overrides)?;
+    let out = crate::app::output::prepare_dir(&args.out, &replay::FILES, args.force)?;
+    let display = super::progress::StageDisplay::on_stderr();
+    let report = replay::replay(&args.record, &out, &args.overrides, &|stage| {
+        display.observe(stage);
+    });
+    display.finish();
+    let report = report?;
     if args.json {
         println!(
             "{}",

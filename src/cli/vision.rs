@@ -6,6 +6,8 @@ use std::process::ExitCode;
 use clap::Args;
 
 use super::ConfigArgs;
+use super::progress::StageDisplay;
+use crate::app::output;
 use crate::app::reconstruct;
 use crate::numbers;
 use crate::vision::geometry::Figures;
@@ -20,6 +22,9 @@ pub struct ReconstructArgs {
     /// report.json.
     #[arg(long, short)]
     pub out: PathBuf,
+    /// Replace the outputs of an earlier run in the output directory.
+    #[arg(long)]
+    pub force: bool,
     /// Tilt difference θ between the micrographs, degrees (default: from their metadata).
     // Negative values are taken, so that the refusal names the allowed range.
     #[arg(long, value_name = "DEG", allow_hyphen_values = true)]
@@ -44,6 +49,9 @@ pub struct RectifyArgs {
     /// Output directory: rectified_left.png, rectified_right.png, matches.png, rectification.json.
     #[arg(long, short)]
     pub out: PathBuf,
+    /// Replace the outputs of an earlier run in the output directory.
+    #[arg(long)]
+    pub force: bool,
     /// Direction of the tilt axis in the image, degrees (orients the rectified pair).
     #[arg(long, value_name = "DEG", allow_hyphen_values = true)]
     pub tilt_axis: Option<f64>,
@@ -60,27 +68,34 @@ pub struct FlowArgs {
     /// The flow from A to B as Middlebury .flo.
     #[arg(long, short)]
     pub out: PathBuf,
+    /// Replace the file if it exists.
+    #[arg(long)]
+    pub force: bool,
     #[command(flatten)]
     pub config: ConfigArgs,
 }
 
 pub fn run_reconstruct(args: &ReconstructArgs) -> anyhow::Result<ExitCode> {
     let config = args.config.load()?;
+    let out = output::prepare_dir(&args.out, &reconstruct::files::ALL, args.force)?;
     let given = Figures {
         tilt_deg: args.tilt,
         pixel_size_um: args.pixel_size,
         tilt_axis_deg: args.tilt_axis,
     };
+    let display = StageDisplay::on_stderr();
     let report = reconstruct::run(
         &args.left,
         &args.right,
-        &args.out,
+        &out,
         given,
         config.reconstruction.tilt_axis_deg,
         &config.reconstruction.params(),
         &config.reconstruction.mesh,
-    )?;
-    summarise(&report, &args.out);
+        &|stage| display.observe(stage),
+    );
+    display.finish();
+    summarise(&report?, &args.out);
     Ok(ExitCode::SUCCESS)
 }
 
@@ -182,6 +197,7 @@ fn describe_precision(p: &crate::vision::precision::Precision, relief: f64) -> S
 
 pub fn run_rectify(args: &RectifyArgs) -> anyhow::Result<ExitCode> {
     let config = args.config.load()?;
+    let out = output::prepare_dir(&args.out, &crate::app::rectify::FILES, args.force)?;
     // The precedence of every command: the flag, the files' metadata, the configuration.
     let metadata = |path: &Path| {
         crate::imaging::file::read_sem_metadata(path)
@@ -206,7 +222,7 @@ pub fn run_rectify(args: &RectifyArgs) -> anyhow::Result<ExitCode> {
     let outputs = crate::app::rectify::run_rectify(
         &args.left,
         &args.right,
-        &args.out,
+        &out,
         tilt_axis,
         &config.reconstruction.sparse,
     )?;
@@ -223,8 +239,9 @@ pub fn run_rectify(args: &RectifyArgs) -> anyhow::Result<ExitCode> {
 
 pub fn run_flow(args: &FlowArgs) -> anyhow::Result<ExitCode> {
     let config = args.config.load()?;
+    let (dir, name) = output::prepare_file(&args.out, args.force)?;
     let params = config.reconstruction.dense.flow;
-    let flow = crate::app::flow::run(&args.a, &args.b, &args.out, &params)?;
+    let flow = crate::app::flow::run(&args.a, &args.b, (&dir, &name), &params)?;
     eprintln!(
         "wrote {} ({}×{} flow from {} to {})",
         args.out.display(),

@@ -7,13 +7,18 @@
 //! directory entry ([`Existing::Replace`]; a link there is replaced, not followed) or refuses
 //! an existing one ([`Existing::Refuse`], `RENAME_NOREPLACE`), as for files that must be new.
 //! Exports, micrographs, run directories and the daemon's spool all write through it.
+//!
+//! An export names its file by a path ([`Target::Path`]: the path's directory, an existing
+//! file replaced) or by a name in an [`OutputDir`] opened once before any work, whose rule
+//! for existing names ([`Existing`]) the command chose: `--force` replaces, otherwise and in
+//! a run directory every file must be new.
 
 use std::ffi::OsStr;
 use std::fs::File;
 use std::io::{self, BufWriter, Write};
 use std::os::fd::{AsFd, BorrowedFd, OwnedFd};
 use std::os::unix::ffi::OsStrExt;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 
 use rustix::fs::{AtFlags, Mode, OFlags, RenameFlags};
@@ -147,6 +152,188 @@ where
     })?;
     let dir = open_dir(path.parent().unwrap_or(Path::new("."))).map_err(to_error)?;
     write_atomic_at(dir.as_fd(), name, existing, None, write).map_err(to_error)
+}
+
+/// An open directory that outputs are written into, with its rule for names that exist.
+#[derive(Debug)]
+pub struct OutputDir {
+    path: PathBuf,
+    dir: OwnedFd,
+    existing: Existing,
+}
+
+impl OutputDir {
+    /// Opens the directory `path` (following the links of the caller's own path).
+    ///
+    /// # Errors
+    /// The system's error when it is not a directory that can be opened.
+    pub fn open(path: &Path, existing: Existing) -> io::Result<Self> {
+        Ok(Self::from_fd(path.to_owned(), open_dir(path)?, existing))
+    }
+
+    /// The directory already open as `dir`, known as `path` in messages.
+    #[must_use]
+    pub fn from_fd(path: PathBuf, dir: OwnedFd, existing: Existing) -> Self {
+        Self {
+            path,
+            dir,
+            existing,
+        }
+    }
+
+    /// A second handle on the same directory (e.g. for a worker thread).
+    ///
+    /// # Errors
+    /// The system's error when the descriptor cannot be duplicated.
+    pub fn try_clone(&self) -> io::Result<Self> {
+        Ok(Self {
+            path: self.path.clone(),
+            dir: self.dir.try_clone()?,
+            existing: self.existing,
+        })
+    }
+
+    /// The directory's path, for messages.
+    #[must_use]
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// What a write does to a name that exists.
+    #[must_use]
+    pub fn existing(&self) -> Existing {
+        self.existing
+    }
+
+    /// The path of `name` in it, for messages and readers.
+    #[must_use]
+    pub fn join(&self, name: &str) -> PathBuf {
+        self.path.join(name)
+    }
+
+    /// The file `name` in it, as the target of an export.
+    #[must_use]
+    pub fn file<'a>(&'a self, name: &'a str) -> Target<'a> {
+        Target::In { dir: self, name }
+    }
+
+    /// Whether anything (a file, a link, a directory) has the name `name` in it.
+    ///
+    /// # Errors
+    /// The system's error other than "not found".
+    pub fn holds(&self, name: &str) -> io::Result<bool> {
+        check_single_component(OsStr::new(name))?;
+        match rustix::fs::statat(&self.dir, name, AtFlags::SYMLINK_NOFOLLOW) {
+            Ok(_) => Ok(true),
+            Err(rustix::io::Errno::NOENT) => Ok(false),
+            Err(e) => Err(e.into()),
+        }
+    }
+
+    /// Creates and removes a file in it: proves that it can be written in now.
+    ///
+    /// # Errors
+    /// The system's error of the creation (`PermissionDenied`, a read-only file system, …).
+    pub fn probe(&self) -> io::Result<()> {
+        let name = format!(
+            ".sdsem-probe-{}-{}",
+            std::process::id(),
+            COUNTER.fetch_add(1, Ordering::Relaxed)
+        );
+        drop(create_new_at(self.dir.as_fd(), OsStr::new(&name), None)?);
+        rustix::fs::unlinkat(&self.dir, name.as_str(), AtFlags::empty())?;
+        Ok(())
+    }
+
+    /// Reads the file `name` back, never through a link.
+    ///
+    /// # Errors
+    /// The system's error; a link at `name` fails (`ELOOP`).
+    pub fn read(&self, name: &str) -> io::Result<Vec<u8>> {
+        check_single_component(OsStr::new(name))?;
+        let fd = rustix::fs::openat(
+            &self.dir,
+            name,
+            OFlags::RDONLY | OFlags::NOFOLLOW | OFlags::CLOEXEC,
+            Mode::empty(),
+        )?;
+        let mut bytes = Vec::new();
+        io::Read::read_to_end(&mut File::from(fd), &mut bytes)?;
+        Ok(bytes)
+    }
+
+    /// Removes the file `name` from it (what a failed command wrote); a missing one is no error.
+    pub fn remove(&self, name: &str) {
+        let _ = rustix::fs::unlinkat(&self.dir, name, AtFlags::empty());
+    }
+
+    /// Writes the file `name` atomically, under this directory's rule for an existing one.
+    ///
+    /// # Errors
+    /// [`ExportError::Write`] naming the file; `AlreadyExists` as its cause when the rule is
+    /// [`Existing::Refuse`] and something has that name.
+    pub fn write<F>(&self, name: &str, write: F) -> Result<(), ExportError>
+    where
+        F: FnOnce(&mut BufWriter<File>) -> io::Result<()>,
+    {
+        write_atomic_at(
+            self.dir.as_fd(),
+            OsStr::new(name),
+            self.existing,
+            None,
+            write,
+        )
+        .map_err(|source| ExportError::Write {
+            path: self.join(name),
+            source,
+        })
+    }
+}
+
+/// Where an export writes its file.
+#[derive(Debug, Clone, Copy)]
+pub enum Target<'a> {
+    /// A path: its directory is opened as the path says and an existing file is replaced.
+    Path(&'a Path),
+    /// A name in an open output directory, under that directory's rule.
+    In { dir: &'a OutputDir, name: &'a str },
+}
+
+impl<'a> From<&'a Path> for Target<'a> {
+    fn from(path: &'a Path) -> Self {
+        Self::Path(path)
+    }
+}
+
+impl<'a> From<&'a PathBuf> for Target<'a> {
+    fn from(path: &'a PathBuf) -> Self {
+        Self::Path(path)
+    }
+}
+
+impl Target<'_> {
+    /// The file's path, for messages.
+    #[must_use]
+    pub fn path(&self) -> PathBuf {
+        match self {
+            Self::Path(p) => p.to_path_buf(),
+            Self::In { dir, name } => dir.join(name),
+        }
+    }
+
+    /// Writes the file atomically.
+    ///
+    /// # Errors
+    /// [`ExportError::Write`] naming the file when any step fails, or the error `write` returns.
+    pub fn write<F>(&self, write: F) -> Result<(), ExportError>
+    where
+        F: FnOnce(&mut BufWriter<File>) -> io::Result<()>,
+    {
+        match self {
+            Self::Path(p) => write_path(p, Existing::Replace, write),
+            Self::In { dir, name } => dir.write(name, write),
+        }
+    }
 }
 
 /// Writes `path` atomically, replacing what is there: `write` fills a buffered temporary

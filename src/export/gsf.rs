@@ -16,7 +16,7 @@ use std::io::Write;
 use std::path::Path;
 
 use super::ExportError;
-use super::atomic::write_atomic;
+use super::atomic::Target;
 use crate::vision::Image;
 
 const MAGIC: &str = "Gwyddion Simple Field 1.0\n";
@@ -76,14 +76,15 @@ fn header(width: usize, height: usize, pixel_size_um: f64, title: &str) -> Vec<u
 /// # Errors
 /// [`ExportError::Invalid`] for an empty map, a non-positive pixel size or a title with a
 /// line break or NUL; [`ExportError::Write`] on I/O failure.
-pub fn write_gsf(
-    path: &Path,
+pub fn write_gsf<'a>(
+    target: impl Into<Target<'a>>,
     height_um: &Image,
     pixel_size_um: f64,
     title: &str,
 ) -> Result<(), ExportError> {
+    let target = target.into();
     let invalid = |reason: &str| ExportError::Invalid {
-        path: path.to_path_buf(),
+        path: target.path(),
         reason: reason.to_owned(),
     };
     if height_um.is_empty() {
@@ -96,7 +97,7 @@ pub fn write_gsf(
         return Err(invalid("the title must be one line without NUL"));
     }
     let head = header(height_um.width(), height_um.height(), pixel_size_um, title);
-    write_atomic(path, |w| {
+    target.write(|w| {
         w.write_all(&head)?;
         let mut row = Vec::with_capacity(height_um.width() * 4);
         for y in 0..height_um.height() {

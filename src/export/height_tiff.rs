@@ -12,7 +12,7 @@ use tiff::encoder::{Rational, TiffEncoder, colortype::Gray32Float};
 use tiff::tags::{ResolutionUnit, Tag};
 
 use super::ExportError;
-use super::atomic::write_atomic;
+use super::atomic::Target;
 use crate::vision::Image;
 
 /// A height map read back from `height.tif`.
@@ -106,12 +106,12 @@ pub(crate) fn dims_u32(image: &Image) -> tiff::TiffResult<(u32, u32)> {
 ///
 /// # Errors
 /// [`ExportError::Invalid`] for an empty map, [`ExportError::Write`] on I/O failure.
-pub fn write_height_tiff(
-    path: &Path,
+pub fn write_height_tiff<'a>(
+    target: impl Into<Target<'a>>,
     height_um: &Image,
     pixel_size_um: Option<f64>,
 ) -> Result<(), ExportError> {
-    write_field(path, height_um, pixel_size_um, Field::Height)
+    write_field(target.into(), height_um, pixel_size_um, Field::Height)
 }
 
 /// Writes `confidence.tif` atomically: float32 on the height map's grid,
@@ -120,16 +120,16 @@ pub fn write_height_tiff(
 ///
 /// # Errors
 /// [`ExportError::Invalid`] for an empty map, [`ExportError::Write`] on I/O failure.
-pub fn write_confidence_tiff(
-    path: &Path,
+pub fn write_confidence_tiff<'a>(
+    target: impl Into<Target<'a>>,
     confidence: &Image,
     pixel_size_um: Option<f64>,
 ) -> Result<(), ExportError> {
-    write_field(path, confidence, pixel_size_um, Field::Confidence)
+    write_field(target.into(), confidence, pixel_size_um, Field::Confidence)
 }
 
 fn write_field(
-    path: &Path,
+    target: Target<'_>,
     map: &Image,
     pixel_size_um: Option<f64>,
     kind: Field,
@@ -140,13 +140,11 @@ fn write_field(
             Field::Confidence => "confidence",
         };
         return Err(ExportError::Invalid {
-            path: path.to_path_buf(),
+            path: target.path(),
             reason: format!("the {what} map is empty"),
         });
     }
-    write_atomic(path, |w| {
-        encode_field(&mut *w, map, pixel_size_um, kind).map_err(std::io::Error::other)
-    })
+    target.write(|w| encode_field(&mut *w, map, pixel_size_um, kind).map_err(std::io::Error::other))
 }
 
 /// Reads a float32 height TIFF back (any single-channel float32 TIFF).

@@ -18,7 +18,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::ExportError;
-use super::atomic::write_atomic;
+use super::atomic::Target;
 use crate::vision::Image;
 
 /// One point of the dense cloud: position in µm (see the module docs) and intensity.
@@ -241,8 +241,11 @@ fn encode_face(t: &[u32; 3], out: &mut [u8]) {
 ///
 /// # Errors
 /// [`ExportError::Write`] on I/O failure.
-pub fn write_point_cloud_ply(path: &Path, points: &[CloudPoint]) -> Result<(), ExportError> {
-    write_atomic(path, |w| {
+pub fn write_point_cloud_ply<'a>(
+    target: impl Into<Target<'a>>,
+    points: &[CloudPoint],
+) -> Result<(), ExportError> {
+    target.into().write(|w| {
         write!(
             w,
             "ply\nformat binary_little_endian 1.0\ncomment sdsem dense point cloud, units: micrometre\n\
@@ -260,8 +263,12 @@ pub fn write_point_cloud_ply(path: &Path, points: &[CloudPoint]) -> Result<(), E
 ///
 /// # Errors
 /// [`ExportError::Write`] on I/O failure.
-pub fn write_mesh_ply(path: &Path, mesh: &Mesh, with_intensity: bool) -> Result<(), ExportError> {
-    write_atomic(path, |w| {
+pub fn write_mesh_ply<'a>(
+    target: impl Into<Target<'a>>,
+    mesh: &Mesh,
+    with_intensity: bool,
+) -> Result<(), ExportError> {
+    target.into().write(|w| {
         write!(
             w,
             "ply\nformat binary_little_endian 1.0\ncomment sdsem surface mesh, units: micrometre\n\

@@ -1,25 +1,28 @@
 //! `report.json` (and any JSON result): serde of the pipeline's report, written atomically.
 
 use std::io::Write;
-use std::path::Path;
 
 use serde::Serialize;
 
 use super::ExportError;
-use super::atomic::write_atomic;
+use super::atomic::Target;
 
 /// Writes `value` as pretty-printed JSON (with a final newline) to `path`, atomically.
 ///
 /// # Errors
 /// [`ExportError::Invalid`] when `value` cannot be serialised (e.g. a map with non-string
 /// keys), [`ExportError::Write`] on I/O failure.
-pub fn write_json_atomic(path: &Path, value: &impl Serialize) -> Result<(), ExportError> {
+pub fn write_json_atomic<'a>(
+    target: impl Into<Target<'a>>,
+    value: &impl Serialize,
+) -> Result<(), ExportError> {
+    let target = target.into();
     let mut text = serde_json::to_vec_pretty(value).map_err(|e| ExportError::Invalid {
-        path: path.to_path_buf(),
+        path: target.path(),
         reason: format!("cannot serialise to JSON: {e}"),
     })?;
     text.push(b'\n');
-    write_atomic(path, |w| w.write_all(&text))
+    target.write(|w| w.write_all(&text))
 }
 
 /// Writes a report people read (`report.json`, `replay.json`, `rectification.json`) like
@@ -28,12 +31,16 @@ pub fn write_json_atomic(path: &Path, value: &impl Serialize) -> Result<(), Expo
 ///
 /// # Errors
 /// As [`write_json_atomic`]; [`ExportError::Invalid`] when `report` is not a JSON object.
-pub fn write_report_atomic(path: &Path, report: &impl Serialize) -> Result<(), ExportError> {
+pub fn write_report_atomic<'a>(
+    target: impl Into<Target<'a>>,
+    report: &impl Serialize,
+) -> Result<(), ExportError> {
+    let target = target.into();
     let value = crate::numbers::report_json(report).map_err(|e| ExportError::Invalid {
-        path: path.to_path_buf(),
+        path: target.path(),
         reason: format!("cannot serialise to JSON: {e}"),
     })?;
-    write_json_atomic(path, &value)
+    write_json_atomic(target, &value)
 }
 
 #[cfg(test)]

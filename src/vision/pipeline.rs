@@ -23,6 +23,7 @@ use super::geometry::{MAX_TILT_DEG, PairGeometry};
 use super::params::ReconstructionParams;
 use super::precision::{self, Precision};
 use super::sparse::{SparseError, rectify_pair};
+use crate::progress::{Observer, Stage, unobserved};
 
 /// Why a pair cannot be reconstructed.
 #[derive(Debug, thiserror::Error)]
@@ -153,14 +154,31 @@ pub fn reconstruct(
     geometry: &PairGeometry,
     params: &ReconstructionParams,
 ) -> Result<Reconstruction, ReconstructError> {
+    reconstruct_observed(left, right, geometry, params, &unobserved)
+}
+
+/// [`reconstruct`], telling `progress` each stage as it begins: [`Stage::Sparse`],
+/// [`Stage::Dense`], [`Stage::Depth`].
+///
+/// # Errors
+/// As [`reconstruct`].
+pub fn reconstruct_observed(
+    left: &Image,
+    right: &Image,
+    geometry: &PairGeometry,
+    params: &ReconstructionParams,
+    progress: Observer<'_>,
+) -> Result<Reconstruction, ReconstructError> {
     validate(geometry)?;
     let t_total = Instant::now();
 
     let t = Instant::now();
+    progress(Stage::Sparse);
     let rect = rectify_pair(left, right, Some(geometry.tilt_axis_deg), &params.sparse)?;
     let sparse_ms = ms(t);
 
     let t = Instant::now();
+    progress(Stage::Dense);
     let range = inlier_disparity_range(&rect.sparse.inliers, &rect.sparse.rectification);
     let disp = dense_disparity_in_range(
         &rect.left.image,
@@ -173,6 +191,7 @@ pub fn reconstruct(
     let dense_ms = ms(t);
 
     let t = Instant::now();
+    progress(Stage::Depth);
     let r = &rect.sparse.rectification;
     let stereo = StereoGeometry {
         tilt_deg: geometry.tilt_deg,
