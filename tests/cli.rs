@@ -348,3 +348,193 @@ fn inverted_stage_limits_are_called_inverted() {
     assert!(err.contains("the stage tilt limits are inverted"), "{err}");
     assert!(!err.contains("outside"), "{err}");
 }
+
+/// `reconstruct` on a pipe (not a terminal): one log line per stage with its time, in order.
+/// The outputs are then never overwritten without `--force`: a second run into the same
+/// directory is refused before any work, naming the files; `--force` replaces them without
+/// following a link planted among them; an `--out` under a file is refused at once.
+#[test]
+fn reconstruct_tells_its_stages_and_never_overwrites_without_force() {
+    let dir = tempfile::tempdir().unwrap();
+    let (left, right) = dome_pair(dir.path());
+    let out_dir = dir.path().join("out");
+    let reconstruct = |out: &Path, force: bool| {
+        let mut cmd = sdsem();
+        cmd.args(["--log-format", "text", "reconstruct"])
+            .args([&left, &right])
+            .arg("--out")
+            .arg(out)
+            .args(["--tilt", "6", "--pixel-size", "0.05", "--tilt-axis", "-90"]);
+        if force {
+            cmd.arg("--force");
+        }
+        run(&mut cmd)
+    };
+    let first = reconstruct(&out_dir, false);
+    let log = text(&first.stderr);
+    assert!(first.status.success(), "{log}");
+    let mut at = 0;
+    for stage in [
+        "sparse stage (SIFT, matching, ORSA, rectification): ",
+        "dense stage (SIFT flow, left–right check, bilateral grid): ",
+        "heights on the left micrograph's grid: ",
+        "writing the outputs: ",
+    ] {
+        let found = log[at..]
+            .find(stage)
+            .unwrap_or_else(|| panic!("no line for {stage:?} after byte {at} in\n{log}"));
+        at += found + stage.len();
+        let seconds = log[at..].split(" s").next().unwrap();
+        assert!(seconds.parse::<f64>().is_ok(), "{stage}{seconds}");
+    }
+    let report = std::fs::read(out_dir.join("report.json")).unwrap();
+
+    let again = reconstruct(&out_dir, false);
+    assert!(!again.status.success());
+    let err = text(&again.stderr);
+    assert_eq!(err.lines().count(), 1, "{err}");
+    assert!(
+        err.contains("already holds height.tif, height.gsf, pointcloud.ply")
+            && err.contains("report.json")
+            && err.contains("give --force to replace them"),
+        "{err}"
+    );
+    assert!(!err.contains("sparse stage"), "work began: {err}");
+    assert_eq!(std::fs::read(out_dir.join("report.json")).unwrap(), report);
+
+    // --force replaces the outputs; a link among them is replaced, its target left alone.
+    let victim = dir.path().join("victim");
+    std::fs::write(&victim, b"precious").unwrap();
+    std::fs::remove_file(out_dir.join("mesh.ply")).unwrap();
+    std::os::unix::fs::symlink(&victim, out_dir.join("mesh.ply")).unwrap();
+    let forced = reconstruct(&out_dir, true);
+    assert!(forced.status.success(), "{}", text(&forced.stderr));
+    assert_eq!(std::fs::read(&victim).unwrap(), b"precious");
+    assert!(
+        std::fs::symlink_metadata(out_dir.join("mesh.ply"))
+            .unwrap()
+            .is_file()
+    );
+    assert_ne!(std::fs::read(out_dir.join("report.json")).unwrap(), report);
+
+    let notes = dir.path().join("notes.txt");
+    std::fs::write(&notes, "x").unwrap();
+    let under = reconstruct(&notes.join("out"), false);
+    assert!(!under.status.success());
+    let err = text(&under.stderr);
+    assert_eq!(err.lines().count(), 1, "{err}");
+    assert!(
+        err.contains(&format!("{} is a file, not a directory", notes.display())),
+        "{err}"
+    );
+    assert!(!err.contains("sparse stage"), "work began: {err}");
+}
+
+/// `flow --out` onto an existing file: refused before any work, the file kept; `--force`
+/// replaces it.
+#[test]
+fn flow_refuses_an_existing_file_without_force() {
+    let dir = tempfile::tempdir().unwrap();
+    let (a, b) = dome_pair(dir.path());
+    let flo = dir.path().join("a.flo");
+    std::fs::write(&flo, b"precious").unwrap();
+    let flow = |force: bool| {
+        let mut cmd = sdsem();
+        cmd.arg("flow").args([&a, &b]).arg("--out").arg(&flo);
+        if force {
+            cmd.arg("--force");
+        }
+        run(&mut cmd)
+    };
+    let refused = flow(false);
+    assert!(!refused.status.success());
+    let err = text(&refused.stderr);
+    assert!(
+        err.contains("already holds a.flo") && err.contains("--force"),
+        "{err}"
+    );
+    assert_eq!(std::fs::read(&flo).unwrap(), b"precious");
+    let forced = flow(true);
+    assert!(forced.status.success(), "{}", text(&forced.stderr));
+    assert_eq!(&std::fs::read(&flo).unwrap()[..4], b"PIEH");
+}
+
+/// A configuration error names the layer that gave the value (the file, an `SDSEM_`
+/// variable, a `--set`), the key, and the key or value meant when it is a near miss.
+#[test]
+fn configuration_errors_name_their_layer_and_the_key_meant() {
+    let dir = tempfile::tempdir().unwrap();
+    let check = |file: &Path, set: &[&str], env: &[(&str, &str)]| {
+        let mut cmd = sdsem();
+        cmd.arg("check-config").arg(file);
+        for s in set {
+            cmd.args(["--set", s]);
+        }
+        for (k, v) in env {
+            cmd.env(k, v);
+        }
+        let out = run(&mut cmd);
+        assert!(!out.status.success());
+        let err = text(&out.stderr);
+        assert_eq!(err.lines().count(), 1, "{err}");
+        err
+    };
+    let sim = Path::new("config/sim.toml");
+    let err = check(sim, &["reconstruction.dense.alfa=1"], &[]);
+    assert!(
+        err.contains("in --set reconstruction.dense.alfa=1: ")
+            && err.contains("did you mean reconstruction.dense.alpha?"),
+        "{err}"
+    );
+    assert!(!err.contains("sim.toml"), "blamed on the file: {err}");
+    let err = check(sim, &[], &[("SDSEM_RECONSTRUCTION__MODE", "papr")]);
+    assert!(
+        err.contains("in environment variable SDSEM_RECONSTRUCTION__MODE=\"papr\": ")
+            && err.contains(
+                "reconstruction.mode = \"papr\" is not a known value: did you mean \"paper\"?"
+            ),
+        "{err}"
+    );
+    let file = dir.path().join("bad.toml");
+    std::fs::write(&file, "[reconstruction]\nmdoe = \"paper\"\n").unwrap();
+    let err = check(&file, &[], &[]);
+    assert!(
+        err.contains(&format!("in {}: ", file.display()))
+            && err.contains("unknown key reconstruction.mdoe: did you mean reconstruction.mode?"),
+        "{err}"
+    );
+}
+
+/// A job's `[reconstruction]` table takes the configuration's own keys (`mode = "paper"`),
+/// and a near miss there is answered with the key meant.
+#[test]
+fn a_job_takes_reconstruction_keys_in_their_natural_form() {
+    let dir = tempfile::tempdir().unwrap();
+    let spool = dir.path().join("spool");
+    let submit = |body: &str| {
+        let job = dir.path().join("job.toml");
+        std::fs::write(
+            &job,
+            format!("name = \"j\"\nstart_tilt = 0\nend_tilt = 5\n{body}"),
+        )
+        .unwrap();
+        run(sdsem().arg("submit").arg(&job).arg("--spool").arg(&spool))
+    };
+    let out = submit("[reconstruction]\nmode = \"paper\"\n[reconstruction.dense]\nlevels = 3\n");
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    assert!(
+        text(&out.stdout).starts_with("queued job 1 (j)"),
+        "{}",
+        text(&out.stdout)
+    );
+    let out = submit("[reconstruction]\ndense.alfa = 2.0\n");
+    assert!(!out.status.success());
+    let err = text(&out.stderr);
+    assert!(
+        err.contains(
+            "[reconstruction] reconstruction.dense.alfa = 2.0: unknown field `alfa`: \
+             did you mean reconstruction.dense.alpha?"
+        ),
+        "{err}"
+    );
+}

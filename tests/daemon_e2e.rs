@@ -411,6 +411,10 @@ fn sigterm_and_kill_mid_job_then_replay_of_a_daemon_run() {
         recon.reason,
         daemon.log()
     );
+    // STATUS said which stage of the reconstruction ran.
+    daemon.expect(Duration::from_secs(1), |l| {
+        l.starts_with("STATUS=running job 2 recon: reconstructing: dense stage")
+    });
     daemon.expect(Duration::from_secs(30), |l| {
         l.starts_with("STATUS=running job 3 long2: step 4/")
     });

@@ -31,7 +31,7 @@ pub fn run(args: &ConfigArgs) -> anyhow::Result<ExitCode> {
             progress: &|stage| display.observe(stage),
         };
         let report = run_job(&config, None, &run_dir, hooks).await;
-        display.finish();
+        display.finish(report.is_ok());
         let report = report?;
         if let Err(e) = &report.record {
             eprintln!("warning: the run record is incomplete: {e}");

@@ -3,13 +3,11 @@
 use std::path::Path;
 use std::process::ExitCode;
 
-use anyhow::Context;
-
 use crate::config::Config;
 
 pub fn run(file: &Path, overrides: &[String], quiet: bool) -> anyhow::Result<ExitCode> {
-    let config = Config::load(Some(file), overrides)
-        .with_context(|| format!("{} is not a valid sdsem configuration", file.display()))?;
+    // The error names the layer at fault: the file, an SDSEM_ variable or a --set.
+    let config = Config::load(Some(file), overrides)?;
     if !quiet {
         println!("# {}: valid. Effective configuration:", file.display());
         print!("{}", config.to_toml());

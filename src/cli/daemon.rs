@@ -217,7 +217,7 @@ impl JobRunner for AcquisitionRunner {
                 reason: e.to_string(),
             },
         };
-        lines.finish();
+        lines.finish(outcome.is_completed());
         if !outcome.is_completed() {
             // Whatever went wrong may have been the link: start the next job afresh.
             self.instruments = None;

@@ -72,9 +72,12 @@ impl StageDisplay {
         }
     }
 
-    /// The last stage ends; the display goes away.
-    pub fn finish(&self) {
-        if let Some((ended, took)) = self.clock.finish(Instant::now()) {
+    /// The last stage ends — with its time when the work `completed`; a stage that failed
+    /// gets no line, its error says what happened — and the display goes away.
+    pub fn finish(&self, completed: bool) {
+        if let Some((ended, took)) = self.clock.finish(Instant::now())
+            && completed
+        {
             self.ended(ended, took);
         }
         if let Some(bar) = &self.bar {

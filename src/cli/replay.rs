@@ -39,7 +39,7 @@ pub fn run(args: &ReplayArgs) -> anyhow::Result<ExitCode> {
     let report = replay::replay(&args.record, &out, &args.overrides, &|stage| {
         display.observe(stage);
     });
-    display.finish();
+    display.finish(report.is_ok());
     let report = report?;
     if args.json {
         println!(

@@ -46,13 +46,10 @@ struct DaemonReport {
 }
 
 pub fn run(args: &StatusArgs) -> anyhow::Result<ExitCode> {
-    let config =
-        match &args.config {
-            Some(path) => Some(Config::load(Some(path), &[]).with_context(|| {
-                format!("{} is not a valid sdsem configuration", path.display())
-            })?),
-            None => None,
-        };
+    let config = match &args.config {
+        Some(path) => Some(Config::load(Some(path), &[])?),
+        None => None,
+    };
     let dir = super::submit::spool_dir(args.spool.as_deref(), config.as_ref())?;
     let spool = Spool::existing(&dir).with_context(|| {
         format!(

@@ -47,13 +47,10 @@ impl std::fmt::Display for Basis {
 pub fn run(args: &SubmitArgs) -> anyhow::Result<ExitCode> {
     let spec = JobSpec::load(&args.job)
         .with_context(|| format!("job {} refused, nothing queued", args.job.display()))?;
-    let file_config =
-        match &args.config {
-            Some(path) => Some(Config::load(Some(path), &[]).with_context(|| {
-                format!("{} is not a valid sdsem configuration", path.display())
-            })?),
-            None => None,
-        };
+    let file_config = match &args.config {
+        Some(path) => Some(Config::load(Some(path), &[])?),
+        None => None,
+    };
     let spool_dir = spool_dir(args.spool.as_deref(), file_config.as_ref())?;
     let (base, basis) = match (file_config, &args.config) {
         (Some(config), Some(path)) => (config, Basis::File(path.clone())),

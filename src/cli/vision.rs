@@ -94,7 +94,7 @@ pub fn run_reconstruct(args: &ReconstructArgs) -> anyhow::Result<ExitCode> {
         &config.reconstruction.mesh,
         &|stage| display.observe(stage),
     );
-    display.finish();
+    display.finish(report.is_ok());
     summarise(&report?, &args.out);
     Ok(ExitCode::SUCCESS)
 }

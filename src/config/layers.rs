@@ -90,6 +90,9 @@ fn explain_message(message: &str, at: Option<&str>, layer: &Layer, key: Option<&
         .flatten()
     {
         let unknown = joined(at, given);
+        let rendered = rendered_keys(at.unwrap_or(""));
+        let expected = with_rendered(expected, &rendered);
+        let expected = expected.as_slice();
         let Some(meant) = closest(given, expected) else {
             let known = if expected.is_empty() {
                 "no keys".to_owned()
@@ -183,9 +186,8 @@ fn known_values(key: &str, given: &str) -> Vec<String> {
 pub fn meant(message: &str, key: &str) -> Option<String> {
     let quoted = backquoted(message);
     let (given, expected) = quoted.split_first()?;
-    let meant = closest(given, expected)?;
     if message.starts_with("unknown variant") {
-        return Some(format!("\"{meant}\""));
+        return Some(format!("\"{}\"", closest(given, expected)?));
     }
     if !message.starts_with("unknown field") {
         return None;
@@ -193,10 +195,38 @@ pub fn meant(message: &str, key: &str) -> Option<String> {
     // The whole key, with the part that was wrong replaced.
     let parts: Vec<&str> = key.split('.').collect();
     let at = parts.iter().rposition(|p| p == given)?;
+    let rendered = rendered_keys(&parts[..at].join("."));
+    let meant = closest(given, &with_rendered(expected, &rendered))?;
     let mut whole: Vec<&str> = parts[..at].to_vec();
     whole.push(meant);
     whole.extend(&parts[at + 1..]);
     Some(whole.join("."))
+}
+
+/// The keys of the table at dotted `at` in the rendered defaults (a flattened table's
+/// serde message names none).
+fn rendered_keys(at: &str) -> Vec<String> {
+    let Ok(mut table) = toml::from_str::<toml::Table>(&super::Config::default().to_toml()) else {
+        return Vec::new();
+    };
+    for part in at.split('.').filter(|p| !p.is_empty()) {
+        let Some(toml::Value::Table(t)) = table.remove(part) else {
+            return Vec::new();
+        };
+        table = t;
+    }
+    table.keys().cloned().collect()
+}
+
+/// `expected` and the `rendered` names it lacks.
+fn with_rendered<'a>(expected: &[&'a str], rendered: &'a [String]) -> Vec<&'a str> {
+    let mut all = expected.to_vec();
+    for r in rendered {
+        if !all.contains(&r.as_str()) {
+            all.push(r);
+        }
+    }
+    all
 }
 
 /// The names between backquotes in a serde message, in order.

@@ -11,11 +11,13 @@
 //!
 //! [reconstruction]           # optional: overrides of reconstruction keys
 //! run.reconstruct = true
-//! reconstruction.mode = "paper"
+//! mode = "paper"             # reconstruction.mode (the table's own keys need no prefix)
+//! dense.levels = 3
 //! ```
 //!
 //! The overrides are configuration keys written as in the configuration file,
-//! merged over the daemon's configuration like `--set key=value`. A job may
+//! merged over the daemon's configuration like `--set key=value`; in `[reconstruction]`
+//! a key outside `run.` is one of `reconstruction.` (`reconstruction.mode` works too). A job may
 //! only touch the keys listed in [`CAPTURE_KEYS`] and [`RECONSTRUCTION_KEYS`]:
 //! the calibration and safety guards (`tracking.stage_to_image`,
 //! `tracking.max_correction_um`, `tracking.max_lost_frames`), the stage (limits,
@@ -50,6 +52,20 @@ pub const CAPTURE_KEYS: &[&str] = &[
 
 /// Sections whose other keys belong to the operator: calibration, safety guards, endpoints.
 const OPERATOR_SECTIONS: &[&str] = &["tracking", "stage", "imaging", "daemon", "run", "series"];
+
+/// The sections of the configuration: in a job's `[reconstruction]`, a key that begins with
+/// none of them is one of `reconstruction.`.
+const CONFIG_SECTIONS: &[&str] = &[
+    "run",
+    "series",
+    "tracking",
+    "stage",
+    "imaging",
+    "simulator",
+    "reconstruction",
+    "log",
+    "daemon",
+];
 
 /// Largest job file `sdsem submit` reads, bytes.
 pub const MAX_JOB_FILE_BYTES: u64 = 64 * 1024;
@@ -247,7 +263,14 @@ impl JobSpec {
         ] {
             let mut leaves = Vec::new();
             flatten(table, "", &mut leaves);
-            for (key, value) in leaves {
+            for (mut key, value) in leaves {
+                // `[reconstruction] mode = "paper"` is `reconstruction.mode`, as in the configuration.
+                // A key of another section (`daemon.…`) stays as it is, to be refused below.
+                if table_name == "reconstruction"
+                    && !CONFIG_SECTIONS.contains(&key.split('.').next().unwrap_or_default())
+                {
+                    key = format!("reconstruction.{key}");
+                }
                 let permitted = allowed.iter().any(|a| {
                     key == *a
                         || key
@@ -363,11 +386,16 @@ impl JobSpec {
                 continue;
             }
             if let Err(e) = single.try_into::<Config>() {
+                let mut message = message(&e);
+                if let Some(meant) = crate::config::layers::meant(&message, key) {
+                    let cause = message.split(", expected").next().unwrap_or_default();
+                    message = format!("{cause}: did you mean {meant}?");
+                }
                 return JobError::BadOverride {
                     table: self.table_of(key),
                     key: key.clone(),
                     value: value.to_string(),
-                    message: message(&e),
+                    message,
                 };
             }
         }
@@ -610,6 +638,21 @@ mod tests {
             paper.dense.flow.iterations
         );
         assert_eq!(c.reconstruction.sparse, paper.sparse);
+        // The natural form: the table's own keys, as in the configuration file.
+        let natural = job("name = \"a\"\nstart_tilt = 0\nend_tilt = 5\n\
+             [reconstruction]\nmode = \"paper\"\n[reconstruction.dense]\nlevels = 3\n")
+        .unwrap();
+        assert_eq!(natural, c);
+        let err = job("name = \"a\"\nstart_tilt = 0\nend_tilt = 5\n\
+             [reconstruction]\ndense.alfa = 2.0\n")
+        .unwrap_err();
+        assert!(
+            err.to_string().ends_with(
+                "[reconstruction] reconstruction.dense.alfa = 2.0: unknown field `alfa`: \
+                 did you mean reconstruction.dense.alpha?"
+            ),
+            "{err}"
+        );
         let err = JobSpec::parse(
             "name = \"a\"\nstart_tilt = 0\nend_tilt = 5\n[capture]\nreconstruction.mode = \"paper\"\n",
         )
@@ -618,6 +661,20 @@ mod tests {
             err.to_string().contains("a job may not set this key"),
             "{err}"
         );
+    }
+
+    #[test]
+    fn config_sections_are_those_of_the_configuration() {
+        let config = Config {
+            simulator: Some(sdsem_sim::SimConfig::default()),
+            ..Config::default()
+        };
+        let rendered = toml::Table::try_from(&config).unwrap();
+        let mut sections: Vec<&str> = rendered.keys().map(String::as_str).collect();
+        let mut ours = CONFIG_SECTIONS.to_vec();
+        sections.sort_unstable();
+        ours.sort_unstable();
+        assert_eq!(sections, ours);
     }
 
     #[test]
