@@ -249,7 +249,7 @@ mod tests {
                 pending.push((p, sub.clone()));
             }
         }
-        assert!(checked > 15, "{checked} commands");
+        assert!(checked >= 13, "{checked} commands");
     }
 
     /// Splits on spaces outside double quotes (enough for the examples above).
