@@ -8,7 +8,7 @@
 use std::hint::black_box;
 
 use criterion::{Criterion, criterion_group, criterion_main};
-use sdsem::eval::synthetic::{Texture, dome, render};
+use sdsem::testing::{Texture, dome, render};
 use sdsem::vision::Image;
 use sdsem::vision::dense::dense_sift::{DenseSiftParams, dense_sift};
 use sdsem::vision::dense::sift_flow::bp::DualLayerBp;

@@ -26,6 +26,7 @@
 /// inner error (`#[error("stage: {0}")]`): thiserror's `#[from]` would also
 /// make the inner error the variant's `source`, and the one-line cause chain
 /// `main` prints (`{:#}`) would then name it twice.
+#[macro_export]
 macro_rules! error_from {
     ($outer:ty { $($variant:ident($inner:ty)),+ $(,)? }) => {
         $(impl From<$inner> for $outer {
@@ -41,7 +42,6 @@ pub mod app;
 pub mod cli;
 pub mod config;
 pub mod daemon;
-pub mod eval;
 pub mod export;
 pub mod imaging;
 pub mod memory;
@@ -50,4 +50,6 @@ pub mod progress;
 pub mod record;
 pub mod sharksem;
 pub mod stage;
+#[cfg(any(test, feature = "testing"))]
+pub mod testing;
 pub mod vision;

@@ -7,7 +7,7 @@
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
 
-use sdsem::eval::synthetic::{Texture, dome, render};
+use sdsem::testing::{Texture, dome, render};
 use sdsem::vision::Image;
 
 const ESC: &str = "\u{1b}[";
@@ -159,11 +159,14 @@ fn man_pages_come_from_the_command_definition() {
             "{command} missing:\n{page}"
         );
     }
-    let out = run(sdsem().args(["man", "eval", "dense"]));
+    let out = run(sdsem().args(["man", "flow"]));
     let page = text(&out.stdout);
-    assert!(page.contains(".TH sdsem-eval-dense 1"), "{page}");
-    assert!(page.contains("\\-\\-true\\-rectification"), "{page}");
+    assert!(page.contains(".TH sdsem-flow 1"), "{page}");
+    assert!(page.contains("\\-\\-out"), "{page}");
     assert!(page.contains("Examples:"), "{page}");
+    // The evaluations live in sdsem-eval, not in the shipped binary.
+    let out = run(sdsem().args(["man", "eval"]));
+    assert!(!out.status.success(), "{}", text(&out.stdout));
 
     let out = run(sdsem().args(["man", "reconstrut"]));
     assert!(!out.status.success());

@@ -288,3 +288,318 @@ fn flow_writes_a_middlebury_file_of_the_displacement() {
     assert!((centre(&u) - 3.0).abs() < 0.3, "u {}", centre(&u));
     assert!((centre(&v) + 1.0).abs() < 0.3, "v {}", centre(&v));
 }
+
+/// A float32 TIFF of `W × H` (BitsPerSample 32, SampleFormat IEEE float): its samples.
+fn float_tiff(path: &Path) -> Vec<f32> {
+    use tiff::decoder::{Decoder, DecodingResult};
+    use tiff::tags::Tag;
+    let mut d =
+        Decoder::new(std::fs::File::open(path).expect("height TIFF opens")).expect("a TIFF");
+    assert_eq!(
+        d.dimensions().expect("dimensions"),
+        (W as u32, H as u32),
+        "{}",
+        path.display()
+    );
+    assert_eq!(
+        d.colortype().expect("colour type"),
+        tiff::ColorType::Gray(32),
+        "{}",
+        path.display()
+    );
+    assert_eq!(
+        d.get_tag_u32(Tag::SampleFormat).expect("SampleFormat tag"),
+        3,
+        "{}: not IEEE float",
+        path.display()
+    );
+    match d.read_image().expect("samples") {
+        DecodingResult::F32(v) => v,
+        _ => panic!("{}: not float samples", path.display()),
+    }
+}
+
+/// A binary little-endian PLY: its header lines and the bytes after `end_header`.
+fn ply_parts(path: &Path) -> (Vec<String>, usize) {
+    let bytes = std::fs::read(path).expect("PLY readable");
+    let end = b"end_header\n";
+    let at = bytes
+        .windows(end.len())
+        .position(|w| w == end)
+        .expect("end_header")
+        + end.len();
+    let header = String::from_utf8(bytes[..at].to_vec()).expect("ASCII header");
+    (
+        header.lines().map(str::to_owned).collect(),
+        bytes.len() - at,
+    )
+}
+
+fn header_count(header: &[String], element: &str) -> usize {
+    let prefix = format!("element {element} ");
+    header
+        .iter()
+        .find_map(|l| l.strip_prefix(&prefix))
+        .unwrap_or_else(|| panic!("no {element} element in {header:?}"))
+        .parse()
+        .expect("a count")
+}
+
+/// `reconstruct` with every geometry flag: the flags beat the micrographs' metadata (and say
+/// so), and each output has its contracted format, size and units (DESIGN §4).
+#[test]
+fn reconstruct_flags_beat_metadata_and_each_file_has_its_format() {
+    let dir = tempfile::tempdir().unwrap();
+    let (left, right, _) = dome_pair(dir.path());
+    let out = dir.path().join("out");
+    let (tilt, pixel) = (5.0, 0.5);
+    let run = sdsem(&[
+        "reconstruct",
+        path(&left),
+        path(&right),
+        "--out",
+        path(&out),
+        "--tilt",
+        &tilt.to_string(),
+        "--pixel-size",
+        &pixel.to_string(),
+        "--tilt-axis",
+        &AXIS_DEG.to_string(),
+    ]);
+    assert_eq!(
+        run.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("report.json")).unwrap()).unwrap();
+    let g = &report["reconstruction"]["geometry"];
+    assert_eq!(g["tilt_deg"].as_f64(), Some(tilt));
+    assert_eq!(g["pixel_size_um"].as_f64(), Some(pixel));
+    assert_eq!(g["tilt_axis_deg"].as_f64(), Some(AXIS_DEG));
+    let p = &report["provenance"];
+    assert_eq!(p["tilt"], "--tilt", "{p}");
+    assert_eq!(p["pixel_size"], "--pixel-size", "{p}");
+    assert_eq!(p["tilt_axis"], "--tilt-axis", "{p}");
+    assert_eq!(
+        report["reconstruction"]["image_size"],
+        serde_json::json!([W, H])
+    );
+    // Every stage's timings (DESIGN §4) and the list of what was written.
+    for stage in ["sparse_ms", "dense_ms", "depth_ms", "total_ms"] {
+        assert!(
+            report["reconstruction"]["timings"][stage].is_number(),
+            "{stage}"
+        );
+    }
+    let written: Vec<&str> = report["outputs"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_str().unwrap())
+        .collect();
+    for name in [
+        "height.tif",
+        "height.gsf",
+        "pointcloud.ply",
+        "mesh.ply",
+        "confidence.tif",
+    ] {
+        assert!(written.contains(&name), "{name} not in {written:?}");
+    }
+
+    // height.tif: float32 µm on the left grid; confidence.tif: float32 in [0, 1] where known.
+    let height = float_tiff(&out.join("height.tif"));
+    let known = height.iter().filter(|h| h.is_finite()).count();
+    assert!(known * 10 > 9 * W * H, "{known} known");
+    let confidence = float_tiff(&out.join("confidence.tif"));
+    for (h, c) in height.iter().zip(&confidence) {
+        assert_eq!(h.is_finite(), c.is_finite());
+        assert!(!c.is_finite() || (0.0..=1.0).contains(c), "confidence {c}");
+    }
+    // The same heights in the GSF, in metres, over the field of view at the flag's pixel size.
+    let gsf = read_gsf(&out.join("height.gsf")).unwrap();
+    assert_eq!((gsf.xres, gsf.yres), (W, H));
+    assert!(
+        (gsf.xreal - W as f64 * pixel * 1e-6).abs() < 1e-12,
+        "XReal {}",
+        gsf.xreal
+    );
+    assert!(
+        (gsf.yreal - H as f64 * pixel * 1e-6).abs() < 1e-12,
+        "YReal {}",
+        gsf.yreal
+    );
+    assert_eq!(gsf.xy_units.as_deref(), Some("m"));
+    assert_eq!(gsf.z_units.as_deref(), Some("m"));
+
+    // PLYs: binary little-endian, x y z intensity as float, one vertex per known height; the
+    // mesh's faces are triangles; the file sizes are exactly what the headers announce.
+    let (header, body) = ply_parts(&out.join("pointcloud.ply"));
+    assert_eq!(header[0], "ply");
+    assert_eq!(header[1], "format binary_little_endian 1.0");
+    let vertices = header_count(&header, "vertex");
+    assert_eq!(vertices, known);
+    assert_eq!(report["point_count"].as_u64(), Some(known as u64));
+    for prop in ["x", "y", "z"] {
+        assert!(
+            header.contains(&format!("property float {prop}")),
+            "{header:?}"
+        );
+    }
+    let props = header
+        .iter()
+        .filter(|l| l.starts_with("property float"))
+        .count();
+    assert_eq!(body, vertices * 4 * props);
+    let (header, body) = ply_parts(&out.join("mesh.ply"));
+    assert_eq!(header[1], "format binary_little_endian 1.0");
+    let faces = header_count(&header, "face");
+    assert!(faces > 0);
+    assert_eq!(report["triangle_count"].as_u64(), Some(faces as u64));
+    assert!(
+        header.contains(&"property list uchar int vertex_indices".to_owned()),
+        "{header:?}"
+    );
+    let props = header
+        .iter()
+        .filter(|l| l.starts_with("property float"))
+        .count();
+    assert_eq!(
+        body,
+        header_count(&header, "vertex") * 4 * props + faces * (1 + 3 * 4)
+    );
+}
+
+/// Exit codes: 0 on success, 1 with one line on stderr when the work fails, 2 (with the usage)
+/// when the command line is wrong — for each of `reconstruct`, `rectify` and `flow`.
+#[test]
+fn vision_commands_exit_with_the_contracted_codes() {
+    let dir = tempfile::tempdir().unwrap();
+    let (left, _, _) = dome_pair(dir.path());
+    let missing = dir.path().join("missing.tif");
+    let out = dir.path().join("out");
+    for command in ["reconstruct", "rectify", "flow"] {
+        let run = sdsem(&[command, path(&left), path(&missing), "-o", path(&out)]);
+        assert_eq!(run.status.code(), Some(1), "{command}");
+        let stderr = String::from_utf8_lossy(&run.stderr);
+        assert_eq!(
+            stderr.lines().filter(|l| !l.trim().is_empty()).count(),
+            1,
+            "{command}: {stderr}"
+        );
+        assert!(stderr.contains("missing.tif"), "{command}: {stderr}");
+        assert!(
+            run.stdout.is_empty(),
+            "{command} printed {:?}",
+            String::from_utf8_lossy(&run.stdout)
+        );
+
+        let run = sdsem(&[command, path(&left)]);
+        assert_eq!(
+            run.status.code(),
+            Some(2),
+            "{command} without its arguments"
+        );
+        assert!(
+            String::from_utf8_lossy(&run.stderr).contains("Usage"),
+            "{command}"
+        );
+        let run = sdsem(&[
+            command,
+            path(&left),
+            path(&left),
+            "-o",
+            path(&out),
+            "--no-such-flag",
+        ]);
+        assert_eq!(run.status.code(), Some(2), "{command} with an unknown flag");
+    }
+}
+
+/// `rectify`: the PNGs have the canvas size the JSON gives, the matches image shows both
+/// micrographs side by side, and `H_left`/`H_right` bring every inlier pair onto one row.
+#[test]
+fn rectify_homographies_put_the_inliers_on_common_rows() {
+    let dir = tempfile::tempdir().unwrap();
+    let (left, right, _) = dome_pair(dir.path());
+    let out = dir.path().join("rect");
+    let run = sdsem(&["rectify", path(&left), path(&right), "-o", path(&out)]);
+    assert_eq!(
+        run.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let json: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("rectification.json")).unwrap()).unwrap();
+    let canvas: Vec<u32> = json["canvas_size"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_u64().unwrap() as u32)
+        .collect();
+    for name in ["rectified_left.png", "rectified_right.png"] {
+        let img = image::open(out.join(name)).unwrap();
+        assert_eq!(vec![img.width(), img.height()], canvas, "{name}");
+        assert_eq!(img.color(), image::ColorType::L8, "{name}");
+    }
+    let matches = image::open(out.join("matches.png")).unwrap();
+    assert_eq!(
+        (matches.width(), matches.height()),
+        (2 * W as u32, H as u32)
+    );
+    let h = |key: &str| {
+        let rows = json[key].as_array().unwrap();
+        nalgebra::Matrix3::from_fn(|r, c| rows[r][c].as_f64().unwrap())
+    };
+    let (hl, hr) = (h("H_left"), h("H_right"));
+    let apply = |m: &nalgebra::Matrix3<f64>, p: &serde_json::Value| {
+        let q = m * nalgebra::Vector3::new(p[0].as_f64().unwrap(), p[1].as_f64().unwrap(), 1.0);
+        (q.x / q.z, q.y / q.z)
+    };
+    let inliers = json["inlier_correspondences"].as_array().unwrap();
+    assert!(inliers.len() >= 8, "{} inliers", inliers.len());
+    let dy: Vec<f64> = inliers
+        .iter()
+        .map(|c| apply(&hl, &c["left"]).1 - apply(&hr, &c["right"]).1)
+        .collect();
+    let rms = (dy.iter().map(|d| d * d).sum::<f64>() / dy.len() as f64).sqrt();
+    assert!(rms < 1.0, "rows differ by {rms:.3} px rms");
+    let reported = json["final_dy_rms_px"].as_f64().unwrap();
+    assert!(
+        (rms - reported).abs() < 0.05 + 0.1 * reported,
+        "rms {rms:.3}, reported {reported:.3}"
+    );
+}
+
+/// `flow`: the .flo file holds exactly its header (tag, width, height) and two floats per pixel.
+#[test]
+fn flow_file_has_the_middlebury_layout() {
+    let dir = tempfile::tempdir().unwrap();
+    let (left, right, _) = dome_pair(dir.path());
+    let flo = dir.path().join("f.flo");
+    let run = sdsem(&[
+        "flow",
+        path(&left),
+        path(&right),
+        "--out",
+        path(&flo),
+        "--set",
+        "reconstruction.dense.levels=2",
+    ]);
+    assert_eq!(
+        run.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let bytes = std::fs::read(&flo).unwrap();
+    assert_eq!(bytes.len(), 12 + 8 * W * H);
+    assert_eq!(&bytes[..4], b"PIEH");
+    let word = |i: usize| u32::from_le_bytes(bytes[i..i + 4].try_into().unwrap()) as usize;
+    assert_eq!((word(4), word(8)), (W, H));
+    let (u, v) = sdsem::export::flo::decode(&bytes).unwrap();
+    assert_eq!((u.dimensions(), v.dimensions()), ((W, H), (W, H)));
+}

@@ -39,7 +39,7 @@ mod tests {
     #[test]
     fn writes_a_flo_file_that_reads_back() {
         let dir = tempfile::tempdir().unwrap();
-        let tex = crate::eval::synthetic::Texture::new(8);
+        let tex = crate::testing::Texture::new(8);
         let a = Image::from_fn(64, 48, |x, y| tex.at(x as f64, y as f64) as f32);
         let b = Image::from_fn(64, 48, |x, y| tex.at(x as f64 - 2.0, y as f64) as f32);
         for (name, img) in [("a.png", &a), ("b.png", &b)] {

@@ -386,7 +386,7 @@ pub fn peak_rss_mib() -> Option<f64> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::eval::synthetic::{Texture, dome, render};
+    use crate::testing::{Texture, dome, render};
 
     fn save_png(path: &Path, img: &Image) {
         image::GrayImage::from_raw(img.width() as u32, img.height() as u32, img.to_u8())

@@ -12,9 +12,8 @@ use crate::config::{Config, LogFormat};
 mod acquire;
 mod check_config;
 mod daemon;
-mod eval;
 mod inspect;
-pub(crate) mod logging;
+pub mod logging;
 mod manual;
 mod progress;
 mod replay;
@@ -111,9 +110,6 @@ pub enum Command {
     /// Reconstruct a run again from its record; says whether the height map is bit-identical.
     #[command(after_help = manual::REPLAY)]
     Replay(replay::ReplayArgs),
-    /// Print measured figures against ground truth (simulator scenes, shared real data).
-    #[command(after_help = manual::EVAL)]
-    Eval(eval::EvalArgs),
     /// Print the completion script of a shell (bash, zsh, fish, elvish, powershell).
     #[command(after_help = manual::COMPLETIONS)]
     Completions(manual::CompletionsArgs),
@@ -142,16 +138,11 @@ impl Command {
 
 impl Command {
     /// Whether the command must outlive the reader of its output: `acquire` and `daemon` drive
-    /// the instruments (a run stopped half-way leaves the stage tilted), `eval soak` and
-    /// `eval kill` own daemon processes. Every other command ends quietly by SIGPIPE when
-    /// its reader goes away (`sdsem check-config … | head -1`).
+    /// the instruments (a run stopped half-way leaves the stage tilted). Every other command
+    /// ends quietly by SIGPIPE when its reader goes away (`sdsem check-config … | head -1`).
     #[must_use]
     pub fn outlives_its_reader(&self) -> bool {
-        match self {
-            Self::Acquire { .. } | Self::Daemon(_) => true,
-            Self::Eval(args) => matches!(args.which, eval::Which::Soak(_) | eval::Which::Kill(_)),
-            _ => false,
-        }
+        matches!(self, Self::Acquire { .. } | Self::Daemon(_))
     }
 }
 
@@ -206,7 +197,6 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Submit(args) => submit::run(&args),
         Command::Status(args) => status::run(&args),
         Command::Replay(args) => replay::run(&args),
-        Command::Eval(args) => eval::run(&args),
         Command::Completions(args) => manual::completions(&args),
         Command::Man(args) => manual::man(&args),
     }

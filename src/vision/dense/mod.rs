@@ -736,7 +736,7 @@ fn reassign_fields(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::eval::synthetic::{Layer, Texture, dome, raised_band, render};
+    use crate::testing::{Layer, Texture, dome, raised_band, render};
     use crate::vision::Preset;
 
     fn small_params(preset: Preset) -> DenseParams {
@@ -804,7 +804,7 @@ mod tests {
 
     /// A band raised from disparity 2 to 8 between x = 120 and 200: the
     /// right image does not see a strip beside it.
-    fn occluded_band_pair(w: usize, h: usize) -> crate::eval::synthetic::SyntheticPair {
+    fn occluded_band_pair(w: usize, h: usize) -> crate::testing::SyntheticPair {
         render(
             w,
             h,
@@ -816,12 +816,7 @@ mod tests {
     }
 
     /// The improved mode's disparity of the 320×192 occluded-band pair.
-    fn improved_on_occluded_band() -> (
-        usize,
-        usize,
-        crate::eval::synthetic::SyntheticPair,
-        Disparity,
-    ) {
+    fn improved_on_occluded_band() -> (usize, usize, crate::testing::SyntheticPair, Disparity) {
         let (w, h) = (320, 192);
         let pair = occluded_band_pair(w, h);
         let out = dense_disparity(

@@ -554,7 +554,7 @@ pub fn refine_flow_down_to(
 mod tests {
     use super::*;
 
-    use crate::eval::synthetic::Texture;
+    use crate::testing::Texture;
 
     /// A bright textured region moving 2 px more than its textured
     /// surroundings (a particle on a substrate): with the range weights the

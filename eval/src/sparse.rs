@@ -1,17 +1,17 @@
-//! `sdsem eval sparse`: the sparse stage (SIFT → matching → ORSA → quasi-Euclidean
+//! `sdsem-eval sparse`: the sparse stage (SIFT → matching → ORSA → quasi-Euclidean
 //! rectification) on simulator pairs with ground truth, on the real Potamogeton pairs beside
 //! the paper's Table 2, and its time per step on a 1280×960 pair.
 //!
 //! Figures per pair: keypoints, putative matches, ORSA inliers, log10 NFA, automatic
 //! threshold, initial/final rectification error (Monasse's definition, see
-//! [`crate::vision::rectify::Rectification::final_error_px`]), the RMS vertical disparity of
+//! [`sdsem::vision::rectify::Rectification::final_error_px`]), the RMS vertical disparity of
 //! the inliers on the canvas, and, for simulator pairs, the distribution of the rectified
 //! `|y_left − y_right|` of the TRUE correspondences (a grid of left pixels) and the error of the
 //! inliers' right positions against the true correspondent of their left position.
 //!
 //! Every pair runs in two modes: `paper` (the published path: SIFT positions straight into the
 //! rectification) and `improved` (the inliers' right positions refined to sub-pixel accuracy
-//! before the final Levenberg–Marquardt, see [`crate::vision::sparse::RefineParams`]).
+//! before the final Levenberg–Marquardt, see [`sdsem::vision::sparse::RefineParams`]).
 //!
 //! Repetitive scenes: the simulator's grid is also run over several scene seeds, and each
 //! accepted warp is checked against the true correspondences ("never a wrong warp").
@@ -22,9 +22,9 @@ use nalgebra::Vector2;
 use serde::Serialize;
 
 use super::EvalOptions;
-use crate::vision::Image;
-use crate::vision::rectify::transform;
-use crate::vision::sparse::{Correspondence, SparseParams, SparseResult, Timings, rectify_pair};
+use sdsem::vision::Image;
+use sdsem::vision::rectify::transform;
+use sdsem::vision::sparse::{Correspondence, SparseParams, SparseResult, Timings, rectify_pair};
 
 /// A mode of the sparse stage the evaluation compares.
 #[derive(Debug, Clone)]
@@ -39,7 +39,7 @@ pub fn modes() -> Vec<Mode> {
     vec![
         Mode {
             name: "paper",
-            params: SparseParams::preset(crate::vision::Preset::Paper),
+            params: SparseParams::preset(sdsem::vision::Preset::Paper),
         },
         Mode {
             name: "improved",
@@ -202,7 +202,7 @@ pub const POTAMOGETON_PAIRS: [(&str, &str, &str); 3] = [
 pub const POTAMOGETON_TILT_AXIS_DEG: f64 = -90.0;
 
 fn load(path: &Path) -> anyhow::Result<Image> {
-    crate::app::rectify::load_gray(path)
+    sdsem::app::rectify::load_gray(path)
         .map_err(|e| anyhow::anyhow!("{e:#}; set SDSEM_DATA or --data to the shared data folder"))
 }
 
@@ -603,13 +603,14 @@ fn tally(rows: &[Row], mode: &str) -> (usize, usize, usize, usize) {
     t
 }
 
-/// `sdsem eval sparse`: prints (or writes as JSON) the simulator table, the grid-seed
+/// `sdsem-eval sparse`: prints (or writes as JSON) the simulator table, the grid-seed
 /// robustness table, the Potamogeton table beside the paper's Table 2, and the 1280×960 timing.
 ///
 /// # Errors
 /// When the data or a scene cannot be read or generated.
 pub fn run(opts: &EvalOptions) -> anyhow::Result<()> {
     use sdsem_sim::scene::SceneKind;
+    let data = opts.data()?;
     let modes = modes();
     let started = std::time::Instant::now();
     let cpu0 = cpu_seconds();
@@ -659,7 +660,7 @@ pub fn run(opts: &EvalOptions) -> anyhow::Result<()> {
         );
     }
 
-    let pot = potamogeton(&opts.data_dir, &modes, opts.quick)?;
+    let pot = potamogeton(data, &modes, opts.quick)?;
     if !opts.json {
         println!("Potamogeton (real, 1536×2048, φ = −90°), beside the paper's Table 2");
         print!("{}", format_table(&pot));
@@ -671,7 +672,7 @@ pub fn run(opts: &EvalOptions) -> anyhow::Result<()> {
     let runs = if opts.quick { 1 } else { 5 };
     let timings: Vec<Timing> = modes
         .iter()
-        .map(|m| timing_1280x960(&opts.data_dir, m, runs))
+        .map(|m| timing_1280x960(data, m, runs))
         .collect::<anyhow::Result<_>>()?;
     if !opts.json {
         println!(

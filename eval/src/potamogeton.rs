@@ -15,12 +15,12 @@ use std::time::Instant;
 
 use serde::Serialize;
 
-use crate::app::reconstruct::load_pair;
-use crate::vision::Image;
-use crate::vision::Preset;
-use crate::vision::ReconstructionParams;
-use crate::vision::geometry::Figures;
-use crate::vision::pipeline::{ReconReport, reconstruct};
+use sdsem::app::reconstruct::load_pair;
+use sdsem::vision::Image;
+use sdsem::vision::Preset;
+use sdsem::vision::ReconstructionParams;
+use sdsem::vision::geometry::Figures;
+use sdsem::vision::pipeline::{ReconReport, reconstruct};
 
 /// Tilt axis of the series in the stored files (see the data's README).
 pub const TILT_AXIS_DEG: f64 = -90.0;
@@ -154,12 +154,12 @@ pub fn reconstruct_series(
     Ok(out)
 }
 
-/// `sdsem eval potamogeton`: the pairs in both modes, their pairwise agreement.
+/// `sdsem-eval potamogeton`: the pairs in both modes, their pairwise agreement.
 ///
 /// # Errors
 /// When the data are missing or a reconstruction fails.
 pub fn run(opts: &super::EvalOptions, mode: Option<Preset>, set: &[String]) -> anyhow::Result<()> {
-    let dir = opts.data_dir.join("potamogeton");
+    let dir = opts.data()?.join("potamogeton");
     let modes = mode.map_or(vec![Preset::Improved, Preset::Paper], |m| vec![m]);
     let mut json = Vec::new();
     for mode in modes {

@@ -23,12 +23,12 @@ use sdsem_sim::render::{
 use sdsem_sim::scene::{Scene, SceneKind, SceneParams};
 use serde::Serialize;
 
-use crate::vision::Image;
-use crate::vision::Preset;
-use crate::vision::dense::{DenseParams, DenseStats, dense_disparity_in_range};
-use crate::vision::depth::{StereoGeometry, height_on_left_grid};
-use crate::vision::rectify::warp::{Warped, warp};
-use crate::vision::sparse::{SparseParams, rectify_pair};
+use sdsem::vision::Image;
+use sdsem::vision::Preset;
+use sdsem::vision::dense::{DenseParams, DenseStats, dense_disparity_in_range};
+use sdsem::vision::depth::{StereoGeometry, height_on_left_grid};
+use sdsem::vision::rectify::warp::{Warped, warp};
+use sdsem::vision::sparse::{SparseParams, rectify_pair};
 
 /// Where the rectification of a simulated pair comes from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
@@ -73,7 +73,7 @@ pub struct SimFigures {
     /// `rmse_um / height_range_um`.
     pub rmse_relative: f64,
     /// The height noise floor the micrographs allow at the matcher's
-    /// window ([`crate::vision::precision`]) over `height_range_um`: an RMSE
+    /// window ([`sdsem::vision::precision`]) over `height_range_um`: an RMSE
     /// target below it cannot be met at that window.
     pub noise_floor_relative: Option<f64>,
     /// Median |residual| in disparity pixels (eq. 19 backwards).
@@ -110,20 +110,20 @@ pub enum SimEvalError {
     #[error("scene: {0}")]
     Scene(sdsem_sim::scene::SceneError),
     #[error("sparse stage: {0}")]
-    Sparse(crate::vision::sparse::SparseError),
+    Sparse(sdsem::vision::sparse::SparseError),
     #[error("dense stage: {0}")]
-    Dense(crate::vision::dense::DenseError),
+    Dense(sdsem::vision::dense::DenseError),
     #[error("depth: {0}")]
-    Depth(crate::vision::depth::DepthError),
+    Depth(sdsem::vision::depth::DepthError),
     #[error("no pixel is visible in both micrographs")]
     NothingVisible,
 }
 
-error_from!(SimEvalError {
+sdsem::error_from!(SimEvalError {
     Scene(sdsem_sim::scene::SceneError),
-    Sparse(crate::vision::sparse::SparseError),
-    Dense(crate::vision::dense::DenseError),
-    Depth(crate::vision::depth::DepthError),
+    Sparse(sdsem::vision::sparse::SparseError),
+    Dense(sdsem::vision::dense::DenseError),
+    Depth(sdsem::vision::depth::DepthError),
 });
 
 /// Pixel dwell of the rendered micrographs, µs (a capture, not a tracking frame).
@@ -219,7 +219,7 @@ fn canvas_errors(
     visible: &[bool],
     width: usize,
     rect: &Rectified,
-    disp: &crate::vision::dense::Disparity,
+    disp: &sdsem::vision::dense::Disparity,
 ) -> CanvasErrors {
     let map = |hm: &Matrix3<f64>, x: f64, y: f64| {
         let q = hm * nalgebra::Vector3::new(x, y, 1.0);
@@ -338,7 +338,7 @@ pub fn write_case(
     case: &SimCase,
     dir: &std::path::Path,
 ) -> anyhow::Result<[std::path::PathBuf; 2]> {
-    use crate::imaging::file::{MicrographTags, SampleDepth, write_micrograph_tiff};
+    use sdsem::imaging::file::{MicrographTags, SampleDepth, write_micrograph_tiff};
     let r = render_case(case)?;
     std::fs::create_dir_all(dir)?;
     let stem = format!("{}_{}x{}", case.kind.name(), case.width, case.height);
@@ -394,7 +394,7 @@ pub fn evaluate_case(
         Rectifier::Sparse => {
             let r = rectify_pair(&left, &right, Some(case.tilt_axis_deg), sparse)?;
             Rectified {
-                range: crate::vision::pipeline::inlier_disparity_range(
+                range: sdsem::vision::pipeline::inlier_disparity_range(
                     &r.sparse.inliers,
                     &r.sparse.rectification,
                 ),
@@ -441,11 +441,11 @@ pub fn evaluate_case(
         case.height,
     )?;
     let depth_ms = t.elapsed().as_secs_f64() * 1e3;
-    let precision = crate::vision::precision::predict(
+    let precision = sdsem::vision::precision::predict(
         &left,
         &right,
         case.tilt_axis_deg,
-        crate::vision::pipeline::matcher_window_sigma(dense),
+        sdsem::vision::pipeline::matcher_window_sigma(dense),
         geometry.um_per_px(),
     );
     let canvas_error_px = canvas_errors(&corr, &visible, case.width, &rect, &disp);
@@ -743,7 +743,7 @@ pub fn quick_cases() -> Vec<SimCase> {
         .collect()
 }
 
-/// What `sdsem eval dense` was asked for beside the common options.
+/// What `sdsem-eval dense` was asked for beside the common options.
 #[derive(Debug, Clone, Default)]
 pub struct DenseEvalArgs {
     /// Use the simulator's exact rectification instead of the sparse stage.
@@ -837,7 +837,7 @@ fn summary(rows: &[SimFigures], mode: Preset) -> Option<String> {
     ))
 }
 
-/// `sdsem eval dense`: the simulated scenes in both modes (or one), a line
+/// `sdsem-eval dense`: the simulated scenes in both modes (or one), a line
 /// per case and a summary line per mode against the targets.
 ///
 /// # Errors
@@ -989,7 +989,7 @@ mod tests {
     }
 
     /// The whole table (both modes). Long: about a minute per case on two cores.
-    /// `cargo test -p sdsem --release --lib eval::dense::tests::simulated_scenes -- --ignored --nocapture`
+    /// `cargo test -p sdsem-eval --release dense::tests::simulated_scenes -- --ignored --nocapture`
     /// (`SDSEM_CASES=n` runs the first n cases only).
     #[test]
     #[ignore = "renders and reconstructs simulated scenes; prints figures"]

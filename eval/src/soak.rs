@@ -1,6 +1,6 @@
-//! The daemon under stress, as a process: `sdsem eval soak` and `sdsem eval kill`.
+//! The daemon under stress, as a process: `sdsem-eval soak` and `sdsem-eval kill`.
 //!
-//! Both start `sdsem daemon` (this very binary) on a fresh spool, with the
+//! Both start `sdsem daemon` (the `sdsem` binary given, by default the one beside this one) on a fresh spool, with the
 //! stage-and-SEM simulator running in *this* process on fixed ports, so the
 //! evaluation can take the instruments away and bring them back, count the
 //! faults they injected and the frames they served, while the daemon only
@@ -41,9 +41,9 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
 
-use crate::daemon::spool::CRASH_REASON;
-use crate::daemon::{JobRecord, JobSpec, JobState, Spool};
-use crate::record::{self, RunStatus, topics};
+use sdsem::daemon::spool::CRASH_REASON;
+use sdsem::daemon::{JobRecord, JobSpec, JobState, Spool};
+use sdsem::record::{self, RunStatus, topics};
 use sdsem_sim::stage_model::FaultCounts;
 use sdsem_sim::{FaultConfig, FaultTrigger, SimConfig, SimEndpoint, SimHandle, Simulator};
 
@@ -56,9 +56,11 @@ const NO_PROGRESS: Duration = Duration::from_secs(180);
 /// How often the spool and the simulator schedule are looked at.
 const TICK: Duration = Duration::from_millis(25);
 
-/// `sdsem eval soak` settings.
+/// `sdsem-eval soak` settings.
 #[derive(Debug, Clone)]
 pub struct SoakOptions {
+    /// The `sdsem` binary whose daemon is measured.
+    pub sdsem: PathBuf,
     pub jobs: usize,
     pub seed: u64,
     /// Keep the work directory (spool, runs, daemon log) for inspection.
@@ -66,9 +68,11 @@ pub struct SoakOptions {
     pub json: bool,
 }
 
-/// `sdsem eval kill` settings.
+/// `sdsem-eval kill` settings.
 #[derive(Debug, Clone)]
 pub struct KillOptions {
+    /// The `sdsem` binary whose daemon is killed.
+    pub sdsem: PathBuf,
     pub rounds: usize,
     pub seed: u64,
     pub keep: bool,
@@ -114,7 +118,7 @@ impl InjectedFaults {
     }
 }
 
-/// The figures of `sdsem eval soak`.
+/// The figures of `sdsem-eval soak`.
 #[derive(Debug, Clone, Serialize)]
 pub struct SoakReport {
     pub jobs: usize,
@@ -230,6 +234,7 @@ pub fn run_kill(opts: &KillOptions) -> anyhow::Result<KillReport> {
 // The rig: work directory, simulator, daemon process.
 
 struct Rig {
+    sdsem: PathBuf,
     dir: PathBuf,
     keep: bool,
     spool: PathBuf,
@@ -239,7 +244,7 @@ struct Rig {
 }
 
 impl Rig {
-    fn new(kind: &str, keep: bool) -> anyhow::Result<Self> {
+    fn new(kind: &str, sdsem: &Path, keep: bool) -> anyhow::Result<Self> {
         let dir = std::env::temp_dir().join(format!(
             "sdsem-eval-{kind}-{}-{}",
             std::process::id(),
@@ -250,6 +255,7 @@ impl Rig {
         std::fs::create_dir_all(&dir)
             .with_context(|| format!("cannot create {}", dir.display()))?;
         Ok(Self {
+            sdsem: sdsem.to_path_buf(),
             spool: dir.join("spool"),
             config: dir.join("sdsem.toml"),
             stage_port: free_port()?,
@@ -326,9 +332,8 @@ stall_timeout_s = 60.0
     }
 
     fn spawn_daemon(&self, tag: &str) -> anyhow::Result<DaemonProcess> {
-        let exe = std::env::current_exe().context("cannot find the sdsem binary")?;
         let log = self.dir.join(format!("daemon-{tag}.log"));
-        let child = Command::new(exe)
+        let child = Command::new(&self.sdsem)
             .args(["--log-format", "text", "daemon", "--config"])
             .arg(&self.config)
             .env("RUST_LOG", "info")
@@ -338,7 +343,7 @@ stall_timeout_s = 60.0
             .stdout(Stdio::null())
             .stderr(std::fs::File::create(&log)?)
             .spawn()
-            .context("cannot start sdsem daemon")?;
+            .with_context(|| format!("cannot start {} daemon", self.sdsem.display()))?;
         Ok(DaemonProcess {
             child,
             started: Instant::now(),
@@ -562,7 +567,7 @@ impl Attacker {
         let evil = format!("\u{1b}[2J\u{1b}]0;pwned-{round}\u{7}\n.json");
         std::fs::write(q.join(&evil), "{}")?;
         self.entries
-            .push(crate::acquisition::run_dir::printable(&evil, 120));
+            .push(sdsem::acquisition::run_dir::printable(&evil, 120));
         let edits: [&dyn Fn(&mut serde_json::Value); 3] = [
             &|v| {
                 v["name"] = "../../pub/evil".into();
@@ -595,8 +600,8 @@ impl Attacker {
     /// What became of the attacks, from the spool at the end.
     fn figures(
         &self,
-        listing: &crate::daemon::spool::Listing,
-        status: Option<&crate::daemon::spool::DaemonStatus>,
+        listing: &sdsem::daemon::spool::Listing,
+        status: Option<&sdsem::daemon::spool::DaemonStatus>,
     ) -> AttackFigures {
         let set_aside: std::collections::HashSet<&str> =
             listing.set_aside.iter().map(|u| u.name.as_str()).collect();
@@ -694,7 +699,7 @@ fn shorten(reason: &str) -> String {
 fn soak(opts: &SoakOptions) -> anyhow::Result<SoakReport> {
     let t0 = Instant::now();
     let mut rng = ChaCha8Rng::seed_from_u64(opts.seed);
-    let rig = Rig::new("soak", opts.keep)?;
+    let rig = Rig::new("soak", &opts.sdsem, opts.keep)?;
     rig.write_config(true)?;
     let mut instruments = Instruments::new(rig.stage_port, rig.sem_port);
     instruments.on(rng.random(), random_faults(&mut rng))?;
@@ -885,7 +890,7 @@ fn soak(opts: &SoakOptions) -> anyhow::Result<SoakReport> {
             }
         }
         let Some(dir) = &job.run_dir else { continue };
-        match check_record(&dir.join(crate::acquisition::job::files::RECORD)) {
+        match check_record(&dir.join(sdsem::acquisition::job::files::RECORD)) {
             Ok((_, complete, outcome)) => {
                 readable += 1;
                 finished += usize::from(complete);
@@ -1059,7 +1064,7 @@ fn write_problems(s: &mut String, problems: &[String], work_dir: Option<&Path>) 
 fn kill(opts: &KillOptions) -> anyhow::Result<KillReport> {
     let t0 = Instant::now();
     let mut rng = ChaCha8Rng::seed_from_u64(opts.seed);
-    let rig = Rig::new("kill", opts.keep)?;
+    let rig = Rig::new("kill", &opts.sdsem, opts.keep)?;
     rig.write_config(false)?;
     let mut instruments = Instruments::new(rig.stage_port, rig.sem_port);
     instruments.on(opts.seed, FaultConfig::default())?;
@@ -1238,7 +1243,7 @@ fn kill(opts: &KillOptions) -> anyhow::Result<KillReport> {
         let mut round_readable = 0;
         for j in &jobs {
             let Some(dir) = &j.run_dir else { continue };
-            let path = dir.join(crate::acquisition::job::files::RECORD);
+            let path = dir.join(sdsem::acquisition::job::files::RECORD);
             match check_record(&path) {
                 Ok((frames, _, _)) => {
                     let before = readable_frames.insert(j.id.0, frames).unwrap_or(0);
@@ -1273,7 +1278,7 @@ fn kill(opts: &KillOptions) -> anyhow::Result<KillReport> {
             report.jobs_done += 1;
         }
         let Some(dir) = &j.run_dir else { continue };
-        let path = dir.join(crate::acquisition::job::files::RECORD);
+        let path = dir.join(sdsem::acquisition::job::files::RECORD);
         match check_record(&path) {
             Ok((_, complete, _)) => {
                 report.records += 1;

@@ -1,4 +1,4 @@
-//! `sdsem eval acquisition`: the acquisition figures of issue 2, measured on
+//! `sdsem-eval acquisition`: the acquisition figures of issue 2, measured on
 //! the simulator, which is watched from outside like a test rig (the eval
 //! starts it, points the run's configuration at its endpoints and reads its
 //! ground truth afterwards):
@@ -29,10 +29,10 @@ use anyhow::Context;
 use serde::Serialize;
 
 use super::EvalOptions;
-use crate::acquisition::{JobReport, Outcome, RunDir, RunHooks, RunName, job::files, run_job};
-use crate::config::Config;
-use crate::record::{self, FrameInfo, topics};
-use crate::stage::{IoOutcome, StageAxis, StageEvent, StageIo, StageState};
+use sdsem::acquisition::{JobReport, Outcome, RunDir, RunHooks, RunName, job::files, run_job};
+use sdsem::config::Config;
+use sdsem::record::{self, FrameInfo, topics};
+use sdsem::stage::{IoOutcome, StageAxis, StageEvent, StageIo, StageState};
 use sdsem_sim::render::{Facet, SurfacePoint, View};
 use sdsem_sim::{SimHandle, Simulator};
 
@@ -329,7 +329,7 @@ pub struct RealTimeFigures {
     pub ideal_wall_s: f64,
     pub overhead: f64,
     /// Wall time spent per kind of action (the runner's own account).
-    pub timings: crate::acquisition::SeriesTimings,
+    pub timings: sdsem::acquisition::SeriesTimings,
     /// CPU time of this process (instruments and simulator together) during the run.
     pub cpu_s: Option<f64>,
     pub load_before: Option<[f64; 3]>,
@@ -398,7 +398,7 @@ async fn run_on_simulator(mut config: Config) -> anyhow::Result<SimRun> {
     let started = Instant::now();
     // The run's log events go into its record, as with `sdsem acquire`.
     let hooks = RunHooks {
-        logs: crate::cli::logging::record_logs(),
+        logs: sdsem::cli::logging::record_logs(),
         ..RunHooks::detached()
     };
     let report = run_job(&config, None, &run_dir, hooks).await?;
@@ -470,7 +470,7 @@ async fn series_figures(work: &Path, quick: bool) -> anyhow::Result<(SeriesFigur
     let mut micrographs = Vec::new();
     for name in [files::LEFT, files::RIGHT] {
         let path = run.report.run_dir.join(name);
-        if let Ok(m) = crate::imaging::file::load_micrograph(&path) {
+        if let Ok(m) = sdsem::imaging::file::load_micrograph(&path) {
             micrographs.push(MicrographFigures {
                 file: name.to_owned(),
                 width: m.image.width(),
@@ -531,7 +531,7 @@ async fn real_time_figures(work: &Path, quick: bool) -> anyhow::Result<RealTimeF
     // A real stage is polled at the built-in default interval; a faster
     // simulator at a proportionally shorter one, so that polling costs the
     // same share of the run.
-    let poll_interval_s = crate::stage::StageConfig::default().poll_interval_s * time_scale;
+    let poll_interval_s = sdsem::stage::StageConfig::default().poll_interval_s * time_scale;
     let config = sim_config(
         work,
         &[
@@ -592,7 +592,11 @@ async fn real_time_figures(work: &Path, quick: bool) -> anyhow::Result<RealTimeF
 
 /// `python3 tests/check_mcap.py RECORD [--require-all-topics]`, when it can run.
 fn check_mcap(record: &Path, require_all: bool) -> McapCheck {
-    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/check_mcap.py");
+    // The script of the source tree this binary was built from (the workspace root above eval/).
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .parent()
+        .unwrap_or(Path::new("."));
+    let script = root.join("tests/check_mcap.py");
     if !script.is_file() {
         return McapCheck::NotRun {
             why: format!(
@@ -770,7 +774,7 @@ fn fmt_load(l: Option<[f64; 3]>) -> String {
     )
 }
 
-/// The figures as the table `sdsem eval acquisition` prints.
+/// The figures as the table `sdsem-eval acquisition` prints.
 #[must_use]
 pub fn format_figures(f: &AcquisitionFigures) -> String {
     use std::fmt::Write as _;
@@ -783,7 +787,7 @@ pub fn format_figures(f: &AcquisitionFigures) -> String {
     };
     let _ = writeln!(
         o,
-        "sdsem eval acquisition{}: simulator of config/sim.toml (particles), {} CPUs",
+        "sdsem-eval acquisition{}: simulator of config/sim.toml (particles), {} CPUs",
         if f.quick { " --quick" } else { "" },
         f.cpus
     );
@@ -992,7 +996,7 @@ pub fn format_figures(f: &AcquisitionFigures) -> String {
     o
 }
 
-/// `sdsem eval acquisition`: prints the figures; `Ok(false)` when a target is missed.
+/// `sdsem-eval acquisition`: prints the figures; `Ok(false)` when a target is missed.
 ///
 /// # Errors
 /// When the simulator cannot start or a record cannot be read.
@@ -1009,8 +1013,8 @@ pub fn run(opts: &EvalOptions) -> anyhow::Result<bool> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::record::FrameRole;
-    use crate::stage::AxisState;
+    use sdsem::record::FrameRole;
+    use sdsem::stage::AxisState;
 
     #[test]
     fn tilt_errors_compare_in_order_and_flag_missing_tilts() {

@@ -6,10 +6,10 @@ use std::path::{Path, PathBuf};
 
 use serde::Serialize;
 
-use crate::export::flo;
-use crate::vision::Image;
-use crate::vision::dense::DenseError;
-use crate::vision::dense::sift_flow::{Flow, FlowParams, sift_flow};
+use sdsem::export::flo;
+use sdsem::vision::Image;
+use sdsem::vision::dense::DenseError;
+use sdsem::vision::dense::sift_flow::{Flow, FlowParams, sift_flow};
 
 /// Errors of an evaluation run.
 #[derive(Debug, thiserror::Error)]
@@ -109,6 +109,13 @@ pub fn load_flo(path: &Path) -> Result<(Image, Image), EvalError> {
 #[derive(Debug, Clone)]
 pub struct MiddleburyRun {
     pub errors: FlowErrors,
+    #[cfg_attr(
+        not(test),
+        expect(
+            dead_code,
+            reason = "the ignored test middlebury_rubberwhale prints its levels"
+        )
+    )]
     pub flow: Flow,
 }
 
@@ -130,19 +137,19 @@ pub fn evaluate_rubberwhale(
     Ok(MiddleburyRun { errors, flow })
 }
 
-/// `sdsem eval flow`: RubberWhale in both modes, beside the paper's Table 3;
+/// `sdsem-eval flow`: RubberWhale in both modes, beside the paper's Table 3;
 /// `set` overrides `[reconstruction.dense]` keys as in `eval dense`.
 ///
 /// # Errors
 /// When the Middlebury data are missing, an override is invalid or the flow fails.
 pub fn run(opts: &super::EvalOptions, set: &[String]) -> anyhow::Result<()> {
-    use crate::vision::Preset;
-    use crate::vision::dense::DenseParams;
+    use sdsem::vision::Preset;
+    use sdsem::vision::dense::DenseParams;
     let mut rows = Vec::new();
     for mode in [Preset::Paper, Preset::Improved] {
         let params = super::dense::apply_overrides(&DenseParams::preset(mode), set)?.flow;
         let started = std::time::Instant::now();
-        let run = evaluate_rubberwhale(&opts.data_dir, &params)?;
+        let run = evaluate_rubberwhale(opts.data()?, &params)?;
         let wall_s = started.elapsed().as_secs_f64();
         if !opts.json {
             let e = run.errors;
@@ -175,7 +182,7 @@ pub fn run(opts: &super::EvalOptions, set: &[String]) -> anyhow::Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::vision::Preset;
+    use sdsem::vision::Preset;
 
     #[test]
     fn errors_of_a_known_offset() {
@@ -190,11 +197,11 @@ mod tests {
     }
 
     /// Prints the Middlebury figures of both modes (paper Table 3: AAE 10.47°, EPE 0.35 px).
-    /// `SDSEM_DATA=/work/shared/data cargo test -p sdsem --lib eval::flow -- --ignored --nocapture`
+    /// `SDSEM_DATA=/path/to/data cargo test -p sdsem-eval flow -- --ignored --nocapture`
     #[test]
     #[ignore = "reads the shared Middlebury data; prints figures"]
     fn middlebury_rubberwhale() {
-        let dir = crate::eval::data_dir();
+        let dir = crate::data_dir(None).expect("set SDSEM_DATA to the shared data folder");
         for mode in [Preset::Paper, Preset::Improved] {
             let run = evaluate_rubberwhale(&dir, &FlowParams::preset(mode)).unwrap();
             let e = run.errors;
