@@ -137,7 +137,7 @@ impl WatchFolderSource {
     ) -> Result<Frame, ImagingError> {
         let listing = self.list().await?;
         self.arrivals.begin(self.now(), &listing);
-        let command = self.cfg.trigger.trim().to_owned();
+        let command = self.cfg.trigger_for(request.role).to_owned();
         if !command.is_empty() {
             let trigger = context.trigger.ok_or_else(|| ImagingError::NoTriggerLink {
                 command: command.clone(),
