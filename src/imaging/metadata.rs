@@ -143,7 +143,9 @@ impl SemMetadata {
             Some(SemVendor::Sdsem) | None => Default::default(),
         };
         super::SourceIdentity {
-            vendor: self.vendor.map_or_else(String::new, |v| v.as_str().to_owned()),
+            vendor: self
+                .vendor
+                .map_or_else(String::new, |v| v.as_str().to_owned()),
             model,
             version,
             serial,
@@ -616,7 +618,9 @@ AP_DATE\r\nDate :8 Mar 2016\r\n\0\0\0";
 
     #[test]
     fn the_instrument_comes_from_each_vendors_own_keys() {
-        let zeiss = parse_zeiss(b"SV_SERIAL_NUMBER\r\nSerial No. = 4711\r\nSV_VERSION\r\nVersion = V06.03\r\n");
+        let zeiss = parse_zeiss(
+            b"SV_SERIAL_NUMBER\r\nSerial No. = 4711\r\nSV_VERSION\r\nVersion = V06.03\r\n",
+        );
         let id = zeiss.instrument();
         assert_eq!(
             (id.vendor.as_str(), id.version.as_str(), id.serial.as_str()),

@@ -27,7 +27,7 @@ pub use error::ImagingError;
 pub use frame::{Frame, FrameFile, FrameMeta, Pixels, Role};
 pub use link_client::{GroundTruth, SemLinkClient};
 pub use source::{
-    FrameSource, GrabContext, GrabFuture, GrabRequest, IdentifyFuture, ProbeFuture,
-    SourceIdentity, Trigger, TriggerError, TriggerFuture,
+    FrameSource, GrabContext, GrabFuture, GrabRequest, IdentifyFuture, ProbeFuture, SourceIdentity,
+    Trigger, TriggerError, TriggerFuture,
 };
 pub use watch_folder::WatchFolderSource;

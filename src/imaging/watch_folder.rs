@@ -612,8 +612,10 @@ fn describe_stored(read: std::io::Result<Result<Stored, Unready>>) -> String {
             let meta = &m.metadata;
             let id = meta.instrument();
             let mut parts = vec![
-                meta.vendor
-                    .map_or_else(|| "no vendor metadata".to_owned(), |v| v.as_str().to_owned()),
+                meta.vendor.map_or_else(
+                    || "no vendor metadata".to_owned(),
+                    |v| v.as_str().to_owned(),
+                ),
                 format!(
                     "stored {}×{}, image {}×{}, {} bit",
                     m.stored_size.0,

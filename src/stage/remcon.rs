@@ -343,8 +343,16 @@ impl<T: AsyncRead + AsyncWrite + Unpin + Send> RemconBackend<T> {
             ),
         )];
         let queries = [
-            (Command::InitialisedQuery, "IST? stage type, initialised (0)", ""),
-            (Command::PixelSizeQuery, "PIX? pixel size", " nm (field width / 1024)"),
+            (
+                Command::InitialisedQuery,
+                "IST? stage type, initialised (0)",
+                "",
+            ),
+            (
+                Command::PixelSizeQuery,
+                "PIX? pixel size",
+                " nm (field width / 1024)",
+            ),
             (Command::MagnificationQuery, "MAG? magnification", " ×"),
             (Command::DetectorQuery, "DET? detector", ""),
             (Command::EhtQuery, "EHT? accelerating voltage", " kV"),
@@ -354,7 +362,9 @@ impl<T: AsyncRead + AsyncWrite + Unpin + Send> RemconBackend<T> {
             let value = match self.query(&command, |d| Ok(d.to_owned())).await {
                 Ok(data) => format!("{data}{unit}"),
                 Err(StageError::Remcon { error, .. }) => format!("not answered: {error}"),
-                Err(StageError::InvalidCommand { .. }) => "not answered: invalid command (#)".into(),
+                Err(StageError::InvalidCommand { .. }) => {
+                    "not answered: invalid command (#)".into()
+                }
                 Err(e) => return Err(e),
             };
             lines.push((name.to_owned(), value));
