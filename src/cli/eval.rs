@@ -30,7 +30,12 @@ pub enum Which {
     /// The 0→7° series on the simulator: tilts, frames, stage I/O, re-centring
     /// against ground truth, real-time overhead, the record in the Python reader.
     #[command(after_help = super::manual::EVAL_ACQUISITION)]
-    Acquisition,
+    Acquisition {
+        /// Only the real-time figures, on the simulator of this configuration (its stage and
+        /// imaging dialects, e.g. config/sim-zeiss.toml), at time scale 1.
+        #[arg(long, value_name = "FILE")]
+        config: Option<PathBuf>,
+    },
     /// SIFT flow on Middlebury RubberWhale against its ground truth (paper Table 3).
     #[command(after_help = super::manual::EVAL_FLOW)]
     Flow {
@@ -139,8 +144,12 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<ExitCode> {
         json: args.json,
     };
     match &args.which {
-        Which::Acquisition => {
-            if !eval::acquisition::run(&opts)? {
+        Which::Acquisition { config } => {
+            let met = match config {
+                Some(path) => eval::acquisition::run_config(&opts, path)?,
+                None => eval::acquisition::run(&opts)?,
+            };
+            if !met {
                 return Ok(ExitCode::FAILURE);
             }
         }

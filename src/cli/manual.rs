@@ -105,7 +105,9 @@ Examples:
 pub const EVAL_ACQUISITION: &str = "\
 Examples:
   sdsem eval acquisition
-  sdsem eval acquisition --quick --json";
+  sdsem eval acquisition --quick --json
+  sdsem eval acquisition --config config/sim-zeiss.toml
+      real-time overhead of another dialect (here RemCon32 + watch folder)";
 
 pub const EVAL_SPARSE: &str = "\
 Examples:
