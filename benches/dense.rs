@@ -10,11 +10,11 @@ use std::hint::black_box;
 use criterion::{Criterion, criterion_group, criterion_main};
 use sdsem::eval::synthetic::{Texture, dome, render};
 use sdsem::vision::Image;
-use sdsem::vision::bilateral_grid::{BilateralParams, bilateral_filter};
+use sdsem::vision::dense::dense_sift::{DenseSiftParams, dense_sift};
+use sdsem::vision::dense::sift_flow::bp::DualLayerBp;
+use sdsem::vision::dense::sift_flow::energy::{DataTerm, EnergyWeights, LabelSpace};
 use sdsem::vision::dense::{DenseParams, dense_disparity};
-use sdsem::vision::dense_sift::{DenseSiftParams, dense_sift};
-use sdsem::vision::sift_flow::bp::DualLayerBp;
-use sdsem::vision::sift_flow::energy::{DataTerm, EnergyWeights, LabelSpace};
+use sdsem::vision::filter::bilateral_grid::{BilateralParams, bilateral_filter};
 
 const W: usize = 320;
 const H: usize = 240;

@@ -11,12 +11,11 @@ use serde::{Deserialize, Serialize};
 use crate::acquisition::{PlanError, SeriesConfig, SeriesPlan, TrackingConfig};
 use crate::daemon::DaemonConfig;
 use crate::export::MeshParams;
-use crate::imaging::ImagingConfig;
-use crate::stage::StageConfig;
+use crate::imaging::{ImagingConfig, ImagingError};
+use crate::stage::{StageConfig, StageError};
 use crate::vision::dense::DenseParams;
-use crate::vision::pipeline::ReconstructionParams;
-use crate::vision::sift_flow::Mode;
 use crate::vision::sparse::SparseParams;
+use crate::vision::{Preset, ReconstructionParams};
 
 /// Where runs go and what they are called.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -42,12 +41,14 @@ impl Default for RunConfig {
 }
 
 /// The reconstruction of the pair (`sdsem acquire`, `reconstruct`, `replay`).
-#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+///
+/// `mode` names the preset whose values every other key starts from; the configuration's
+/// layers resolve it once, when they are loaded ([`Config::from_layers`]).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct ReconstructionConfig {
-    /// `improved` (default: sub-pixel disparity, occlusion mask, confidence) or
-    /// `paper` (the SD-SEM pipeline exactly as published).
-    pub mode: Mode,
+    /// The preset: `improved` (default) or `paper` (the SD-SEM pipeline as published).
+    pub mode: Preset,
     /// φ, the direction of the stage tilt axis in the image (degrees from +x
     /// towards +y), used when neither the command line nor the micrographs give
     /// it. It decides the sign of the relief.
@@ -58,14 +59,138 @@ pub struct ReconstructionConfig {
     pub mesh: MeshParams,
 }
 
+impl Default for ReconstructionConfig {
+    fn default() -> Self {
+        Self::preset(Preset::default())
+    }
+}
+
 impl ReconstructionConfig {
+    /// Every key at the value of `preset`.
+    #[must_use]
+    pub fn preset(preset: Preset) -> Self {
+        let ReconstructionParams { sparse, dense } = ReconstructionParams::preset(preset);
+        Self {
+            mode: preset,
+            tilt_axis_deg: None,
+            sparse,
+            dense,
+            mesh: MeshParams::default(),
+        }
+    }
+
     /// The pipeline's parameters.
     #[must_use]
     pub fn params(&self) -> ReconstructionParams {
         ReconstructionParams {
-            mode: self.mode,
             sparse: self.sparse.clone(),
             dense: self.dense,
+        }
+    }
+}
+
+/// Re-bases the `[reconstruction]` table of a rendered configuration from the preset it was
+/// resolved with to `to`: every key still at the old preset's value takes the new preset's
+/// (removed here, so that the new preset's layer below shows through), every other key stays.
+/// A later layer that changes `reconstruction.mode` re-bases the earlier ones this way.
+pub fn rebase_reconstruction(root: &mut toml::Table, to: Preset) {
+    let Some(toml::Value::Table(recon)) = root.get_mut("reconstruction") else {
+        return;
+    };
+    let from = recon
+        .get("mode")
+        .and_then(|m| m.clone().try_into::<Preset>().ok())
+        .unwrap_or_default();
+    let Ok(toml::Value::Table(old)) = toml::Value::try_from(ReconstructionConfig::preset(from))
+    else {
+        return;
+    };
+    drop_equal(recon, &old);
+    if from != to {
+        recon.insert(
+            "mode".to_owned(),
+            toml::Value::try_from(to).unwrap_or_else(|_| toml::Value::String("improved".into())),
+        );
+        let Ok(toml::Value::Table(new)) = toml::Value::try_from(ReconstructionConfig::preset(to))
+        else {
+            return;
+        };
+        fill_missing(recon, &new);
+    }
+}
+
+/// A configuration recorded by an earlier sdsem (the effective configuration of a run) in
+/// today's keys: `reconstruction.dense.mode` is gone (the preset is `reconstruction.mode`), and
+/// such a record in the paper mode ran the paper's values of the three sparse keys that were
+/// then left at the improved defaults. Text that does not parse is returned as it is.
+#[must_use]
+pub fn upgrade_recorded(text: &str) -> String {
+    let Ok(mut root) = toml::from_str::<toml::Table>(text) else {
+        return text.to_owned();
+    };
+    let Some(toml::Value::Table(recon)) = root.get_mut("reconstruction") else {
+        return text.to_owned();
+    };
+    let Some(toml::Value::Table(dense)) = recon.get_mut("dense") else {
+        return text.to_owned();
+    };
+    if dense.remove("mode").is_none() {
+        return text.to_owned();
+    }
+    let paper = recon.get("mode").and_then(toml::Value::as_str) == Some("paper");
+    if paper && let Some(toml::Value::Table(sparse)) = recon.get_mut("sparse") {
+        let improved = SparseParams::preset(Preset::Improved);
+        let paper = SparseParams::preset(Preset::Paper);
+        let mut set = |section: &str, key: &str, ours: toml::Value, theirs: toml::Value| {
+            if let Some(toml::Value::Table(t)) = sparse.get_mut(section)
+                && t.get(key) == Some(&ours)
+            {
+                t.insert(key.to_owned(), theirs);
+            }
+        };
+        set(
+            "sift",
+            "c_dog",
+            toml::Value::Float(improved.sift.c_dog),
+            toml::Value::Float(paper.sift.c_dog),
+        );
+        set(
+            "refine",
+            "enabled",
+            toml::Value::Boolean(improved.refine.enabled),
+            toml::Value::Boolean(paper.refine.enabled),
+        );
+        set(
+            "rectify",
+            "cauchy_scale_px",
+            toml::Value::Float(improved.rectify.cauchy_scale_px),
+            toml::Value::Float(paper.rectify.cauchy_scale_px),
+        );
+    }
+    toml::to_string(&root).unwrap_or_else(|_| text.to_owned())
+}
+
+/// Removes the leaves of `table` equal to those of `reference` (empty tables go too).
+fn drop_equal(table: &mut toml::Table, reference: &toml::Table) {
+    table.retain(|key, value| match (value, reference.get(key)) {
+        (toml::Value::Table(t), Some(toml::Value::Table(r))) => {
+            drop_equal(t, r);
+            !t.is_empty()
+        }
+        (v, Some(r)) => key == "mode" || v != r,
+        (_, None) => true,
+    });
+}
+
+/// Adds the leaves of `reference` that `table` lacks.
+fn fill_missing(table: &mut toml::Table, reference: &toml::Table) {
+    for (key, r) in reference {
+        match (table.get_mut(key), r) {
+            (Some(toml::Value::Table(t)), toml::Value::Table(r)) => fill_missing(t, r),
+            (Some(_), _) => {}
+            (None, r) => {
+                table.insert(key.clone(), r.clone());
+            }
         }
     }
 }
@@ -137,10 +262,33 @@ pub enum ConfigError {
     #[error("invalid configuration: {0}")]
     Plan(PlanError),
     #[error("invalid configuration: {0}")]
-    Rule(String),
+    Stage(StageError),
+    #[error("invalid configuration: {0}")]
+    Imaging(ImagingError),
+    #[error("invalid configuration: tracking.gain = {0} must lie in (0, 1]")]
+    TrackingGain(f64),
+    #[error(
+        "invalid configuration: stage.protocol = \"{configured}\" but the simulated stage speaks \
+         \"{simulated}\": set simulator.stage.protocol = \"{configured}\" too"
+    )]
+    SimulatedProtocol {
+        configured: crate::stage::StageProtocol,
+        simulated: crate::stage::StageProtocol,
+    },
+    #[error(
+        "invalid configuration: imaging.protocol = \"watch-folder\": stored micrographs do not record \
+         the tilt axis; set reconstruction.tilt_axis_deg (the direction of the stage tilt axis in the image)"
+    )]
+    WatchFolderTiltAxis,
+    #[error("invalid configuration: run.name = {0:?} must be a non-empty name without '/'")]
+    RunName(String),
 }
 
-error_from!(ConfigError { Plan(PlanError) });
+error_from!(ConfigError {
+    Plan(PlanError),
+    Stage(StageError),
+    Imaging(ImagingError),
+});
 
 /// Prefix of the environment variables that override configuration keys:
 /// `SDSEM_SERIES__END_TILT_DEG=5` sets `series.end_tilt_deg`. Only variables
@@ -191,25 +339,29 @@ impl Config {
         overrides: &[String],
         env: impl IntoIterator<Item = (String, String)>,
     ) -> Result<Self, ConfigError> {
-        // The built-in defaults are the first layer, so a file may give part
-        // of a table (`[imaging.micrograph] width = 640`) and keep the rest.
-        let mut builder = config::Config::builder().add_source(config::File::from_str(
-            &Self::default().to_toml(),
-            config::FileFormat::Toml,
-        ));
-        if let Some(text) = text {
-            builder = builder.add_source(config::File::from_str(text, config::FileFormat::Toml));
-        }
         let invalid = |e: config::ConfigError| ConfigError::Invalid {
             origin: origin.map(Path::to_owned),
             message: e.to_string(),
         };
+        let mut file = match text {
+            Some(text) => {
+                toml::from_str::<toml::Table>(text).map_err(|e| ConfigError::Invalid {
+                    origin: origin.map(Path::to_owned),
+                    message: e.message().to_owned(),
+                })?
+            }
+            None => toml::Table::new(),
+        };
+        // The environment and the command line are typed alike (TOML-ish values).
+        let mut later = Vec::new();
         for (name, value) in env {
             if let Some(rest) = name.strip_prefix(ENV_PREFIX)
                 && rest.contains("__")
             {
-                let key = rest.to_ascii_lowercase().replace("__", ".");
-                builder = builder.set_override(key, value).map_err(invalid)?;
+                later.push((
+                    rest.to_ascii_lowercase().replace("__", "."),
+                    parse_override_value(value.trim()),
+                ));
             }
         }
         for arg in overrides {
@@ -217,14 +369,43 @@ impl Config {
                 .split_once('=')
                 .filter(|(k, _)| !k.trim().is_empty())
                 .ok_or_else(|| ConfigError::BadOverride { arg: arg.clone() })?;
-            builder = builder
-                .set_override(key.trim(), parse_override_value(value.trim()))
-                .map_err(invalid)?;
+            later.push((key.trim().to_owned(), parse_override_value(value.trim())));
         }
-        let config: Self = builder
-            .build()
-            .and_then(config::Config::try_deserialize)
-            .map_err(invalid)?;
+        // The built-in defaults are the first layer, so a file may give part
+        // of a table (`[imaging.micrograph] width = 640`) and keep the rest;
+        // they are the values of the preset the layers end with. A file's keys
+        // still at its own preset's values follow a later layer's preset.
+        let layered = |defaults: &Self, file: &toml::Table| {
+            let mut builder = config::Config::builder()
+                .add_source(config::File::from_str(
+                    &defaults.to_toml(),
+                    config::FileFormat::Toml,
+                ))
+                .add_source(config::File::from_str(
+                    &toml::to_string(file).unwrap_or_default(),
+                    config::FileFormat::Toml,
+                ));
+            for (key, value) in &later {
+                builder = builder.set_override(key, value.clone())?;
+            }
+            builder.build()
+        };
+        let mut merged = layered(&Self::default(), &file).map_err(invalid)?;
+        let preset: Preset = merged.get("reconstruction.mode").map_err(invalid)?;
+        let file_preset = file
+            .get("reconstruction")
+            .and_then(|r| r.get("mode"))
+            .and_then(|m| m.clone().try_into::<Preset>().ok())
+            .unwrap_or_default();
+        if preset != Preset::default() || file_preset != preset {
+            rebase_reconstruction(&mut file, preset);
+            let defaults = Self {
+                reconstruction: ReconstructionConfig::preset(preset),
+                ..Self::default()
+            };
+            merged = layered(&defaults, &file).map_err(invalid)?;
+        }
+        let config: Self = merged.try_deserialize().map_err(invalid)?;
         config.validate()?;
         Ok(config)
     }
@@ -235,9 +416,7 @@ impl Config {
     /// [`ConfigError`] naming the keys at fault.
     pub fn validate(&self) -> Result<(), ConfigError> {
         self.plan()?;
-        self.stage
-            .validate()
-            .map_err(|e| ConfigError::Rule(e.to_string()))?;
+        self.stage.validate()?;
         // The in-process simulator's store folder stands in for an unset watch_dir, as its
         // endpoints do for the configured ones.
         let mut imaging = self.imaging.clone();
@@ -246,41 +425,30 @@ impl Config {
         {
             imaging.watch_dir.clone_from(&folder.dir);
         }
-        imaging
-            .validate()
-            .map_err(|e| ConfigError::Rule(e.to_string()))?;
+        imaging.validate()?;
         if let Some(sim) = &self.simulator {
             let simulated = crate::stage::StageProtocol::from(sim.stage.protocol);
-            if simulated != self.stage.protocol {
-                return Err(ConfigError::Rule(format!(
-                    "stage.protocol = \"{}\" but the simulated stage speaks \"{simulated}\": set \
-                     simulator.stage.protocol = \"{}\" too",
-                    self.stage.protocol, self.stage.protocol
-                )));
+            // A SharkSEM stage is the simulator's SharkSEM dialect, served beside its serial one.
+            let sharksem = self.stage.protocol == crate::stage::StageProtocol::Sharksem;
+            if simulated != self.stage.protocol && !sharksem {
+                return Err(ConfigError::SimulatedProtocol {
+                    configured: self.stage.protocol,
+                    simulated,
+                });
             }
         }
         let t = &self.tracking;
         if !(t.gain > 0.0 && t.gain <= 1.0) {
-            return Err(ConfigError::Rule(format!(
-                "tracking.gain = {} must lie in (0, 1]",
-                t.gain
-            )));
+            return Err(ConfigError::TrackingGain(t.gain));
         }
         if self.imaging.protocol == crate::imaging::ImagingProtocol::WatchFolder
             && self.run.reconstruct
             && self.reconstruction.tilt_axis_deg.is_none()
         {
-            return Err(ConfigError::Rule(
-                "imaging.protocol = \"watch-folder\": stored micrographs do not record the tilt axis; \
-                 set reconstruction.tilt_axis_deg (the direction of the stage tilt axis in the image)"
-                    .into(),
-            ));
+            return Err(ConfigError::WatchFolderTiltAxis);
         }
         if self.run.name.trim().is_empty() || self.run.name.contains('/') {
-            return Err(ConfigError::Rule(format!(
-                "run.name = {:?} must be a non-empty name without '/'",
-                self.run.name
-            )));
+            return Err(ConfigError::RunName(self.run.name.clone()));
         }
         Ok(())
     }
@@ -482,6 +650,168 @@ mod tests {
             missing.is_empty(),
             "keys not documented in config/sdsem.toml: {missing:?}"
         );
+    }
+
+    #[test]
+    fn a_preset_gives_every_reconstruction_key_its_value() {
+        let c = load("[reconstruction]\nmode = \"paper\"\n", &[], &[]).unwrap();
+        assert_eq!(
+            c.reconstruction,
+            ReconstructionConfig::preset(Preset::Paper)
+        );
+        let c = load("", &[], &[("SDSEM_RECONSTRUCTION__MODE", "paper")]).unwrap();
+        assert_eq!(
+            c.reconstruction,
+            ReconstructionConfig::preset(Preset::Paper)
+        );
+        assert_eq!(
+            load("", &[], &[]).unwrap().reconstruction,
+            ReconstructionConfig::preset(Preset::Improved)
+        );
+    }
+
+    /// A key the file sets keeps its value under the file's preset, also
+    /// when that value is the other preset's.
+    #[test]
+    fn a_key_set_beside_the_preset_keeps_its_value() {
+        let improved = SparseParams::preset(Preset::Improved);
+        let c = load(
+            &format!(
+                "[reconstruction]\nmode = \"paper\"\n[reconstruction.sparse.sift]\nc_dog = {}\n\
+                 [reconstruction.dense]\niterations = 8\n",
+                improved.sift.c_dog
+            ),
+            &[],
+            &[],
+        )
+        .unwrap();
+        assert_eq!(c.reconstruction.sparse.sift.c_dog, improved.sift.c_dog);
+        assert_eq!(c.reconstruction.dense.flow.iterations, 8);
+        let paper = ReconstructionConfig::preset(Preset::Paper);
+        assert_eq!(c.reconstruction.sparse.refine, paper.sparse.refine);
+        assert_eq!(
+            c.reconstruction.dense.flow.cell_size,
+            paper.dense.flow.cell_size
+        );
+    }
+
+    /// A full effective configuration (a record's) with the preset changed
+    /// by a later layer: the keys at the old preset's values follow the new
+    /// one, the others stay.
+    #[test]
+    fn a_later_layer_changing_the_preset_rebases_the_earlier_ones() {
+        let mut base = Config::default();
+        base.reconstruction.dense.lr_tolerance = 3.0;
+        let c = load(&base.to_toml(), &["reconstruction.mode=paper"], &[]).unwrap();
+        let mut want = ReconstructionConfig::preset(Preset::Paper);
+        want.dense.lr_tolerance = 3.0;
+        assert_eq!(c.reconstruction, want);
+        // The same table re-based directly (the daemon's job overrides).
+        let mut root = toml::Table::try_from(&base).unwrap();
+        rebase_reconstruction(&mut root, Preset::Paper);
+        let c: Config = root.try_into().unwrap();
+        assert_eq!(c.reconstruction, want);
+    }
+
+    /// Both presets set every key: a key left out of one would take the
+    /// other's value through the defaults of its table.
+    #[test]
+    fn both_presets_have_the_same_keys() {
+        let keys = |p: Preset| {
+            let mut out = Vec::new();
+            leaf_keys(
+                "",
+                &toml::Value::try_from(ReconstructionConfig::preset(p)).unwrap(),
+                &mut out,
+            );
+            out
+        };
+        assert_eq!(keys(Preset::Paper), keys(Preset::Improved));
+    }
+
+    #[test]
+    fn unknown_and_retired_dense_keys_are_named() {
+        let err = load("", &["reconstruction.dense.alpah=1"], &[]).unwrap_err();
+        assert!(err.to_string().contains("alpah"), "{err}");
+        let old = "[reconstruction]\nmode = \"paper\"\n[reconstruction.dense]\nmode = \"paper\"\n\
+                   [reconstruction.sparse.refine]\nenabled = true\n";
+        let err = load(old, &[], &[]).unwrap_err();
+        assert!(err.to_string().contains("mode"), "{err}");
+        // A record of an earlier sdsem: the retired key goes, and its paper
+        // mode ran the paper's value of a sparse key left at the improved default.
+        let upgraded = upgrade_recorded(old);
+        let c = load(&upgraded, &[], &[]).unwrap();
+        assert_eq!(
+            c.reconstruction,
+            ReconstructionConfig::preset(Preset::Paper)
+        );
+        assert_eq!(
+            upgrade_recorded("[run]\nname = \"x\"\n"),
+            "[run]\nname = \"x\"\n"
+        );
+    }
+
+    /// config/sdsem.toml says "paper:" beside exactly the keys whose paper
+    /// preset value differs from the improved default.
+    #[test]
+    fn the_documented_paper_values_are_the_keys_the_presets_differ_in() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("config/sdsem.toml");
+        let text = std::fs::read_to_string(&path).unwrap();
+        let (mut section, mut comment, mut noted) = (String::new(), String::new(), Vec::new());
+        for line in text.lines().map(str::trim) {
+            if let Some(name) = line.strip_prefix('[').and_then(|l| l.strip_suffix(']')) {
+                section = name.to_owned();
+                comment.clear();
+            } else if let Some(c) = line.strip_prefix('#') {
+                comment.push_str(c);
+            } else if let Some((key, _)) = line.split_once('=') {
+                if comment.contains("paper:") {
+                    noted.push(format!("{section}.{}", key.trim()));
+                }
+                comment.clear();
+            } else {
+                comment.clear();
+            }
+        }
+        let leaves = |p: Preset| {
+            let mut keys = Vec::new();
+            let v = toml::Value::try_from(ReconstructionConfig::preset(p)).unwrap();
+            leaf_keys("reconstruction.", &v, &mut keys);
+            keys.into_iter()
+                .map(|k| {
+                    let value = k
+                        .trim_start_matches("reconstruction.")
+                        .split('.')
+                        .try_fold(&v, |v, part| v.get(part))
+                        .cloned();
+                    (k, value)
+                })
+                .collect::<Vec<_>>()
+        };
+        let differing: Vec<String> = leaves(Preset::Improved)
+            .into_iter()
+            .zip(leaves(Preset::Paper))
+            .filter(|((_, a), (_, b))| a != b)
+            .map(|((k, _), _)| k)
+            .filter(|k| k != "reconstruction.mode")
+            .collect();
+        noted.sort();
+        let mut differing = differing;
+        differing.sort();
+        assert_eq!(noted, differing);
+    }
+
+    #[test]
+    fn the_sharksem_simulator_configuration_loads() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("config/sim-sharksem.toml");
+        let c = Config::load_with_env(Some(&path), &[], std::iter::empty()).unwrap();
+        assert!(c.simulator.as_ref().is_some_and(|s| s.sharksem.is_some()));
+        assert_eq!(c.stage.protocol, crate::stage::StageProtocol::Sharksem);
+        assert_eq!(
+            c.imaging.protocol,
+            crate::imaging::ImagingProtocol::Sharksem
+        );
+        assert_eq!(c.reconstruction.tilt_axis_deg, Some(0.0));
     }
 
     #[test]

@@ -47,5 +47,6 @@ pub mod imaging;
 pub mod memory;
 pub mod numbers;
 pub mod record;
+pub mod sharksem;
 pub mod stage;
 pub mod vision;

@@ -35,6 +35,7 @@ use crate::walk::WalkParams;
 /// | `stage` | see [`StageSimConfig`] | the stage: PI GCS controller or Zeiss RemCon32 (`stage.protocol`) |
 /// | `sem` | see [`SemSimConfig`] | the SEM imaging server |
 /// | `folder` | none | the SEM's store folder, see [`crate::FolderSimConfig`] |
+/// | `sharksem` | none | when present, the same SEM and stage also speak TESCAN SharkSEM ([`crate::sharksem`]) |
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct SimConfig {
@@ -51,6 +52,9 @@ pub struct SimConfig {
     /// The SEM's store folder, when micrographs are also stored as vendor TIFFs.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub folder: Option<crate::FolderSimConfig>,
+    /// The SharkSEM dialect of the same SEM and stage, when present.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub sharksem: Option<crate::sharksem::SharkSemSimConfig>,
 }
 
 impl Default for SimConfig {
@@ -61,6 +65,7 @@ impl Default for SimConfig {
             stage: StageSimConfig::default(),
             sem: SemSimConfig::default(),
             folder: None,
+            sharksem: None,
         }
     }
 }
@@ -487,7 +492,8 @@ impl SimConfig {
         self.sem.validate()?;
         self.folder
             .as_ref()
-            .map_or(Ok(()), crate::FolderSimConfig::validate)
+            .map_or(Ok(()), crate::FolderSimConfig::validate)?;
+        self.sharksem.as_ref().map_or(Ok(()), |s| s.validate())
     }
 }
 

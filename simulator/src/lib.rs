@@ -9,6 +9,7 @@
 //!  SEM client ──bytes──▶ sem_server (TCP) ──▶ RequestDecoder ──▶ SimSem ──▶ render(Scene, View)
 //!                                                                   │  walk, drift, scan noise (seeded)
 //!                                                                   ▼  frame records → ground truth
+//!  SharkSEM client ──control + data (TCP)──▶ sharksem ──▶ the same SimStage and SimSem
 //! ```
 //!
 //! The device models are pure or nearly so: [`stage_model::StageModel`] takes
@@ -30,6 +31,7 @@ pub mod render;
 pub mod scene;
 pub mod sem;
 pub mod sem_server;
+pub mod sharksem;
 pub mod simulator;
 pub mod stage;
 mod stage_link;

@@ -12,6 +12,7 @@ use anyhow::Context;
 use clap::Parser;
 use sdsem_protocol::gcs::AxisId;
 use sdsem_sim::scene::SceneKind;
+use sdsem_sim::sharksem::SharkSemSimConfig;
 use sdsem_sim::{FaultTrigger, SimConfig, SimEndpoint, SimStageProtocol, Simulator};
 
 const PROTOCOLS: &str = "\
@@ -20,6 +21,8 @@ OUTPUT
     stage tcp://127.0.0.1:PORT      (or: stage /dev/pts/N with --stage-pty)
     sem tcp://127.0.0.1:PORT
     folder /PATH                    (with a store folder: --store-dir or [folder])
+    sharksem tcp://127.0.0.1:PORT   (with --sharksem: the SharkSEM control port)
+    sharksem-data tcp://127.0.0.1:PORT
   Logs go to stderr (RUST_LOG filters them). The simulator stops when killed
   or when its stdin, if a pipe or a terminal, closes.
 
@@ -66,6 +69,14 @@ STORE FOLDER (the SEM's own software storing micrographs, VENDORS 4)
   Faults in [folder]: write_s/write_chunks (slow, partial files),
   temp_then_rename, stale_file, wrong_tilt (a recorded tilt that is off).
 
+SHARKSEM (TESCAN remote control, binary; with --sharksem ADDR)
+  The same SEM and stage as a TESCAN microscope: control port ADDR, data port
+  ADDR + 1 (or --sharksem-data-port). Register the data socket's local port with
+  TcpRegDataPort, then connect from it. Stage in mm and degrees (x y z rotation
+  tilt); pixel size = view field / scan width; ScData chunks every 50 ms of
+  simulated time; ScStopScan after every scan. Unknown or bad requests get no
+  reply at all. Faults: --shark-* flags; the stage's --ignore-move-at applies.
+
 TIME
   --time-scale is real seconds per simulated second: 0.01 makes moves,
   settling and scans 100x faster than real time. Late replies (a fault) are
@@ -74,14 +85,16 @@ TIME
 CONFIGURATION FILE
   --config FILE reads a TOML SimConfig: keys seed, time_scale and tables
   [stage] (with [stage.faults]), [sem] (with [sem.scene], [sem.optics],
-  [sem.walk], [sem.shading], [sem.noise]) and [folder]. A file with a [simulator] table
+  [sem.walk], [sem.shading], [sem.noise]), [folder] and [sharksem] (with
+  [sharksem.faults]). A file with a [simulator] table
   (sdsem's configuration) is read from that table. Flags override the file.";
 
 /// Stage-and-SEM simulator for sdsem: a PI GCS 2.0 stage controller (axes X, Y
 /// in µm, tilt T in degrees) with finite speed, settling, soft limits,
 /// referencing, servo state and faults on demand, and a SEM imaging server
 /// that renders a known synthetic specimen where the stage is, with eucentric
-/// walk, drift, scan noise and exact ground truth.
+/// walk, drift, scan noise and exact ground truth; optionally the same SEM and
+/// stage over TESCAN SharkSEM.
 #[derive(Debug, Parser)]
 #[command(name = "sdsem-sim", version, after_long_help = PROTOCOLS)]
 struct Args {
@@ -100,6 +113,58 @@ struct Args {
     /// Serve the SEM imaging link on TCP at this address (`127.0.0.1:0` picks a free port; the default).
     #[arg(long, value_name = "ADDR")]
     sem_tcp: Option<String>,
+    /// Also serve the SEM and stage over TESCAN SharkSEM, control port at this
+    /// address (`127.0.0.1:8300`; port 0 picks a free pair), data port = control + 1.
+    #[arg(long, value_name = "ADDR", help_heading = "SharkSEM")]
+    sharksem: Option<String>,
+    /// SharkSEM data port (default: control + 1; 0 picks any free port).
+    #[arg(long, value_name = "PORT", help_heading = "SharkSEM")]
+    sharksem_data_port: Option<u16>,
+    /// SharkSEM protocol version served (default 2.0.25; 3.2.20 adds TcpGetModel).
+    #[arg(long, value_name = "V", help_heading = "SharkSEM")]
+    sharksem_version: Option<String>,
+    /// Firewall-friendly mode: one control + data pair, TcpRegDataPort ignored.
+    #[arg(long, help_heading = "SharkSEM")]
+    sharksem_firewall_friendly: bool,
+    /// StgGetPosition answers six values (tilt-Y), as 3.x stages with that axis do.
+    #[arg(long, help_heading = "SharkSEM")]
+    sharksem_tilt_y: bool,
+    /// Never send these ScData chunks (1-based count of chunks).
+    #[arg(
+        long,
+        value_name = "K,..",
+        value_delimiter = ',',
+        help_heading = "SharkSEM faults"
+    )]
+    shark_lose_chunk_at: Vec<u64>,
+    /// Lose any chunk with this probability.
+    #[arg(long, value_name = "P", help_heading = "SharkSEM faults")]
+    shark_lose_chunk_p: Option<f64>,
+    /// Send these ScData chunks twice.
+    #[arg(
+        long,
+        value_name = "K,..",
+        value_delimiter = ',',
+        help_heading = "SharkSEM faults"
+    )]
+    shark_resend_chunk_at: Vec<u64>,
+    /// Send any chunk twice with this probability.
+    #[arg(long, value_name = "P", help_heading = "SharkSEM faults")]
+    shark_resend_chunk_p: Option<f64>,
+    /// Ignore these SetViewField requests silently (1-based count).
+    #[arg(
+        long,
+        value_name = "K,..",
+        value_delimiter = ',',
+        help_heading = "SharkSEM faults"
+    )]
+    shark_ignore_view_field_at: Vec<u64>,
+    /// Close the client's connections after this many requests (once).
+    #[arg(long, value_name = "N", help_heading = "SharkSEM faults")]
+    shark_disconnect_after: Option<u64>,
+    /// Stop answering anything from this request on.
+    #[arg(long, value_name = "N", help_heading = "SharkSEM faults")]
+    shark_silent_after: Option<u64>,
     /// Seed of every random choice (faults, specimen, walk, scan noise).
     #[arg(long)]
     seed: Option<u64>,
@@ -377,6 +442,7 @@ impl Args {
         }
         set(&mut c.seed, self.seed);
         set(&mut c.time_scale, self.time_scale);
+        self.apply_sharksem(&mut c)?;
 
         let m = &mut c.sem;
         set(&mut m.scene.kind, self.scene);
@@ -447,6 +513,63 @@ impl Args {
         }
         c.validate()?;
         Ok(c)
+    }
+
+    /// The SharkSEM flags: `--sharksem` (or a `[sharksem]` table in the file)
+    /// enables the dialect; the other flags change it.
+    fn apply_sharksem(&self, c: &mut SimConfig) -> anyhow::Result<()> {
+        let tweaks = self.sharksem_data_port.is_some()
+            || self.sharksem_version.is_some()
+            || self.sharksem_firewall_friendly
+            || self.sharksem_tilt_y
+            || !self.shark_lose_chunk_at.is_empty()
+            || self.shark_lose_chunk_p.is_some()
+            || !self.shark_resend_chunk_at.is_empty()
+            || self.shark_resend_chunk_p.is_some()
+            || !self.shark_ignore_view_field_at.is_empty()
+            || self.shark_disconnect_after.is_some()
+            || self.shark_silent_after.is_some();
+        if self.sharksem.is_none() && c.sharksem.is_none() {
+            if tweaks {
+                anyhow::bail!(
+                    "the SharkSEM flags need --sharksem ADDR (e.g. --sharksem 127.0.0.1:8300)"
+                );
+            }
+            return Ok(());
+        }
+        let s = c.sharksem.get_or_insert_with(SharkSemSimConfig::default);
+        if let Some(addr) = &self.sharksem {
+            s.endpoint = tcp_endpoint("--sharksem", addr)?;
+        }
+        if self.sharksem_data_port.is_some() {
+            s.data_port = self.sharksem_data_port;
+        }
+        set(&mut s.version, self.sharksem_version.clone());
+        s.firewall_friendly |= self.sharksem_firewall_friendly;
+        s.tilt_y |= self.sharksem_tilt_y;
+        let f = &mut s.faults;
+        trigger(
+            &mut f.lose_chunk,
+            self.shark_lose_chunk_at.clone(),
+            self.shark_lose_chunk_p,
+        );
+        trigger(
+            &mut f.resend_chunk,
+            self.shark_resend_chunk_at.clone(),
+            self.shark_resend_chunk_p,
+        );
+        trigger(
+            &mut f.ignore_view_field,
+            self.shark_ignore_view_field_at.clone(),
+            None,
+        );
+        if self.shark_disconnect_after.is_some() {
+            f.disconnect_after_requests = self.shark_disconnect_after;
+        }
+        if self.shark_silent_after.is_some() {
+            f.silent_after_requests = self.shark_silent_after;
+        }
+        Ok(())
     }
 }
 

@@ -155,6 +155,33 @@ impl SimSem {
 
     /// Scans one frame (module docs), taking its scan time on the clock.
     pub fn grab(&self, grab: &GrabRequest, cancel: &AtomicBool) -> FrameReply {
+        let start_s = self.clock.now_s();
+        let (meta, pixels) = self.begin_scan(grab, None);
+        // The scan takes its time; rendering is part of it.
+        self.clock
+            .sleep_until(start_s + grab.scan_seconds(), cancel);
+        let meta = self.end_scan(meta.frame).unwrap_or(meta);
+        match grab.bits {
+            Bits::Sixteen => {
+                FrameReply::from_u16(grab.width, grab.height, meta, &render::to_u16(&pixels))
+            }
+            Bits::Eight => {
+                FrameReply::from_u8(grab.width, grab.height, meta, render::to_u8(&pixels))
+            }
+        }
+    }
+
+    /// Starts scanning one frame at the stage pose now: renders it (walk for
+    /// the tilt, drift for the elapsed time, shot noise for the dwell),
+    /// remembers it for ground truth and returns its metadata (scan end = start
+    /// until [`Self::end_scan`]) and pixels in [0, 1], without waiting for the
+    /// scan time. `pixel_size_um` replaces the optics' pixel size (a view field
+    /// set over SharkSEM); none keeps [`crate::render::OpticsParams::pixel_size_at`].
+    pub fn begin_scan(
+        &self,
+        grab: &GrabRequest,
+        pixel_size_um: Option<f64>,
+    ) -> (FrameMeta, Vec<f32>) {
         let cfg = &self.cfg;
         let start_s = self.clock.now_s();
         let start_ns = self.clock.unix_ns();
@@ -166,7 +193,10 @@ impl SimSem {
         ];
         let (width, height) = (grab.width as usize, grab.height as usize);
         let walk = cfg.walk.offset_um(pose.tilt_deg, cfg.optics.pixel_size_um);
-        let view = cfg.optics.view(&pose, width, height, walk, drift);
+        let mut view = cfg.optics.view(&pose, width, height, walk, drift);
+        if let Some(p) = pixel_size_um {
+            view.pixel_size_um = p;
+        }
         let frame = {
             let mut frames = self.frames();
             let n = frames.next;
@@ -181,9 +211,6 @@ impl SimSem {
             grab.dwell_us,
             mix64(self.noise_seed ^ mix64(frame)),
         );
-        // The scan takes its time; rendering is part of it.
-        self.clock
-            .sleep_until(start_s + grab.scan_seconds(), cancel);
         let meta = FrameMeta {
             frame,
             role: grab.role,
@@ -195,29 +222,30 @@ impl SimSem {
             tilt_axis_deg: view.tilt_axis_deg,
             scan_rotation_deg: view.scan_rotation_deg,
             scan_start_unix_ns: start_ns,
-            scan_end_unix_ns: self.clock.unix_ns(),
+            scan_end_unix_ns: start_ns,
         };
-        {
-            let mut frames = self.frames();
-            frames.records.insert(
-                frame,
-                FrameRecord {
-                    view,
-                    meta: meta.clone(),
-                },
-            );
-            while frames.records.len() > cfg.history.max(1) {
-                frames.records.pop_first();
-            }
+        let mut frames = self.frames();
+        frames.records.insert(
+            frame,
+            FrameRecord {
+                view,
+                meta: meta.clone(),
+            },
+        );
+        while frames.records.len() > cfg.history.max(1) {
+            frames.records.pop_first();
         }
-        match grab.bits {
-            Bits::Sixteen => {
-                FrameReply::from_u16(grab.width, grab.height, meta, &render::to_u16(&pixels))
-            }
-            Bits::Eight => {
-                FrameReply::from_u8(grab.width, grab.height, meta, render::to_u8(&pixels))
-            }
-        }
+        (meta, pixels)
+    }
+
+    /// Marks the scan of `frame` ended now; its metadata with the end time
+    /// (none if the frame is no longer remembered).
+    pub fn end_scan(&self, frame: u64) -> Option<FrameMeta> {
+        let end_ns = self.clock.unix_ns();
+        let mut frames = self.frames();
+        let record = frames.records.get_mut(&frame)?;
+        record.meta.scan_end_unix_ns = end_ns;
+        Some(record.meta.clone())
     }
 
     fn ground_truth_reply(&self, frame: u64, path: Option<&str>) -> Reply {

@@ -11,13 +11,14 @@ use tracing::{info, warn};
 
 use crate::SimError;
 use crate::clock::{Clock, ScaledClock};
-use crate::config::{SimConfig, SimEndpoint, SimStageProtocol};
+use crate::config::{SimConfig, SimEndpoint, SimStageProtocol, derive_seed};
 use crate::folder_writer::{self, FolderWriter, StoreRequests};
 use crate::pose::PoseSource;
 use crate::remcon::RemconStage;
 use crate::scene::Scene;
 use crate::sem::{FrameRecord, SimSem};
 use crate::sem_server;
+use crate::sharksem::{self, SharkSemDevice};
 use crate::stage::SimStage;
 use crate::stage_link::{SessionFactory, gcs_sessions, serve_pty, serve_tcp};
 use crate::stage_model::StageSnapshot;
@@ -113,6 +114,7 @@ impl Simulator {
             config: config.clone(),
             folder: None,
             store: Arc::new(StoreTrigger::default()),
+            sharksem: None,
         };
         let sessions: SessionFactory = match config.stage.protocol {
             SimStageProtocol::PiGcs => gcs_sessions(stage),
@@ -148,7 +150,7 @@ impl Simulator {
         handle.add("sem", server);
         if let Some(folder) = &config.folder {
             let seed = folder.seed.unwrap_or(config.seed);
-            let writer = Arc::new(FolderWriter::new(folder, seed, sem, clock)?);
+            let writer = Arc::new(FolderWriter::new(folder, seed, Arc::clone(&sem), clock)?);
             let (requests, server) = folder_writer::serve(Arc::clone(&writer), Arc::clone(&stop))?;
             // RemCon32 FREC / MAC n: the SEM stores a micrograph on its own thread; the
             // command is done once asked, the file arrives when scanned and written. FREC
@@ -180,6 +182,18 @@ impl Simulator {
             handle.folder = Some((writer, requests));
             handle.add("folder", server);
         }
+        if let Some(shark) = &config.sharksem {
+            let device = Arc::new(SharkSemDevice::new(
+                shark.clone(),
+                Arc::clone(&handle.stage),
+                sem,
+                derive_seed(config.seed, "sharksem"),
+            ));
+            let (control, data) = sharksem::serve(shark, Arc::clone(&device), Arc::clone(&stop))?;
+            handle.add("sharksem", control);
+            handle.add("sharksem-data", data);
+            handle.sharksem = Some(device);
+        }
         info!(
             seed = config.seed,
             time_scale = config.time_scale,
@@ -204,6 +218,7 @@ pub struct SimHandle {
     /// The store folder's writer and its request line, when configured.
     folder: Option<(Arc<FolderWriter>, StoreRequests)>,
     store: Arc<StoreTrigger>,
+    sharksem: Option<Arc<SharkSemDevice>>,
 }
 
 impl SimHandle {
@@ -222,7 +237,8 @@ impl SimHandle {
             .map_or("", |e| e.address.as_str())
     }
 
-    /// Every endpoint served: `stage`, then `sem`, then `folder` (its path) when configured.
+    /// Every endpoint served: `stage`, then `sem`, then `folder` (its path),
+    /// `sharksem` and `sharksem-data` when configured.
     pub fn endpoints(&self) -> &[ServiceEndpoint] {
         &self.endpoints
     }
@@ -245,6 +261,21 @@ impl SimHandle {
     /// The SEM imaging server's endpoint: `tcp://IP:PORT`.
     pub fn sem_endpoint(&self) -> &str {
         self.endpoint("sem")
+    }
+
+    /// The SharkSEM control endpoint `tcp://IP:PORT`, when configured ("" otherwise).
+    pub fn sharksem_endpoint(&self) -> &str {
+        self.endpoint("sharksem")
+    }
+
+    /// The SharkSEM data endpoint `tcp://IP:PORT`, when configured ("" otherwise).
+    pub fn sharksem_data_endpoint(&self) -> &str {
+        self.endpoint("sharksem-data")
+    }
+
+    /// The SEM as SharkSEM clients see it (view field, counters), when configured.
+    pub fn sharksem(&self) -> Option<&Arc<SharkSemDevice>> {
+        self.sharksem.as_ref()
     }
 
     /// The SEM imaging server's address as a client on this machine connects

@@ -628,7 +628,7 @@ impl StageModel {
 /// Whether the trigger fires at occurrence `k`. The random draw happens only for
 /// armed probabilities, so the random stream depends on the configuration and
 /// the command sequence alone.
-fn fires(trigger: &FaultTrigger, k: u64, rng: &mut ChaCha8Rng) -> bool {
+pub(crate) fn fires(trigger: &FaultTrigger, k: u64, rng: &mut ChaCha8Rng) -> bool {
     let listed = trigger.at.contains(&k);
     let random = trigger.probability > 0.0 && rng.random::<f64>() < trigger.probability;
     listed || random

@@ -191,6 +191,11 @@ fn bad_flags_fail_with_a_message() {
         (&["--sem-tcp", "localhost"][..], "--sem-tcp"),
         (&["--pixel-size", "0"][..], "sem.optics.pixel_size_um"),
         (&["--frame", "640"][..], "WxH"),
+        (&["--shark-lose-chunk-at", "1"][..], "--sharksem ADDR"),
+        (
+            &["--sharksem", "127.0.0.1:0", "--sharksem-version", "two"][..],
+            "sharksem.version",
+        ),
         (
             &["--config", "/nonexistent/sim.toml"][..],
             "/nonexistent/sim.toml",
@@ -425,6 +430,75 @@ px_per_deg = 2.0
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("linear_um_per_deg"), "{err}");
+}
+
+#[test]
+fn sharksem_flag_serves_the_dialect_with_its_faults() {
+    use sdsem_protocol::sharksem::{Flags, MessageFramer, Request, Response};
+    let mut sim = Sim::start(&[
+        "--sharksem",
+        "127.0.0.1:0",
+        "--sharksem-version",
+        "3.2.20",
+        "--shark-silent-after",
+        "3",
+    ]);
+    let _ = sim.endpoints();
+    let control = sim.endpoint_line();
+    let data = sim.endpoint_line();
+    let control = control
+        .strip_prefix("sharksem tcp://")
+        .unwrap_or_else(|| panic!("{control:?}"))
+        .to_owned();
+    let data_port: u16 = data
+        .strip_prefix("sharksem-data tcp://127.0.0.1:")
+        .unwrap_or_else(|| panic!("{data:?}"))
+        .parse()
+        .expect("a port");
+    let control_port: u16 = control
+        .rsplit(':')
+        .next()
+        .and_then(|p| p.parse().ok())
+        .expect("a port");
+    assert_eq!(data_port, control_port + 1);
+    let mut stream = TcpStream::connect(&control).expect("connect");
+    stream
+        .set_read_timeout(Some(Duration::from_millis(500)))
+        .expect("timeout");
+    let mut framer = MessageFramer::new();
+    let mut ask = |request: &Request| -> Option<Response> {
+        stream
+            .write_all(&request.encode(1, Flags::NONE))
+            .expect("send");
+        let mut buf = [0u8; 1024];
+        loop {
+            if let Some(m) = framer.next_message() {
+                return Some(
+                    request
+                        .decode_response(&m.expect("framed").body)
+                        .expect("decoded"),
+                );
+            }
+            match stream.read(&mut buf) {
+                Ok(n) if n > 0 => framer.push(&buf[..n]),
+                _ => return None,
+            }
+        }
+    };
+    assert_eq!(
+        ask(&Request::TcpGetVersion),
+        Some(Response::Text("3.2.20".into()))
+    );
+    assert!(matches!(
+        ask(&Request::TcpGetModel),
+        Some(Response::Text(_))
+    ));
+    assert_eq!(
+        ask(&Request::TcpGetVersion),
+        None,
+        "silent from the third request on"
+    );
+    assert!(sim.close_stdin_and_wait().success());
 }
 
 #[test]

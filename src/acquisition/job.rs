@@ -28,7 +28,7 @@ use crate::record::{
 };
 use crate::stage::StageAxis;
 use crate::stage::observer::wall_ns;
-use crate::vision::pipeline::PairGeometry;
+use crate::vision::geometry::{Figures, GeometryError, GeometrySources, PairGeometry, Provenance};
 use crate::vision::registration::PhaseCorrelationParams;
 
 /// File names inside a run directory (DESIGN §4).
@@ -225,7 +225,7 @@ async fn acquire(
     let mut series = Series::new(plan, config.tracking, config.stage.safe_tilt_deg);
     let mut ctx = SeriesContext {
         stage: &mut instruments.stage,
-        imaging: &mut instruments.imaging,
+        imaging: instruments.imaging.as_mut(),
         imaging_config: &config.imaging,
         recorder: rec,
         phase: PhaseCorrelationParams::default(),
@@ -285,7 +285,7 @@ async fn reconstruct_series(
     let (Some(left), Some(right)) = (&record.left, &record.right) else {
         anyhow::bail!("the pair is incomplete");
     };
-    let geometry = pair_geometry(config, left, right)?;
+    let (geometry, provenance) = pair_geometry(config, left, right)?;
     let (l, r) = (left.image.clone(), right.image.clone());
     let recon_config = config.reconstruction.clone();
     let (out, rec) = (run_dir.to_owned(), rec.clone());
@@ -293,7 +293,7 @@ async fn reconstruct_series(
         crate::app::reconstruct::reconstruct_recorded_pair(
             &l,
             &r,
-            &geometry,
+            (&geometry, provenance),
             &recon_config,
             &out,
             Some(&rec),
@@ -336,40 +336,48 @@ impl From<&Captured> for EndGeometry {
     }
 }
 
-/// θ from the verified tilts, pixel size and tilt axis from the SEM (the
-/// configured `reconstruction.tilt_axis_deg` wins when set).
+impl From<EndGeometry> for Figures {
+    fn from(e: EndGeometry) -> Self {
+        Self {
+            tilt_deg: Some(e.tilt_deg),
+            pixel_size_um: Some(e.pixel_size_um),
+            tilt_axis_deg: e.tilt_axis_deg,
+        }
+    }
+}
+
+/// θ from the verified tilts, the pixel size and the tilt axis from the SEM, the configured
+/// `reconstruction.tilt_axis_deg` when the SEM did not report one: the precedence of every
+/// command ([`GeometrySources::resolve`]), with nothing given on a command line.
 ///
 /// # Errors
-/// When the micrographs disagree on the pixel size or θ is not positive.
+/// When the micrographs disagree on the pixel size, the right one is not at the higher tilt,
+/// or no tilt axis is known.
 pub fn pair_geometry(
     config: &Config,
     left: &Captured,
     right: &Captured,
-) -> anyhow::Result<PairGeometry> {
+) -> Result<(PairGeometry, Provenance), GeometryError> {
     pair_geometry_of(config, left.into(), right.into())
 }
 
 /// [`pair_geometry`] from the figures alone.
 ///
 /// # Errors
-/// As [`pair_geometry`], and when no tilt axis is known.
+/// As [`pair_geometry`].
 pub fn pair_geometry_of(
     config: &Config,
     left: EndGeometry,
     right: EndGeometry,
-) -> anyhow::Result<PairGeometry> {
-    let (pl, pr) = (left.pixel_size_um, right.pixel_size_um);
-    if (pl - pr).abs() > 1e-9 * pl.abs() {
-        anyhow::bail!("the micrographs have different pixel sizes ({pl} µm and {pr} µm)");
+) -> Result<(PairGeometry, Provenance), GeometryError> {
+    GeometrySources {
+        given: Figures::default(),
+        left: left.into(),
+        right: right.into(),
+        configured_tilt_axis_deg: config.reconstruction.tilt_axis_deg,
+        names: [files::LEFT.to_owned(), files::RIGHT.to_owned()],
     }
-    let Some(tilt_axis_deg) = config.reconstruction.tilt_axis_deg.or(left.tilt_axis_deg) else {
-        anyhow::bail!("no tilt axis: the SEM did not report it; set reconstruction.tilt_axis_deg");
-    };
-    Ok(PairGeometry {
-        tilt_deg: right.tilt_deg - left.tilt_deg,
-        pixel_size_um: pl,
-        tilt_axis_deg,
-    })
+    .resolve()
 }
 
 /// Every planned tilt and the safe tilt inside the limits the driver enforces

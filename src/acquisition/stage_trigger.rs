@@ -28,5 +28,7 @@ pub fn carries_sem_commands(protocol: StageProtocol) -> bool {
         StageProtocol::PiGcs => false,
         // RemCon32 is SmartSEM's own remote control: FREC, MAC n.
         StageProtocol::Remcon32 => true,
+        // SharkSEM scans itself (imaging.protocol = "sharksem"); sdsem sends it no store command.
+        StageProtocol::Sharksem => false,
     }
 }

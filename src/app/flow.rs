@@ -6,7 +6,7 @@ use std::path::Path;
 use anyhow::Context;
 
 use crate::export::flo;
-use crate::vision::sift_flow::{Flow, FlowParams, sift_flow};
+use crate::vision::dense::sift_flow::{Flow, FlowParams, sift_flow};
 
 /// Loads `a` and `b`, computes the SIFT flow from `a` to `b` and writes it to `out`.
 ///

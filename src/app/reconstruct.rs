@@ -5,19 +5,19 @@
 //! output is computed before the first is written, and a failed write removes
 //! what was written, so no partial set of outputs looks valid.
 
-use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use anyhow::{Context, bail};
+use anyhow::bail;
 use serde::Serialize;
 
-use crate::export::{self, MeshParams, ply};
+use crate::export::{self, ExportError, MeshParams, ply};
 use crate::imaging::file::{Micrograph, load_micrograph};
-use crate::vision::Image;
-use crate::vision::pipeline::{
-    PairGeometry, ReconReport, ReconstructError, Reconstruction, ReconstructionParams, reconstruct,
-};
+use crate::imaging::metadata::SemMetadata;
+use crate::record::RecordError;
+use crate::vision::geometry::{Figures, GeometrySources, PairGeometry, Provenance};
+use crate::vision::pipeline::{ReconReport, ReconstructError, Reconstruction, reconstruct};
+use crate::vision::{Image, ReconstructionParams};
 
 /// Output file names (DESIGN §4).
 pub mod files {
@@ -30,34 +30,39 @@ pub mod files {
     pub const REPORT: &str = "report.json";
 }
 
-/// What the user gave beside the two files.
-#[derive(Debug, Clone, Copy, Default)]
-pub struct GeometryOverrides {
-    /// θ, degrees.
-    pub tilt_deg: Option<f64>,
-    pub pixel_size_um: Option<f64>,
-    pub tilt_axis_deg: Option<f64>,
-}
-
 /// A pair ready to reconstruct, with where each geometric figure came from.
 #[derive(Debug)]
 pub struct LoadedPair {
     pub left: Micrograph,
     pub right: Micrograph,
     pub geometry: PairGeometry,
-    pub provenance: BTreeMap<String, String>,
+    pub provenance: Provenance,
 }
 
-/// Loads both micrographs and settles θ, the pixel size and the tilt axis:
-/// flags first, then the files' metadata, then `default_tilt_axis_deg`.
+/// What a micrograph's metadata says about the pair.
+#[must_use]
+pub fn figures_of(metadata: &SemMetadata) -> Figures {
+    Figures {
+        tilt_deg: metadata.tilt_deg,
+        pixel_size_um: metadata.pixel_size_um,
+        tilt_axis_deg: metadata
+            .raw
+            .get("tilt_axis_deg")
+            .and_then(|v| v.parse::<f64>().ok()),
+    }
+}
+
+/// Loads both micrographs and settles θ, the pixel size and the tilt axis
+/// ([`GeometrySources::resolve`]: `given` first, then the files' metadata, then
+/// `configured_tilt_axis_deg`).
 ///
 /// # Errors
 /// A one-line cause naming the file or the missing figure and how to give it.
 pub fn load_pair(
     left: &Path,
     right: &Path,
-    given: GeometryOverrides,
-    default_tilt_axis_deg: Option<f64>,
+    given: Figures,
+    configured_tilt_axis_deg: Option<f64>,
 ) -> anyhow::Result<LoadedPair> {
     let l = load_micrograph(left)?;
     let r = load_micrograph(right)?;
@@ -72,106 +77,54 @@ pub fn load_pair(
             r.image.height()
         );
     }
-    let mut provenance = BTreeMap::new();
-
-    let tilt_deg = match (given.tilt_deg, l.metadata.tilt_deg, r.metadata.tilt_deg) {
-        (Some(t), _, _) => {
-            provenance.insert("tilt".into(), "--tilt".into());
-            t
-        }
-        (None, Some(tl), Some(tr)) => {
-            if tr <= tl {
-                bail!(
-                    "LEFT must be the micrograph at the lower tilt: {} is at {tl}°, {} at {tr}° \
-                     (swap them, or give --tilt)",
-                    left.display(),
-                    right.display()
-                );
-            }
-            provenance.insert(
-                "tilt".into(),
-                format!("metadata: {tl}° (left) → {tr}° (right)"),
-            );
-            tr - tl
-        }
-        _ => bail!(
-            "no tilt difference: the files carry no stage tilt in their metadata; give --tilt DEG"
-        ),
-    };
-
-    let pixel_size_um = match (
-        given.pixel_size_um,
-        l.metadata.pixel_size_um,
-        r.metadata.pixel_size_um,
-    ) {
-        (Some(p), _, _) => {
-            provenance.insert("pixel_size".into(), "--pixel-size".into());
-            p
-        }
-        (None, Some(pl), pr) => {
-            if let Some(pr) = pr
-                && (pr - pl).abs() > 0.01 * pl
-            {
-                bail!(
-                    "the micrographs have different pixel sizes ({pl} µm in {}, {pr} µm in {}): \
-                     they must be taken at the same magnification",
-                    left.display(),
-                    right.display()
-                );
-            }
-            provenance.insert(
-                "pixel_size".into(),
-                format!("metadata of {}", left.display()),
-            );
-            pl
-        }
-        (None, None, Some(pr)) => {
-            provenance.insert(
-                "pixel_size".into(),
-                format!("metadata of {}", right.display()),
-            );
-            pr
-        }
-        (None, None, None) => {
-            bail!("no pixel size: the files carry no SEM metadata with one; give --pixel-size UM")
-        }
-    };
-
-    let metadata_axis = l
-        .metadata
-        .raw
-        .get("tilt_axis_deg")
-        .and_then(|v| v.parse::<f64>().ok());
-    let tilt_axis_deg = if let Some(a) = given.tilt_axis_deg {
-        provenance.insert("tilt_axis".into(), "--tilt-axis".into());
-        a
-    } else if let Some(a) = metadata_axis {
-        provenance.insert(
-            "tilt_axis".into(),
-            format!("metadata of {}", left.display()),
-        );
-        a
-    } else if let Some(a) = default_tilt_axis_deg {
-        provenance.insert("tilt_axis".into(), "reconstruction.tilt_axis_deg".into());
-        a
-    } else {
-        bail!(
-            "no tilt axis: give --tilt-axis DEG (the direction of the stage tilt axis in the image, \
-             from +x towards +y; it decides the sign of the relief)"
-        )
-    };
-
+    let (geometry, provenance) = GeometrySources {
+        given,
+        left: figures_of(&l.metadata),
+        right: figures_of(&r.metadata),
+        configured_tilt_axis_deg,
+        names: [left.display().to_string(), right.display().to_string()],
+    }
+    .resolve()?;
     Ok(LoadedPair {
         left: l,
         right: r,
-        geometry: PairGeometry {
-            tilt_deg,
-            pixel_size_um,
-            tilt_axis_deg,
-        },
+        geometry,
         provenance,
     })
 }
+
+/// Why a reconstruction's outputs could not be made, written or recorded.
+#[derive(Debug, thiserror::Error)]
+pub enum OutputError {
+    #[error("{0}")]
+    Reconstruct(ReconstructError),
+    /// The refusal and its likely remedy (a wrong tilt axis).
+    #[error("{error}{hint}")]
+    Hinted {
+        error: ReconstructError,
+        hint: &'static str,
+    },
+    #[error("cannot create {path}: {source}")]
+    CreateDir {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("{0}")]
+    Export(ExportError),
+    #[error("cannot read back {path}: {source}")]
+    ReadBack {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("record: {0}")]
+    Record(RecordError),
+}
+
+error_from!(OutputError {
+    Reconstruct(ReconstructError),
+    Export(ExportError),
+    Record(RecordError),
+});
 
 /// The contents of `report.json`.
 #[derive(Debug, Clone, Serialize)]
@@ -180,7 +133,7 @@ pub struct ReportFile {
     pub left: PathBuf,
     pub right: PathBuf,
     /// Where θ, the pixel size and the tilt axis came from.
-    pub provenance: BTreeMap<String, String>,
+    pub provenance: Provenance,
     pub reconstruction: ReconReport,
     pub outputs: Vec<String>,
     /// Triangles and points written.
@@ -201,13 +154,13 @@ pub fn run(
     left: &Path,
     right: &Path,
     out: &Path,
-    given: GeometryOverrides,
-    default_tilt_axis_deg: Option<f64>,
+    given: Figures,
+    configured_tilt_axis_deg: Option<f64>,
     params: &ReconstructionParams,
     mesh: &MeshParams,
 ) -> anyhow::Result<ReportFile> {
     let t0 = Instant::now();
-    let pair = load_pair(left, right, given, default_tilt_axis_deg)?;
+    let pair = load_pair(left, right, given, configured_tilt_axis_deg)?;
     let recon =
         reconstruct(&pair.left.image, &pair.right.image, &pair.geometry, params).map_err(|e| {
             match e {
@@ -246,31 +199,25 @@ pub fn run(
 pub fn reconstruct_recorded_pair(
     left: &Image,
     right: &Image,
-    geometry: &PairGeometry,
+    (geometry, provenance): (&PairGeometry, Provenance),
     config: &crate::config::ReconstructionConfig,
     out: &Path,
     rec: Option<&crate::record::RecorderHandle>,
     sources: (&Path, &Path),
-) -> anyhow::Result<(ReportFile, Reconstruction)> {
+) -> Result<(ReportFile, Reconstruction), OutputError> {
     let t0 = Instant::now();
-    let recon = reconstruct(left, right, geometry, &config.params()).map_err(|e| {
-        let hint = match &e {
-            ReconstructError::Sparse(s) => super::rectify::tilt_axis_hint(s),
-            _ => None,
-        };
-        match hint {
-            Some(hint) => anyhow::anyhow!("{e}{hint}"),
+    let recon = reconstruct(left, right, geometry, &config.params()).map_err(|e| match &e {
+        ReconstructError::Sparse(s) => match super::rectify::tilt_axis_hint(s) {
+            Some(hint) => OutputError::Hinted { error: e, hint },
             None => e.into(),
-        }
+        },
+        _ => e.into(),
     })?;
     let mut report = ReportFile {
         sdsem_version: env!("CARGO_PKG_VERSION"),
         left: sources.0.to_owned(),
         right: sources.1.to_owned(),
-        provenance: BTreeMap::from([(
-            "geometry".to_owned(),
-            "the SEM's frame metadata and the stage's verified tilts".to_owned(),
-        )]),
+        provenance,
         reconstruction: recon.report.clone(),
         outputs: Vec::new(),
         point_count: 0,
@@ -298,8 +245,8 @@ pub fn reconstruct_recorded_pair(
             (files::CONFIDENCE_TIFF, "image/tiff"),
         ] {
             let path = out.join(name);
-            let bytes = std::fs::read(&path)
-                .with_context(|| format!("cannot read back {}", path.display()))?;
+            let bytes =
+                std::fs::read(&path).map_err(|source| OutputError::ReadBack { path, source })?;
             rec.attachment(t, name, media_type, bytes)?;
         }
     }
@@ -318,8 +265,11 @@ pub fn write_outputs(
     mesh_params: &MeshParams,
     report: &mut ReportFile,
     started: Instant,
-) -> anyhow::Result<()> {
-    std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
+) -> Result<(), OutputError> {
+    std::fs::create_dir_all(out).map_err(|source| OutputError::CreateDir {
+        path: out.to_owned(),
+        source,
+    })?;
     let p = recon.report.geometry.pixel_size_um;
     let cloud = ply::cloud_from_height(&recon.height_um, p, Some(intensity));
     let mesh = ply::build_mesh(&recon.height_um, p, Some(intensity), mesh_params);
@@ -380,7 +330,7 @@ pub fn write_outputs(
         .filter(|(_, r)| r.is_ok())
         .map(|(p, _)| p)
         .collect();
-    let result = (|| -> anyhow::Result<()> {
+    let result = (|| -> Result<(), OutputError> {
         for r in results {
             r?;
         }
@@ -431,7 +381,7 @@ mod tests {
 
     /// Runs `reconstruct` on `left`/`right` and returns its one-line error,
     /// checking that the output directory holds nothing afterwards.
-    fn refused(dir: &Path, left: &Path, right: &Path, given: GeometryOverrides) -> String {
+    fn refused(dir: &Path, left: &Path, right: &Path, given: Figures) -> String {
         let out = dir.join("out");
         let err = run(
             left,
@@ -466,7 +416,7 @@ mod tests {
         save_png(&flat, &Image::filled(160, 120, 0.5));
         save_png(&other, &textured(160, 120, 77));
         std::fs::write(&text, "not an image\n").unwrap();
-        let flags = GeometryOverrides {
+        let flags = Figures {
             tilt_deg: Some(5.0),
             pixel_size_um: Some(0.1),
             tilt_axis_deg: Some(0.0),
@@ -481,7 +431,7 @@ mod tests {
                 d,
                 &a,
                 &b,
-                GeometryOverrides {
+                Figures {
                     tilt_deg: Some(tilt),
                     ..flags
                 },
@@ -492,7 +442,7 @@ mod tests {
             d,
             &a,
             &b,
-            GeometryOverrides {
+            Figures {
                 pixel_size_um: None,
                 ..flags
             },
@@ -505,7 +455,7 @@ mod tests {
             d,
             &a,
             &b,
-            GeometryOverrides {
+            Figures {
                 tilt_deg: None,
                 ..flags
             },
@@ -540,18 +490,13 @@ mod tests {
         let (l, r) = (dir.join("l.png"), dir.join("r.png"));
         save_png(&l, &pair.left);
         save_png(&r, &pair.right);
-        let params = ReconstructionParams {
-            dense: crate::vision::dense::DenseParams {
-                levels: 3,
-                ..crate::vision::dense::DenseParams::default()
-            },
-            ..ReconstructionParams::default()
-        };
+        let mut params = ReconstructionParams::default();
+        params.dense.flow.levels = 3;
         run(
             &l,
             &r,
             out,
-            GeometryOverrides {
+            Figures {
                 tilt_deg: Some(6.0),
                 pixel_size_um: Some(0.05),
                 tilt_axis_deg: Some(-90.0),
@@ -668,6 +613,62 @@ mod tests {
             .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
             .collect();
         assert_eq!(left, [files::MESH], "left behind: {left:?}");
+    }
+
+    /// One precedence for the tilt axis, whichever command settles it: the
+    /// command line, then the micrographs' metadata (the SEM's report in an
+    /// acquisition and its replay), then `reconstruction.tilt_axis_deg`.
+    #[test]
+    fn the_tilt_axis_comes_first_from_the_command_line_then_the_micrographs_then_the_configuration()
+    {
+        use crate::acquisition::job::{EndGeometry, pair_geometry_of};
+        use crate::imaging::file::{MicrographTags, SampleDepth, write_micrograph_tiff};
+        let dir = tempfile::tempdir().unwrap();
+        let write = |name: &str, tilt: f64, axis: Option<f64>| {
+            let mut extra = serde_json::Map::new();
+            if let Some(a) = axis {
+                extra.insert("tilt_axis_deg".into(), a.into());
+            }
+            let tags = MicrographTags {
+                pixel_size_um: Some(0.1),
+                tilt_deg: Some(tilt),
+                extra,
+            };
+            let path = dir.path().join(name);
+            write_micrograph_tiff(&path, &textured(64, 48, 3), &tags, SampleDepth::Bits16).unwrap();
+            path
+        };
+        let end = |tilt: f64, axis: Option<f64>| EndGeometry {
+            tilt_deg: tilt,
+            pixel_size_um: 0.1,
+            tilt_axis_deg: axis,
+        };
+        let mut config = crate::config::Config::default();
+        config.reconstruction.tilt_axis_deg = Some(30.0);
+        for sem in [Some(-60.0), None] {
+            let want = sem.unwrap_or(30.0);
+            let (l, r) = (write("l.tif", 0.0, sem), write("r.tif", 5.0, sem));
+            let pair = load_pair(&l, &r, Figures::default(), Some(30.0)).unwrap();
+            assert_eq!(
+                pair.geometry.tilt_axis_deg, want,
+                "reconstruct, SEM {sem:?}"
+            );
+            let (acquired, provenance) =
+                pair_geometry_of(&config, end(0.0, sem), end(5.0, sem)).unwrap();
+            assert_eq!(acquired, pair.geometry, "acquire and replay, SEM {sem:?}");
+            assert_eq!(
+                provenance["tilt_axis"].starts_with("metadata"),
+                sem.is_some(),
+                "{provenance:?}"
+            );
+            let given = Figures {
+                tilt_axis_deg: Some(90.0),
+                ..Figures::default()
+            };
+            let pair = load_pair(&l, &r, given, Some(30.0)).unwrap();
+            assert_eq!(pair.geometry.tilt_axis_deg, 90.0);
+            assert_eq!(pair.provenance["tilt_axis"], "--tilt-axis");
+        }
     }
 
     /// µm of height per pixel of disparity of the test above (θ = 6°, 0.05 µm).

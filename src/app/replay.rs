@@ -22,7 +22,7 @@ use crate::acquisition::job::{EndGeometry, pair_geometry_of};
 use crate::config::Config;
 use crate::record::{self, FrameRole, ReadError, RecordedMicrograph, topics};
 use crate::vision::Image;
-use crate::vision::pipeline::PairGeometry;
+use crate::vision::geometry::PairGeometry;
 
 /// The file `replay` writes beside the reconstruction outputs.
 pub const REPLAY_REPORT: &str = "replay.json";
@@ -240,6 +240,7 @@ pub fn replay(record: &Path, out: &Path, overrides: &[String]) -> anyhow::Result
     } else {
         PathBuf::from(&config_source)
     };
+    let config_text = crate::config::upgrade_recorded(&config_text);
     let config = Config::from_layers(
         Some(&config_text),
         Some(&origin),
@@ -257,7 +258,7 @@ pub fn replay(record: &Path, out: &Path, overrides: &[String]) -> anyhow::Result
         }
     })?;
 
-    let geometry = pair_geometry_of(
+    let (geometry, provenance) = pair_geometry_of(
         &config,
         end_geometry(record, left)?,
         end_geometry(record, right)?,
@@ -265,7 +266,7 @@ pub fn replay(record: &Path, out: &Path, overrides: &[String]) -> anyhow::Result
     let (reconstruction, recon) = reconstruct_recorded_pair(
         &left.image,
         &right.image,
-        &geometry,
+        (&geometry, provenance),
         &config.reconstruction,
         out,
         None,

@@ -92,9 +92,9 @@ struct AcquisitionRunner {
 
 /// What the connection to the instruments depends on: the stage section
 /// (endpoint, axes, timeouts, limits), the imaging source and how it is
-/// reached (protocol, endpoint, watch folder…), the tilt axis a watch folder
-/// puts in its frames, and the in-process simulator. Scan sizes and the rest
-/// apply per job.
+/// reached (protocol, endpoint, watch folder, SharkSEM field and detector…),
+/// the tilt axis a watch folder or SharkSEM source puts in its frames, and the
+/// in-process simulator. Scan sizes and the rest apply per job.
 #[derive(Debug, Clone, PartialEq)]
 struct LinkSettings {
     stage: crate::stage::StageConfig,

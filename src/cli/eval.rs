@@ -8,7 +8,7 @@ use std::process::ExitCode;
 use clap::{Args, Subcommand};
 
 use crate::eval::{self, EvalOptions};
-use crate::vision::sift_flow::Mode;
+use crate::vision::Preset;
 
 #[derive(Debug, Args)]
 pub struct EvalArgs {
@@ -59,7 +59,7 @@ pub enum Which {
     Potamogeton {
         /// Only this mode (default: improved and paper).
         #[arg(long, value_parser = parse_mode)]
-        mode: Option<Mode>,
+        mode: Option<Preset>,
         /// Override a dense parameter, KEY=VALUE as in [reconstruction.dense] (repeatable).
         #[arg(long = "set", value_name = "KEY=VALUE")]
         set: Vec<String>,
@@ -104,7 +104,7 @@ pub struct DenseArgs {
     pub true_rectification: bool,
     /// Only this mode (default: improved and paper).
     #[arg(long, value_parser = parse_mode)]
-    pub mode: Option<Mode>,
+    pub mode: Option<Preset>,
     /// Only the cases whose label ("dome 640x480") contains this text.
     #[arg(long, value_name = "TEXT")]
     pub only: Option<String>,
@@ -125,10 +125,10 @@ pub struct DenseArgs {
     pub dump: Option<PathBuf>,
 }
 
-fn parse_mode(s: &str) -> Result<Mode, String> {
+fn parse_mode(s: &str) -> Result<Preset, String> {
     match s {
-        "paper" => Ok(Mode::Paper),
-        "improved" => Ok(Mode::Improved),
+        "paper" => Ok(Preset::Paper),
+        "improved" => Ok(Preset::Improved),
         _ => Err(format!("unknown mode `{s}`: paper or improved")),
     }
 }

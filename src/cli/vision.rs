@@ -6,8 +6,9 @@ use std::process::ExitCode;
 use clap::Args;
 
 use super::ConfigArgs;
-use crate::app::reconstruct::{self, GeometryOverrides};
+use crate::app::reconstruct;
 use crate::numbers;
+use crate::vision::geometry::Figures;
 
 #[derive(Debug, Args)]
 pub struct ReconstructArgs {
@@ -65,7 +66,7 @@ pub struct FlowArgs {
 
 pub fn run_reconstruct(args: &ReconstructArgs) -> anyhow::Result<ExitCode> {
     let config = args.config.load()?;
-    let given = GeometryOverrides {
+    let given = Figures {
         tilt_deg: args.tilt,
         pixel_size_um: args.pixel_size,
         tilt_axis_deg: args.tilt_axis,
@@ -181,7 +182,27 @@ fn describe_precision(p: &crate::vision::precision::Precision, relief: f64) -> S
 
 pub fn run_rectify(args: &RectifyArgs) -> anyhow::Result<ExitCode> {
     let config = args.config.load()?;
-    let tilt_axis = args.tilt_axis.or(config.reconstruction.tilt_axis_deg);
+    // The precedence of every command: the flag, the files' metadata, the configuration.
+    let metadata = |path: &Path| {
+        crate::imaging::file::read_sem_metadata(path)
+            .map(|m| reconstruct::figures_of(&m))
+            .unwrap_or_default()
+    };
+    let tilt_axis = crate::vision::geometry::GeometrySources {
+        given: Figures {
+            tilt_axis_deg: args.tilt_axis,
+            ..Figures::default()
+        },
+        left: metadata(&args.left),
+        right: metadata(&args.right),
+        configured_tilt_axis_deg: config.reconstruction.tilt_axis_deg,
+        names: [
+            args.left.display().to_string(),
+            args.right.display().to_string(),
+        ],
+    }
+    .tilt_axis()
+    .map(|(axis, _)| axis);
     let outputs = crate::app::rectify::run_rectify(
         &args.left,
         &args.right,
@@ -202,7 +223,7 @@ pub fn run_rectify(args: &RectifyArgs) -> anyhow::Result<ExitCode> {
 
 pub fn run_flow(args: &FlowArgs) -> anyhow::Result<ExitCode> {
     let config = args.config.load()?;
-    let params = config.reconstruction.params().dense_params().flow_params();
+    let params = config.reconstruction.dense.flow;
     let flow = crate::app::flow::run(&args.a, &args.b, &args.out, &params)?;
     eprintln!(
         "wrote {} ({}×{} flow from {} to {})",

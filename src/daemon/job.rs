@@ -305,6 +305,13 @@ impl JobSpec {
             }
         }
         let series_only = root.clone();
+        // A job that picks another preset starts from it: the base's keys
+        // still at its own preset's values follow.
+        if let Some((_, mode)) = overrides.iter().find(|(k, _)| k == "reconstruction.mode")
+            && let Ok(preset) = mode.clone().try_into::<crate::vision::Preset>()
+        {
+            crate::config::rebase_reconstruction(&mut root, preset);
+        }
         for (key, value) in &overrides {
             set_key(&mut root, key, value.clone()).map_err(|reason| JobError::UnknownKey {
                 table: self.table_of(key),
@@ -594,8 +601,15 @@ mod tests {
         let c = job("name = \"a\"\nstart_tilt = 0\nend_tilt = 5\n\
              [reconstruction]\nreconstruction.mode = \"paper\"\nreconstruction.dense.levels = 3\n")
         .unwrap();
-        assert_eq!(c.reconstruction.mode, crate::vision::sift_flow::Mode::Paper);
-        assert_eq!(c.reconstruction.dense.levels, 3);
+        assert_eq!(c.reconstruction.mode, crate::vision::Preset::Paper);
+        assert_eq!(c.reconstruction.dense.flow.levels, 3);
+        // The rest is the paper preset's.
+        let paper = crate::config::ReconstructionConfig::preset(crate::vision::Preset::Paper);
+        assert_eq!(
+            c.reconstruction.dense.flow.iterations,
+            paper.dense.flow.iterations
+        );
+        assert_eq!(c.reconstruction.sparse, paper.sparse);
         let err = JobSpec::parse(
             "name = \"a\"\nstart_tilt = 0\nend_tilt = 5\n[capture]\nreconstruction.mode = \"paper\"\n",
         )

@@ -24,11 +24,11 @@ use sdsem_sim::scene::{Scene, SceneKind, SceneParams};
 use serde::Serialize;
 
 use crate::vision::Image;
+use crate::vision::Preset;
 use crate::vision::dense::{DenseParams, DenseStats, dense_disparity_in_range};
 use crate::vision::depth::{StereoGeometry, height_on_left_grid};
-use crate::vision::sift_flow::Mode;
+use crate::vision::rectify::warp::{Warped, warp};
 use crate::vision::sparse::{SparseParams, rectify_pair};
-use crate::vision::warp::{Warped, warp};
 
 /// Where the rectification of a simulated pair comes from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
@@ -62,7 +62,7 @@ pub struct SimCase {
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct SimFigures {
     pub case: SimCase,
-    pub mode: Mode,
+    pub mode: Preset,
     pub rectifier: Rectifier,
     /// Fraction of pixels visible in both micrographs that got a height.
     pub coverage: f64,
@@ -113,6 +113,8 @@ pub enum SimEvalError {
     Sparse(crate::vision::sparse::SparseError),
     #[error("dense stage: {0}")]
     Dense(crate::vision::dense::DenseError),
+    #[error("depth: {0}")]
+    Depth(crate::vision::depth::DepthError),
     #[error("no pixel is visible in both micrographs")]
     NothingVisible,
 }
@@ -121,6 +123,7 @@ error_from!(SimEvalError {
     Scene(sdsem_sim::scene::SceneError),
     Sparse(crate::vision::sparse::SparseError),
     Dense(crate::vision::dense::DenseError),
+    Depth(crate::vision::depth::DepthError),
 });
 
 /// Pixel dwell of the rendered micrographs, µs (a capture, not a tracking frame).
@@ -365,6 +368,7 @@ pub fn write_case(
 /// [`SimEvalError`] when the scene cannot be built or a stage fails.
 pub fn evaluate_case(
     case: &SimCase,
+    preset: Preset,
     sparse: &SparseParams,
     dense: &DenseParams,
     rectifier: Rectifier,
@@ -493,7 +497,7 @@ pub fn evaluate_case(
     if let Some(dir) = dump {
         let label = format!(
             "{}_{}_{}x{}",
-            format!("{:?}", dense.mode).to_lowercase(),
+            format!("{preset:?}").to_lowercase(),
             case.kind.name(),
             case.width,
             case.height
@@ -547,7 +551,7 @@ pub fn evaluate_case(
     }
     Ok(SimFigures {
         case: *case,
-        mode: dense.mode,
+        mode: preset,
         rectifier,
         coverage,
         height_range_um,
@@ -745,7 +749,7 @@ pub struct DenseEvalArgs {
     /// Use the simulator's exact rectification instead of the sparse stage.
     pub true_rectification: bool,
     /// Only this mode (default: both).
-    pub mode: Option<Mode>,
+    pub mode: Option<Preset>,
     /// Only the cases whose label (`kind WxH`, e.g. `dome 640x480`) contains this.
     pub only: Option<String>,
     /// Overrides of the dense parameters, `KEY=VALUE` in TOML syntax, keys
@@ -768,28 +772,28 @@ pub struct DenseEvalArgs {
 /// An unknown key or a value of the wrong type.
 pub fn apply_overrides(params: &DenseParams, set: &[String]) -> anyhow::Result<DenseParams> {
     use anyhow::Context;
-    let mut value = serde_json::to_value(params)?;
+    let mut value = toml::Value::try_from(params)?;
     for item in set {
         let (key, raw) = item
             .split_once('=')
             .with_context(|| format!("--set {item}: expected KEY=VALUE"))?;
-        let parsed: toml::Table = toml::from_str(&format!("v = {raw}"))
+        let mut parsed: toml::Table = toml::from_str(&format!("v = {raw}"))
             .with_context(|| format!("--set {item}: {raw} is not a TOML value"))?;
-        let v = serde_json::to_value(&parsed["v"])?;
+        let v = parsed.remove("v").context("--set: no value")?;
         let mut node = &mut value;
         for part in key.trim().split('.') {
             node = node
-                .as_object_mut()
+                .as_table_mut()
                 .and_then(|o| o.get_mut(part))
                 .with_context(|| format!("--set {item}: no dense parameter `{key}`"))?;
         }
         *node = v;
     }
-    serde_json::from_value(value).context("--set: a value of the wrong type")
+    value.try_into().context("--set: a value of the wrong type")
 }
 
 /// Per mode, how many cases meet each target, and the worst figure.
-fn summary(rows: &[SimFigures], mode: Mode) -> Option<String> {
+fn summary(rows: &[SimFigures], mode: Preset) -> Option<String> {
     let rows: Vec<&SimFigures> = rows.iter().filter(|f| f.mode == mode).collect();
     if rows.is_empty() {
         return None;
@@ -870,9 +874,9 @@ pub fn run(opts: &super::EvalOptions, args: &DenseEvalArgs) -> anyhow::Result<()
         }
         return Ok(());
     }
-    let modes: Vec<Mode> = args
+    let modes: Vec<Preset> = args
         .mode
-        .map_or(vec![Mode::Improved, Mode::Paper], |m| vec![m]);
+        .map_or(vec![Preset::Improved, Preset::Paper], |m| vec![m]);
     let rectifier = if args.true_rectification {
         Rectifier::Truth
     } else {
@@ -882,14 +886,8 @@ pub fn run(opts: &super::EvalOptions, args: &DenseEvalArgs) -> anyhow::Result<()
     let mut failures = Vec::new();
     for case in &cases {
         for &mode in &modes {
-            let dense = apply_overrides(
-                &DenseParams {
-                    mode,
-                    ..DenseParams::default()
-                },
-                &args.set,
-            )?;
-            match evaluate_case(case, &sparse, &dense, rectifier, args.dump.as_deref()) {
+            let dense = apply_overrides(&DenseParams::preset(mode), &args.set)?;
+            match evaluate_case(case, mode, &sparse, &dense, rectifier, args.dump.as_deref()) {
                 Ok(f) => {
                     if !opts.json {
                         println!("{}", format_row(&f));
@@ -984,8 +982,8 @@ mod tests {
             &["refine.window_sigma=1.25".to_owned(), "levels=3".to_owned()],
         )
         .unwrap();
-        assert_eq!(p.refine.window_sigma, 1.25);
-        assert_eq!(p.levels, 3);
+        assert_eq!(p.flow.refine.window_sigma, 1.25);
+        assert_eq!(p.flow.levels, 3);
         assert!(apply_overrides(&DenseParams::default(), &["nope=1".to_owned()]).is_err());
         assert!(apply_overrides(&DenseParams::default(), &["levels=\"x\"".to_owned()]).is_err());
     }
@@ -1002,12 +1000,9 @@ mod tests {
             .unwrap_or(usize::MAX);
         let sparse = SparseParams::default();
         for case in standard_cases().into_iter().take(limit) {
-            for mode in [Mode::Improved, Mode::Paper] {
-                let dense = DenseParams {
-                    mode,
-                    ..DenseParams::default()
-                };
-                match evaluate_case(&case, &sparse, &dense, Rectifier::Sparse, None) {
+            for mode in [Preset::Improved, Preset::Paper] {
+                let dense = DenseParams::preset(mode);
+                match evaluate_case(&case, mode, &sparse, &dense, Rectifier::Sparse, None) {
                     Ok(f) => println!("{}", format_row(&f)),
                     Err(e) => println!(
                         "{mode:<8?} {:?} {}x{}: {e}",

@@ -9,7 +9,7 @@ use serde::Serialize;
 use crate::export::flo;
 use crate::vision::Image;
 use crate::vision::dense::DenseError;
-use crate::vision::sift_flow::{Flow, FlowParams, sift_flow};
+use crate::vision::dense::sift_flow::{Flow, FlowParams, sift_flow};
 
 /// Errors of an evaluation run.
 #[derive(Debug, thiserror::Error)]
@@ -136,15 +136,11 @@ pub fn evaluate_rubberwhale(
 /// # Errors
 /// When the Middlebury data are missing, an override is invalid or the flow fails.
 pub fn run(opts: &super::EvalOptions, set: &[String]) -> anyhow::Result<()> {
+    use crate::vision::Preset;
     use crate::vision::dense::DenseParams;
-    use crate::vision::sift_flow::Mode;
     let mut rows = Vec::new();
-    for mode in [Mode::Paper, Mode::Improved] {
-        let dense = DenseParams {
-            mode,
-            ..DenseParams::default()
-        };
-        let params = super::dense::apply_overrides(&dense, set)?.flow_params();
+    for mode in [Preset::Paper, Preset::Improved] {
+        let params = super::dense::apply_overrides(&DenseParams::preset(mode), set)?.flow;
         let started = std::time::Instant::now();
         let run = evaluate_rubberwhale(&opts.data_dir, &params)?;
         let wall_s = started.elapsed().as_secs_f64();
@@ -179,7 +175,7 @@ pub fn run(opts: &super::EvalOptions, set: &[String]) -> anyhow::Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::vision::sift_flow::Mode;
+    use crate::vision::Preset;
 
     #[test]
     fn errors_of_a_known_offset() {
@@ -199,12 +195,8 @@ mod tests {
     #[ignore = "reads the shared Middlebury data; prints figures"]
     fn middlebury_rubberwhale() {
         let dir = crate::eval::data_dir();
-        for mode in [Mode::Paper, Mode::Improved] {
-            let params = FlowParams {
-                mode,
-                ..FlowParams::default()
-            };
-            let run = evaluate_rubberwhale(&dir, &params).unwrap();
+        for mode in [Preset::Paper, Preset::Improved] {
+            let run = evaluate_rubberwhale(&dir, &FlowParams::preset(mode)).unwrap();
             let e = run.errors;
             let energies: Vec<String> = run
                 .flow

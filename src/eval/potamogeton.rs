@@ -15,10 +15,12 @@ use std::time::Instant;
 
 use serde::Serialize;
 
-use crate::app::reconstruct::{GeometryOverrides, load_pair};
+use crate::app::reconstruct::load_pair;
 use crate::vision::Image;
-use crate::vision::pipeline::{ReconReport, ReconstructionParams, reconstruct};
-use crate::vision::sift_flow::Mode;
+use crate::vision::Preset;
+use crate::vision::ReconstructionParams;
+use crate::vision::geometry::Figures;
+use crate::vision::pipeline::{ReconReport, reconstruct};
 
 /// Tilt axis of the series in the stored files (see the data's README).
 pub const TILT_AXIS_DEG: f64 = -90.0;
@@ -107,15 +109,12 @@ pub fn agreement(a: &Image, b: &Image) -> Agreement {
 /// A missing file or a failed reconstruction, with its cause.
 pub fn reconstruct_series(
     dir: &Path,
-    mode: Mode,
+    mode: Preset,
     quick: bool,
     set: &[String],
 ) -> anyhow::Result<Vec<(PairFigures, Image, Vec<bool>)>> {
-    let params = ReconstructionParams {
-        mode,
-        dense: super::dense::apply_overrides(&crate::vision::dense::DenseParams::default(), set)?,
-        ..ReconstructionParams::default()
-    };
+    let mut params = ReconstructionParams::preset(mode);
+    params.dense = super::dense::apply_overrides(&params.dense, set)?;
     let rights: &[&str] = if quick { &RIGHTS[..2] } else { &RIGHTS };
     let mut out = Vec::new();
     for right in rights {
@@ -123,9 +122,9 @@ pub fn reconstruct_series(
         let pair = load_pair(
             &dir.join(LEFT),
             &dir.join(right),
-            GeometryOverrides {
+            Figures {
                 tilt_axis_deg: Some(TILT_AXIS_DEG),
-                ..GeometryOverrides::default()
+                ..Figures::default()
             },
             None,
         )?;
@@ -159,9 +158,9 @@ pub fn reconstruct_series(
 ///
 /// # Errors
 /// When the data are missing or a reconstruction fails.
-pub fn run(opts: &super::EvalOptions, mode: Option<Mode>, set: &[String]) -> anyhow::Result<()> {
+pub fn run(opts: &super::EvalOptions, mode: Option<Preset>, set: &[String]) -> anyhow::Result<()> {
     let dir = opts.data_dir.join("potamogeton");
-    let modes = mode.map_or(vec![Mode::Improved, Mode::Paper], |m| vec![m]);
+    let modes = mode.map_or(vec![Preset::Improved, Preset::Paper], |m| vec![m]);
     let mut json = Vec::new();
     for mode in modes {
         let series = reconstruct_series(&dir, mode, opts.quick, set)?;

@@ -39,7 +39,7 @@ pub fn modes() -> Vec<Mode> {
     vec![
         Mode {
             name: "paper",
-            params: SparseParams::paper(),
+            params: SparseParams::preset(crate::vision::Preset::Paper),
         },
         Mode {
             name: "improved",

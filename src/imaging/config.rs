@@ -25,11 +25,13 @@ pub struct ScanSettings {
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum ImagingProtocol {
-    /// sdsem's own imaging line protocol over TCP ([`sdsem_protocol::sem`]).
+    /// sdsem's own imaging line protocol over TCP ([`sdsem_protocol::sem`]): sdsem-sim or an adapter.
     #[default]
     SdsemLink,
     /// The SEM's software stores each micrograph as a TIFF in a folder sdsem reads (VENDORS §4).
     WatchFolder,
+    /// TESCAN SharkSEM remote control ([`crate::imaging::SharkSemSource`]).
+    Sharksem,
 }
 
 impl ImagingProtocol {
@@ -39,6 +41,7 @@ impl ImagingProtocol {
         match self {
             Self::SdsemLink => "sdsem-link",
             Self::WatchFolder => "watch-folder",
+            Self::Sharksem => "sharksem",
         }
     }
 }
@@ -47,8 +50,11 @@ impl ImagingProtocol {
 ///
 /// | key | default | effect |
 /// | --- | --- | --- |
-/// | `protocol` | `sdsem-link` | where frames come from: `sdsem-link` (TCP) or `watch-folder` (TIFFs the SEM stores) |
-/// | `endpoint` | `127.0.0.1:7520` | host:port of the SEM imaging server (sdsem-sim's or a microscope adapter's) |
+/// | `protocol` | `sdsem-link` | where frames come from: `sdsem-link` (TCP), `watch-folder` (TIFFs the SEM stores) or `sharksem` (TESCAN) |
+/// | `endpoint` | `127.0.0.1:7520` | host:port of the SEM imaging server (sdsem-sim's or a microscope adapter's); sharksem: `tcp://HOST:8300`, the control port |
+/// | `data_port` | none | sharksem: the data port; none = control port + 1 |
+/// | `detector` | `""` | sharksem: detector name (`SE`, case-insensitive) or id (`DtEnumDetectors`); empty = the first listed |
+/// | `pixel_size_um` | none | sharksem: the micrograph's pixel size, set as the view field = pixel size × micrograph width; none = keep the SEM's field and read it back |
 /// | `micrograph` | 1280 × 960, 10 µs | the left and right micrographs (12.3 s per frame) |
 /// | `tracking` | 320 × 240, 1 µs | the quick frame after each tilt step (77 ms) |
 /// | `bits` | 16 | sample depth, 8 or 16 |
@@ -71,6 +77,11 @@ impl ImagingProtocol {
 pub struct ImagingConfig {
     pub protocol: ImagingProtocol,
     pub endpoint: String,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub data_port: Option<u16>,
+    pub detector: String,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub pixel_size_um: Option<f64>,
     pub micrograph: ScanSettings,
     pub tracking: ScanSettings,
     pub bits: u8,
@@ -93,7 +104,11 @@ pub struct ImagingConfig {
 impl Default for ImagingConfig {
     fn default() -> Self {
         Self {
+            protocol: ImagingProtocol::SdsemLink,
             endpoint: format!("127.0.0.1:{DEFAULT_PORT}"),
+            data_port: None,
+            detector: String::new(),
+            pixel_size_um: None,
             micrograph: ScanSettings {
                 width: 1280,
                 height: 960,
@@ -106,7 +121,6 @@ impl Default for ImagingConfig {
             },
             bits: 16,
             timeout_ms: 5000,
-            protocol: ImagingProtocol::SdsemLink,
             watch_dir: PathBuf::new(),
             trigger: String::new(),
             tracking_trigger: String::new(),
@@ -168,6 +182,22 @@ impl ImagingConfig {
         }
         if self.bits != 8 && self.bits != 16 {
             return Err(invalid("imaging.bits", self.bits.to_string(), "8 or 16"));
+        }
+        if self.data_port == Some(0) {
+            return Err(invalid(
+                "imaging.data_port",
+                "0".to_owned(),
+                "a port number 1–65535 (or no key: control port + 1)",
+            ));
+        }
+        if let Some(p) = self.pixel_size_um
+            && !(p.is_finite() && p > 0.0)
+        {
+            return Err(invalid(
+                "imaging.pixel_size_um",
+                p.to_string(),
+                "a positive number of micrometres (or no key: keep the SEM's field)",
+            ));
         }
         if self.timeout_ms == 0 {
             return Err(invalid(
@@ -252,11 +282,16 @@ impl ImagingConfig {
 
     /// The settings the connection depends on: all but the per-scan ones (sizes, dwell, depth),
     /// so a reloaded configuration that changes the source or how it is reached reconnects.
+    /// SharkSEM keeps the micrograph width: its view field is pixel size × that width.
     #[must_use]
     pub fn link_settings(&self) -> Self {
         let d = Self::default();
+        let mut micrograph = d.micrograph;
+        if self.protocol == ImagingProtocol::Sharksem {
+            micrograph.width = self.micrograph.width;
+        }
         Self {
-            micrograph: d.micrograph,
+            micrograph,
             tracking: d.tracking,
             bits: d.bits,
             ..self.clone()

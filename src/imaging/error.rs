@@ -60,6 +60,9 @@ pub enum ImagingError {
         request: String,
         got: String,
     },
+    /// A TESCAN SEM over SharkSEM (the message names the function and the remedy).
+    #[error("{0}")]
+    SharkSem(crate::sharksem::SharkError),
     #[error("imaging setting {name} = {value} is invalid: expected {expected}")]
     InvalidConfig {
         name: &'static str,
@@ -112,3 +115,7 @@ pub enum ImagingError {
     )]
     NoTriggerLink { command: String },
 }
+
+error_from!(ImagingError {
+    SharkSem(crate::sharksem::SharkError)
+});

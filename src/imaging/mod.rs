@@ -9,6 +9,7 @@
 //! - [`WatchFolderSource`]: micrographs the SEM's own software stores in a folder
 //!   (`imaging.protocol = "watch-folder"`), found by [`arrival`], sent for by a [`Trigger`]
 //!   over the stage link.
+//! - [`SharkSemSource`]: scans on a TESCAN SEM over SharkSEM ([`crate::sharksem`]).
 //! - [`file`]: micrographs on disk (TIFF, PNG) with their SEM metadata ([`metadata`]).
 
 pub mod arrival;
@@ -19,6 +20,7 @@ mod file_tiff;
 mod frame;
 mod link_client;
 pub mod metadata;
+mod sharksem;
 mod source;
 mod watch_folder;
 
@@ -26,6 +28,7 @@ pub use config::{DEFAULT_PORT, ImagingConfig, ImagingProtocol, ScanSettings};
 pub use error::ImagingError;
 pub use frame::{Frame, FrameFile, FrameMeta, Pixels, Role};
 pub use link_client::{GroundTruth, SemLinkClient};
+pub use sharksem::SharkSemSource;
 pub use source::{
     FrameSource, GrabContext, GrabFuture, GrabRequest, IdentifyFuture, ProbeFuture, SourceIdentity,
     Trigger, TriggerError, TriggerFuture,

@@ -1,4 +1,5 @@
-//! Anything that delivers frames: the SEM link, a watched folder, or a test double.
+//! Anything that delivers frames: the SEM link, a watched folder, a TESCAN SEM over SharkSEM,
+//! or a test double.
 
 use std::future::Future;
 use std::pin::Pin;

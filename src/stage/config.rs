@@ -77,6 +77,9 @@ pub enum StageProtocol {
     /// Zeiss SmartSEM RemCon32 (the SEM's own stage, RS-232).
     #[serde(rename = "remcon32")]
     Remcon32,
+    /// The SEM's own stage over TESCAN SharkSEM (TCP, `tcp://HOST:8300`).
+    #[serde(rename = "sharksem")]
+    Sharksem,
 }
 
 impl StageProtocol {
@@ -85,6 +88,7 @@ impl StageProtocol {
         match self {
             Self::PiGcs => "pi-gcs",
             Self::Remcon32 => "remcon32",
+            Self::Sharksem => "sharksem",
         }
     }
 
@@ -94,6 +98,8 @@ impl StageProtocol {
         match self {
             Self::PiGcs => 115_200,
             Self::Remcon32 => 9_600,
+            // TCP only: no serial rate.
+            Self::Sharksem => 0,
         }
     }
 }
@@ -119,7 +125,8 @@ impl fmt::Display for StageProtocol {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct StageConfig {
-    /// The stage's language: `pi-gcs` (the default) or `remcon32`.
+    /// The stage's language: `pi-gcs` (the default), `remcon32` (a Zeiss SEM's own stage) or
+    /// `sharksem` (a TESCAN SEM's own stage).
     pub protocol: StageProtocol,
     /// Where the controller is: a serial device (`/dev/ttyUSB0`,
     /// `/dev/serial/by-id/…`, a simulator's pty path, optionally written

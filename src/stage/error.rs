@@ -181,6 +181,10 @@ pub enum StageError {
         timeout: Duration,
     },
 
+    /// The SEM's stage over TESCAN SharkSEM (the message names the function and the remedy).
+    #[error("{0}")]
+    SharkSem(crate::sharksem::SharkError),
+
     /// The stage protocol cannot do what was asked.
     #[error("stage.protocol = \"{protocol}\" cannot send {what}; {remedy}")]
     Unsupported {
@@ -226,6 +230,10 @@ pub enum StageError {
         reply: String,
     },
 }
+
+error_from!(StageError {
+    SharkSem(crate::sharksem::SharkError)
+});
 
 fn not_ready_message(unreferenced: &[String], servo_off: &[String]) -> String {
     let mut what = Vec::new();

@@ -19,7 +19,21 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::Image;
-use super::dense::DenseError;
+
+/// Why heights cannot be computed from a disparity.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum DepthError {
+    #[error(
+        "tilt difference θ = {0}° must lie in (0°, 180°) (right is the micrograph at the higher tilt)"
+    )]
+    Tilt(f64),
+    #[error("pixel size {0} µm must be a positive number")]
+    PixelSize(f64),
+    #[error(
+        "the right rectification homography is singular; the sparse stage produced an unusable H_right"
+    )]
+    SingularHomography,
+}
 
 /// The acquisition geometry of a stereo pair.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -102,8 +116,7 @@ fn sample_finite(img: &Image, x: f64, y: f64) -> Option<f32> {
 /// `h_left`/`h_right` map original left/right pixel coordinates to the canvas.
 ///
 /// # Errors
-/// [`DenseError::InvalidParameter`] for a non-positive tilt or pixel size,
-/// [`DenseError::SingularHomography`] when `H_right` cannot be inverted.
+/// [`DepthError`] for a tilt or pixel size out of range, or an `H_right` that cannot be inverted.
 pub fn height_on_left_grid(
     disparity_rect: &Image,
     h_left: &Matrix3<f64>,
@@ -111,25 +124,16 @@ pub fn height_on_left_grid(
     geometry: &StereoGeometry,
     left_width: usize,
     left_height: usize,
-) -> Result<Image, DenseError> {
+) -> Result<Image, DepthError> {
     if !(geometry.tilt_deg > 0.0 && geometry.tilt_deg < 180.0) {
-        return Err(DenseError::InvalidParameter {
-            name: "tilt_deg",
-            reason: format!(
-                "θ = {} °: must lie in (0, 180) (right is the higher tilt)",
-                geometry.tilt_deg
-            ),
-        });
+        return Err(DepthError::Tilt(geometry.tilt_deg));
     }
     if !(geometry.pixel_size_um > 0.0 && geometry.pixel_size_um.is_finite()) {
-        return Err(DenseError::InvalidParameter {
-            name: "pixel_size_um",
-            reason: format!("{} µm: must be positive", geometry.pixel_size_um),
-        });
+        return Err(DepthError::PixelSize(geometry.pixel_size_um));
     }
     let h_right_inv = h_right
         .try_inverse()
-        .ok_or(DenseError::SingularHomography)?;
+        .ok_or(DepthError::SingularHomography)?;
     let (nx, ny) = geometry.parallax_direction();
     let scale = geometry.um_per_px();
     let mut out = Image::filled(left_width, left_height, f32::NAN);

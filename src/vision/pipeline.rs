@@ -14,77 +14,15 @@ use std::time::Instant;
 
 use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
-use serde::{Deserialize, Serialize};
+use serde::Serialize;
 
 use super::Image;
 use super::dense::{DenseError, DenseParams, DenseStats, dense_disparity_in_range};
-use super::depth::{StereoGeometry, height_on_left_grid};
+use super::depth::{DepthError, StereoGeometry, height_on_left_grid};
+use super::geometry::{MAX_TILT_DEG, PairGeometry};
+use super::params::ReconstructionParams;
 use super::precision::{self, Precision};
-use super::sift_flow::Mode;
-use super::sparse::{SparseError, SparseParams, rectify_pair};
-
-/// Parameters of the whole reconstruction (`[reconstruction]` in the configuration).
-///
-/// | parameter | default | effect |
-/// | --- | --- | --- |
-/// | `mode` | `improved` | `paper` reproduces the paper's pipeline; `improved` adds sub-pixel disparity, occlusion masking and confidence |
-/// | `sparse` | see [`SparseParams`] | SIFT, matching, ORSA, rectification |
-/// | `dense` | see [`DenseParams`] | dense SIFT, SIFT flow, bilateral grid (its `mode` follows `mode` above) |
-#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct ReconstructionParams {
-    pub mode: Mode,
-    pub sparse: SparseParams,
-    pub dense: DenseParams,
-}
-
-impl ReconstructionParams {
-    /// The sparse parameters with the pipeline's mode: in the paper mode, the
-    /// keys that [`SparseParams::paper`] changes (DoG threshold, sub-pixel
-    /// refinement of the inliers, robust rectification pass) take the paper's
-    /// values unless the configuration set them away from their defaults.
-    #[must_use]
-    pub fn sparse_params(&self) -> SparseParams {
-        let mut s = self.sparse.clone();
-        if self.mode == Mode::Paper {
-            let (ours, paper) = (SparseParams::default(), SparseParams::paper());
-            if s.sift.c_dog == ours.sift.c_dog {
-                s.sift.c_dog = paper.sift.c_dog;
-            }
-            if s.refine.enabled == ours.refine.enabled {
-                s.refine.enabled = paper.refine.enabled;
-            }
-            if s.rectify.cauchy_scale_px == ours.rectify.cauchy_scale_px {
-                s.rectify.cauchy_scale_px = paper.rectify.cauchy_scale_px;
-            }
-        }
-        s
-    }
-
-    /// The dense parameters with the pipeline's mode.
-    #[must_use]
-    pub fn dense_params(&self) -> DenseParams {
-        DenseParams {
-            mode: self.mode,
-            ..self.dense
-        }
-    }
-}
-
-/// How the pair was taken.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct PairGeometry {
-    /// θ = tilt(right) − tilt(left), degrees, in (0, 60].
-    pub tilt_deg: f64,
-    /// Pixel size of both micrographs, µm.
-    pub pixel_size_um: f64,
-    /// φ: direction of the tilt axis in the image, degrees from +x towards +y.
-    pub tilt_axis_deg: f64,
-}
-
-/// Largest tilt difference accepted: beyond it the pair hardly overlaps and
-/// the small-angle matching of the method breaks down.
-pub const MAX_TILT_DEG: f64 = 60.0;
+use super::sparse::{SparseError, rectify_pair};
 
 /// Why a pair cannot be reconstructed.
 #[derive(Debug, thiserror::Error)]
@@ -99,6 +37,8 @@ pub enum ReconstructError {
     Sparse(SparseError),
     #[error("dense stage: {0}")]
     Dense(DenseError),
+    #[error("depth: {0}")]
+    Depth(DepthError),
     #[error(
         "no height could be computed: the rectified images do not overlap (is it the same specimen area?)"
     )]
@@ -108,6 +48,7 @@ pub enum ReconstructError {
 error_from!(ReconstructError {
     Sparse(SparseError),
     Dense(DenseError),
+    Depth(DepthError),
 });
 
 /// Wall time of each stage, ms.
@@ -175,7 +116,6 @@ fn v2_over_u2(d: impl Iterator<Item = (f64, f64)>) -> f64 {
 /// Everything a reconstruction reports (report.json, `/recon/report`).
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct ReconReport {
-    pub mode: Mode,
     pub geometry: PairGeometry,
     pub image_size: (usize, usize),
     pub sparse: SparseReport,
@@ -217,12 +157,7 @@ pub fn reconstruct(
     let t_total = Instant::now();
 
     let t = Instant::now();
-    let rect = rectify_pair(
-        left,
-        right,
-        Some(geometry.tilt_axis_deg),
-        &params.sparse_params(),
-    )?;
+    let rect = rectify_pair(left, right, Some(geometry.tilt_axis_deg), &params.sparse)?;
     let sparse_ms = ms(t);
 
     let t = Instant::now();
@@ -232,7 +167,7 @@ pub fn reconstruct(
         &rect.right.image,
         Some(&rect.left.valid),
         Some(&rect.right.valid),
-        &params.dense_params(),
+        &params.dense,
         range,
     )?;
     let dense_ms = ms(t);
@@ -256,7 +191,7 @@ pub fn reconstruct(
         left,
         right,
         geometry.tilt_axis_deg,
-        matcher_window_sigma(&params.dense_params()),
+        matcher_window_sigma(&params.dense),
         depth.um_per_disparity_px,
     );
 
@@ -280,7 +215,6 @@ pub fn reconstruct(
         rmse_after_px: r.final_error_px,
     };
     let report = ReconReport {
-        mode: params.mode,
         geometry: *geometry,
         image_size: (w, h),
         sparse: SparseReport {
@@ -353,12 +287,12 @@ fn left_grid_confidence(
 }
 
 /// The Gaussian window (σ, pixels) whose precision bounds the disparity:
-/// the intensity refinement's window in the improved mode; in the paper
-/// mode the descriptor's `4 · cell_size` square, as the Gaussian of the same
+/// the intensity refinement's window when there is one; without, the
+/// descriptor's `4 · cell_size` square, as the Gaussian of the same
 /// effective area (`4πσ² = (4 · cell_size)²`).
 #[must_use]
 pub fn matcher_window_sigma(dense: &DenseParams) -> f64 {
-    let flow = dense.flow_params();
+    let flow = &dense.flow;
     flow.refinement().map_or_else(
         || 4.0 * flow.cell_size as f64 / (4.0 * std::f64::consts::PI).sqrt(),
         |r| f64::from(r.window_sigma),
@@ -476,21 +410,6 @@ mod tests {
         );
         let e = ReconstructError::from(DenseError::NoValidPixels);
         assert!(std::error::Error::source(&e).is_none());
-    }
-
-    #[test]
-    fn paper_mode_takes_the_papers_sparse_path_unless_configured_otherwise() {
-        let mut p = ReconstructionParams {
-            mode: Mode::Paper,
-            ..ReconstructionParams::default()
-        };
-        assert_eq!(p.sparse_params(), SparseParams::paper());
-        p.sparse.refine.enabled = !SparseParams::default().refine.enabled;
-        let s = p.sparse_params();
-        assert_eq!(s.refine.enabled, p.sparse.refine.enabled, "a set key stays");
-        assert_eq!(s.sift.c_dog, SparseParams::paper().sift.c_dog);
-        let improved = ReconstructionParams::default();
-        assert_eq!(improved.sparse_params(), SparseParams::default());
     }
 
     /// On the left grid: NaN where there is no height, 0 where the height

@@ -24,7 +24,7 @@ use rayon::prelude::*;
 use serde::Serialize;
 
 use super::Image;
-use super::subpixel::blur_plane;
+use super::filter::blur::blur_plane;
 
 /// The sum of squares of Immerkær's kernel `[1 −2 1; −2 4 −2; 1 −2 1]`:
 /// its response to white noise of variance σ² has variance 36σ².

@@ -100,9 +100,8 @@ pub struct Prepared {
 impl Prepared {
     #[must_use]
     pub fn new(left: &Image, right: &Image, params: &RefineParams) -> Self {
-        let blur = |img: &Image| {
-            crate::vision::sift::scale_space::gaussian_blur(img, params.presmooth_sigma)
-        };
+        let blur =
+            |img: &Image| crate::vision::filter::blur::gaussian_blur(img, params.presmooth_sigma);
         let (left, right) = rayon::join(|| blur(left), || blur(right));
         Self { left, right }
     }
@@ -313,7 +312,7 @@ fn refine_one(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::vision::sift::scale_space::gaussian_blur;
+    use crate::vision::filter::blur::gaussian_blur;
     use rand::{Rng, SeedableRng};
 
     fn texture(w: usize, h: usize, seed: u64) -> Image {

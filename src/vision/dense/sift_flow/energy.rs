@@ -1,0 +1,600 @@
+//! The SIFT-flow energy, Liu, Yuen, Torralba (PAMI 2011) equation (10):
+//!
+//! ```text
+//! E(w) = Σ_p min(‖s1(p) − s2(p + w(p))‖₁, t)                    data
+//!      + Σ_p η (|u(p)| + |v(p)|)                                 small displacement
+//!      + Σ_(p,q)∈ε min(α |u(p) − u(q)|, d) + min(α |v(p) − v(q)|, d)   smoothness
+//! ```
+//!
+//! with `w = (u, v)` integer flow, `ε` the 4-neighbourhood. The reference code
+//! calls η `gamma`; we keep that name. Each pixel's labels live in a window
+//! `[−w, w]` around a per-pixel offset (coarse-to-fine initialisation), so the
+//! flow is `offset + label − w`.
+
+use rayon::prelude::*;
+
+use crate::vision::dense::dense_sift::{DescriptorImage, l1_distance};
+
+/// Parameters of eq. (10) at one pyramid level.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct EnergyWeights {
+    /// α: slope of the truncated L1 smoothness.
+    pub alpha: f32,
+    /// d: truncation of the smoothness.
+    pub d: f32,
+    /// η (γ in the reference code): weight of the small-displacement term.
+    pub gamma: f32,
+}
+
+/// Per-edge truncation of the smoothness term, replacing
+/// [`EnergyWeights::d`] on every edge of the grid: `right[p]` for the edge
+/// between pixel `p` and `p + 1`, `down[p]` for `p` and `p + width` (the last
+/// column's `right` and the last row's `down` are never read).
+#[derive(Debug, Clone, PartialEq)]
+pub struct EdgeTruncation {
+    pub right: Vec<f32>,
+    pub down: Vec<f32>,
+}
+
+/// A contrast-sensitive [`EdgeTruncation`] from the source image of a level:
+/// `tight + (d − tight) · exp(−(ΔI / (k · m))²)` on every edge, where ΔI is
+/// the intensity difference across the edge and `m` its median over the
+/// image. Edges across a strong intensity edge, where depth steps lie, get
+/// the tight truncation; weakly textured surface keeps `d`.
+#[must_use]
+pub fn contrast_truncation(
+    img: &super::super::Image,
+    d: f32,
+    tight: f32,
+    k: f32,
+) -> EdgeTruncation {
+    let (w, h) = img.dimensions();
+    let px = img.data();
+    let diff = |p: usize, q: usize| (px[p] - px[q]).abs();
+    let right: Vec<f32> = (0..w * h)
+        .into_par_iter()
+        .map(|p| if p % w + 1 < w { diff(p, p + 1) } else { 0.0 })
+        .collect();
+    let down: Vec<f32> = (0..w * h)
+        .into_par_iter()
+        .map(|p| if p / w + 1 < h { diff(p, p + w) } else { 0.0 })
+        .collect();
+    let mut all: Vec<f32> = right
+        .iter()
+        .chain(&down)
+        .copied()
+        .filter(|v| v.is_finite() && *v > 0.0)
+        .collect();
+    let m = if all.is_empty() {
+        1.0
+    } else {
+        let mid = all.len() / 2;
+        *all.select_nth_unstable_by(mid, f32::total_cmp).1
+    };
+    let scale = (k * m).max(1e-12);
+    let t = |v: f32| {
+        let v = if v.is_finite() { v } else { 0.0 };
+        tight + (d - tight) * (-(v / scale).powi(2)).exp()
+    };
+    EdgeTruncation {
+        right: right.into_par_iter().map(t).collect(),
+        down: down.into_par_iter().map(t).collect(),
+    }
+}
+
+/// Label geometry of one level: per-pixel offsets and uniform windows.
+#[derive(Debug, Clone)]
+pub struct LabelSpace {
+    pub width: usize,
+    pub height: usize,
+    /// Per plane (0 = u, 1 = v): the half window `w`, states `2w + 1`.
+    pub window: [usize; 2],
+    /// Per plane: the offset of each pixel (row-major).
+    pub offset: [Vec<i32>; 2],
+}
+
+impl LabelSpace {
+    /// Number of states of plane `k`.
+    #[must_use]
+    pub fn states(&self, k: usize) -> usize {
+        2 * self.window[k] + 1
+    }
+
+    /// The flow component of plane `k` at pixel `p` for label `l`.
+    #[must_use]
+    #[inline]
+    pub fn flow(&self, k: usize, p: usize, l: usize) -> i32 {
+        self.offset[k][p] + l as i32 - self.window[k] as i32
+    }
+}
+
+/// The data term of eq. (10) for every pixel and label pair, `u16` per entry
+/// (a descriptor L1 distance is at most 128 · 255 = 32 640).
+///
+/// Layout: `cost[(p · n_v + l_v) · n_u + l_u]`.
+#[derive(Debug, Clone)]
+pub struct DataTerm {
+    pub cost: Vec<u16>,
+    /// The energy counts `scale · cost` (1 at a pyramid level; `4^j` on the
+    /// grids of the multigrid BP, which store the mean of `4^j` pixels).
+    pub scale: f32,
+    /// Cost given to matches that fall outside the second image (or on its
+    /// invalid pixels): the median of the inside matches, as in the reference code.
+    pub outside_cost: u16,
+}
+
+/// Marks a label whose match falls outside the second image during the first pass.
+const OUTSIDE: u16 = u16::MAX;
+
+impl DataTerm {
+    /// Computes the data term of every label of `space`.
+    ///
+    /// `valid1` (row-major over `s1`) marks the pixels that have a data term:
+    /// the others are not matched and cost 0 for every label (`None`: all
+    /// have one). `valid2` (row-major over `s2`) marks pixels of the second
+    /// image that may be matched; `truncation` is `t` of eq. (10) (`None`:
+    /// not truncated, as the reference code runs).
+    #[must_use]
+    pub fn compute(
+        s1: &DescriptorImage,
+        s2: &DescriptorImage,
+        space: &LabelSpace,
+        valid1: Option<&[bool]>,
+        valid2: Option<&[bool]>,
+        truncation: Option<f32>,
+    ) -> Self {
+        let (w, h) = (space.width, space.height);
+        let (nu, nv) = (space.states(0), space.states(1));
+        let (w2, h2) = (s2.width() as i64, s2.height() as i64);
+        let per_pixel = nu * nv;
+        let mut cost = vec![0u16; w * h * per_pixel];
+        cost.par_chunks_mut(w * per_pixel)
+            .enumerate()
+            .for_each(|(y, row)| {
+                for x in 0..w {
+                    let p = y * w + x;
+                    let out = &mut row[x * per_pixel..(x + 1) * per_pixel];
+                    if valid1.is_some_and(|m| !m[p]) {
+                        // Left out of the median below; zero at the end.
+                        out.fill(OUTSIDE);
+                        continue;
+                    }
+                    let a = s1.at(x, y);
+                    for lv in 0..nv {
+                        let y2 = y as i64 + i64::from(space.flow(1, p, lv));
+                        for lu in 0..nu {
+                            let x2 = x as i64 + i64::from(space.flow(0, p, lu));
+                            let inside = x2 >= 0 && x2 < w2 && y2 >= 0 && y2 < h2;
+                            out[lv * nu + lu] = if !inside {
+                                OUTSIDE
+                            } else {
+                                // Inside the image: the casts are in range.
+                                #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
+                                let (xx, yy) = (x2 as usize, y2 as usize);
+                                if valid2.is_some_and(|m| !m[yy * s2.width() + xx]) {
+                                    OUTSIDE
+                                } else {
+                                    // At most 32 640: fits.
+                                    #[allow(clippy::cast_possible_truncation)]
+                                    let c = l1_distance(a, s2.at(xx, yy)) as u16;
+                                    c
+                                }
+                            };
+                        }
+                    }
+                }
+            });
+        let outside_cost = median_inside(&cost);
+        let cap = truncation.map_or(u16::MAX - 1, |t| {
+            // Clamped into the u16 range first.
+            #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
+            let c = t.clamp(0.0, f32::from(u16::MAX - 1)) as u16;
+            c
+        });
+        cost.par_chunks_mut(per_pixel)
+            .enumerate()
+            .for_each(|(p, costs)| {
+                if valid1.is_some_and(|m| !m[p]) {
+                    costs.fill(0);
+                    return;
+                }
+                for c in costs {
+                    *c = if *c == OUTSIDE {
+                        outside_cost.min(cap)
+                    } else {
+                        (*c).min(cap)
+                    };
+                }
+            });
+        Self {
+            cost,
+            scale: 1.0,
+            outside_cost,
+        }
+    }
+
+    /// The data term of the next coarser grid of the multigrid BP (Felzenszwalb
+    /// & Huttenlocher 2006, as the reference code): a coarse node stands for
+    /// 2 × 2 pixels and its cost is theirs summed, label by label (each child's
+    /// label aligned through its own offset). Stored as the mean with `scale`
+    /// multiplied by 4. Returns the coarse label space too.
+    #[must_use]
+    pub fn coarsen(&self, space: &LabelSpace) -> (LabelSpace, Self) {
+        let (w, h) = (space.width, space.height);
+        let (cw, ch) = (w.div_ceil(2), h.div_ceil(2));
+        let (nu, nv) = (space.states(0), space.states(1));
+        let per = nu * nv;
+        let children = |cx: usize, cy: usize| {
+            [(0, 0), (1, 0), (0, 1), (1, 1)]
+                .into_iter()
+                .map(move |(dx, dy)| (2 * cx + dx, 2 * cy + dy))
+                .filter(move |&(x, y)| x < w && y < h)
+                .map(move |(x, y)| y * w + x)
+        };
+        let mut offset = [vec![0i32; cw * ch], vec![0i32; cw * ch]];
+        for (coarse, fine) in offset.iter_mut().zip(&space.offset) {
+            for cy in 0..ch {
+                for cx in 0..cw {
+                    let (sum, n) = children(cx, cy)
+                        .fold((0i64, 0i64), |(s, n), p| (s + i64::from(fine[p]), n + 1));
+                    // A mean of i32 offsets.
+                    #[allow(clippy::cast_possible_truncation)]
+                    let mean = (sum as f64 / n as f64).round() as i32;
+                    coarse[cy * cw + cx] = mean;
+                }
+            }
+        }
+        let coarse_space = LabelSpace {
+            width: cw,
+            height: ch,
+            window: space.window,
+            offset,
+        };
+        let mut cost = vec![0u16; cw * ch * per];
+        cost.par_chunks_mut(cw * per)
+            .enumerate()
+            .for_each(|(cy, row)| {
+                let mut acc = vec![0u32; per];
+                for cx in 0..cw {
+                    let c = cy * cw + cx;
+                    acc.fill(0);
+                    let mut n = 0u32;
+                    for p in children(cx, cy) {
+                        let du = coarse_space.offset[0][c] - space.offset[0][p];
+                        let dv = coarse_space.offset[1][c] - space.offset[1][p];
+                        let src = self.pixel(p, per);
+                        for lv in 0..nv {
+                            let sv = clamp_label(lv, dv, nv);
+                            for lu in 0..nu {
+                                let su = clamp_label(lu, du, nu);
+                                acc[lv * nu + lu] += u32::from(src[sv * nu + su]);
+                            }
+                        }
+                        n += 1;
+                    }
+                    for (o, &a) in row[cx * per..(cx + 1) * per].iter_mut().zip(&acc) {
+                        // The mean of u16 values.
+                        #[allow(clippy::cast_possible_truncation)]
+                        let m = ((a + n / 2) / n) as u16;
+                        *o = m;
+                    }
+                }
+            });
+        (
+            coarse_space,
+            Self {
+                cost,
+                scale: self.scale * 4.0,
+                outside_cost: self.outside_cost,
+            },
+        )
+    }
+
+    /// The costs of pixel `p`, `[l_v][l_u]`.
+    #[must_use]
+    #[inline]
+    pub fn pixel(&self, p: usize, per_pixel: usize) -> &[u16] {
+        &self.cost[p * per_pixel..(p + 1) * per_pixel]
+    }
+}
+
+/// Label `l + shift` clamped into `0..n`.
+#[inline]
+pub fn clamp_label(l: usize, shift: i32, n: usize) -> usize {
+    let n_i = i32::try_from(n).unwrap_or(i32::MAX);
+    // Clamped into 0..n.
+    #[allow(clippy::cast_sign_loss)]
+    let c = (l as i32 + shift).clamp(0, n_i - 1) as usize;
+    c
+}
+
+/// The median of the entries that are not [`OUTSIDE`] (a histogram over u16);
+/// 0 when every match falls outside.
+fn median_inside(cost: &[u16]) -> u16 {
+    let hist = cost
+        .par_chunks(1 << 16)
+        .fold(
+            || vec![0u64; 1 << 15],
+            |mut h, chunk| {
+                for &c in chunk {
+                    if c != OUTSIDE {
+                        h[usize::from(c >> 1)] += 1;
+                    }
+                }
+                h
+            },
+        )
+        .reduce(
+            || vec![0u64; 1 << 15],
+            |mut a, b| {
+                for (x, y) in a.iter_mut().zip(b) {
+                    *x += y;
+                }
+                a
+            },
+        );
+    let total: u64 = hist.iter().sum();
+    let mut acc = 0;
+    for (i, &n) in hist.iter().enumerate() {
+        acc += n;
+        if 2 * acc >= total && total > 0 {
+            // i < 2^15, so 2i + 1 fits in u16.
+            #[allow(clippy::cast_possible_truncation)]
+            return (2 * i + 1) as u16;
+        }
+    }
+    0
+}
+
+/// Energy (10) of a labelling (`labels[k][p]`).
+///
+/// Row by row: the flows of a row and of the next are materialised first so
+/// that the smoothness terms vectorise (this runs after every BP iteration).
+#[must_use]
+pub fn energy(
+    data: &DataTerm,
+    space: &LabelSpace,
+    labels: &[Vec<u16>; 2],
+    weights: &EnergyWeights,
+) -> f64 {
+    energy_with(data, space, labels, weights, None)
+}
+
+/// [`energy`] with the truncation of every edge from `edges` (`None`: `d`).
+#[must_use]
+pub fn energy_with(
+    data: &DataTerm,
+    space: &LabelSpace,
+    labels: &[Vec<u16>; 2],
+    weights: &EnergyWeights,
+    edges: Option<&EdgeTruncation>,
+) -> f64 {
+    let (w, h) = (space.width, space.height);
+    let (nu, nv) = (space.states(0), space.states(1));
+    let per = nu * nv;
+    let window = [space.window[0] as i32, space.window[1] as i32];
+    let (alpha, d) = (weights.alpha, weights.d);
+    let flows = |k: usize, y: usize, out: &mut [f32]| {
+        let row = y * w..(y + 1) * w;
+        for ((o, &off), &l) in out
+            .iter_mut()
+            .zip(&space.offset[k][row.clone()])
+            .zip(&labels[k][row])
+        {
+            *o = (off + i32::from(l) - window[k]) as f32;
+        }
+    };
+    (0..h)
+        .into_par_iter()
+        .map_init(
+            || vec![0f32; 4 * w],
+            |buf, y| {
+                let (cur, next) = buf.split_at_mut(2 * w);
+                let mut smooth = 0f32;
+                let mut range = 0f32;
+                for k in 0..2 {
+                    let c = &mut cur[k * w..(k + 1) * w];
+                    flows(k, y, c);
+                    match edges {
+                        None => {
+                            for (a, b) in c.iter().zip(&c[1..]) {
+                                smooth += (alpha * (a - b).abs()).min(d);
+                            }
+                        }
+                        Some(e) => {
+                            for ((a, b), &t) in c.iter().zip(&c[1..]).zip(&e.right[y * w..]) {
+                                smooth += (alpha * (a - b).abs()).min(t);
+                            }
+                        }
+                    }
+                    range += c.iter().map(|f| f.abs()).sum::<f32>();
+                    if y + 1 < h {
+                        let n = &mut next[k * w..(k + 1) * w];
+                        flows(k, y + 1, n);
+                        match edges {
+                            None => {
+                                for (a, b) in c.iter().zip(n.iter()) {
+                                    smooth += (alpha * (a - b).abs()).min(d);
+                                }
+                            }
+                            Some(e) => {
+                                for ((a, b), &t) in c.iter().zip(n.iter()).zip(&e.down[y * w..]) {
+                                    smooth += (alpha * (a - b).abs()).min(t);
+                                }
+                            }
+                        }
+                    }
+                }
+                let mut data_sum = 0u64;
+                let row = y * w;
+                for (x, (&lu, &lv)) in labels[0][row..row + w]
+                    .iter()
+                    .zip(&labels[1][row..row + w])
+                    .enumerate()
+                {
+                    let p = row + x;
+                    data_sum +=
+                        u64::from(data.cost[p * per + usize::from(lv) * nu + usize::from(lu)]);
+                }
+                f64::from(data.scale) * data_sum as f64
+                    + f64::from(weights.gamma) * f64::from(range)
+                    + f64::from(smooth)
+            },
+        )
+        .sum()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Edges across a strong intensity step get the tight truncation; the
+    /// faint texture either side keeps most of `d`.
+    #[test]
+    fn contrast_truncation_is_tight_across_intensity_steps_only() {
+        let (w, h) = (16, 6);
+        let img = crate::vision::Image::from_fn(w, h, |x, y| {
+            0.01 * ((x * 7 + y * 3) % 3) as f32 + if x >= 8 { 1.0 } else { 0.0 }
+        });
+        let (d, tight) = (1000.0, 100.0);
+        let e = contrast_truncation(&img, d, tight, 2.0);
+        for y in 0..h {
+            for x in 0..w - 1 {
+                let t = e.right[y * w + x];
+                if x == 7 {
+                    assert!(t < tight + 0.01 * (d - tight), "step edge ({x}, {y}): {t}");
+                } else {
+                    assert!(t > tight + 0.3 * (d - tight), "edge ({x}, {y}): {t}");
+                }
+            }
+        }
+        assert!(e.down.iter().all(|&t| t > tight + 0.3 * (d - tight)));
+        // A flat image has no edge at all: `d` everywhere.
+        let flat = contrast_truncation(&crate::vision::Image::filled(w, h, 0.5), d, tight, 2.0);
+        assert!(flat.right.iter().chain(&flat.down).all(|&t| t == d));
+    }
+
+    #[test]
+    fn energy_matches_a_direct_sum() {
+        let (w, h) = (5, 4);
+        let space = LabelSpace {
+            width: w,
+            height: h,
+            window: [1, 1],
+            offset: [
+                (0..w * h).map(|p| (p % 3) as i32).collect(),
+                vec![-1; w * h],
+            ],
+        };
+        let cost: Vec<u16> = (0..w * h * 9).map(|i| (i * 13 % 50) as u16).collect();
+        let data = DataTerm {
+            cost,
+            scale: 2.0,
+            outside_cost: 0,
+        };
+        let labels = [
+            (0..w * h).map(|p| (p % 3) as u16).collect::<Vec<_>>(),
+            (0..w * h).map(|p| ((p / 2) % 3) as u16).collect::<Vec<_>>(),
+        ];
+        let wts = EnergyWeights {
+            alpha: 3.0,
+            d: 5.0,
+            gamma: 0.5,
+        };
+        let mut want = 0f64;
+        for y in 0..h {
+            for x in 0..w {
+                let p = y * w + x;
+                let (lu, lv) = (usize::from(labels[0][p]), usize::from(labels[1][p]));
+                want += 2.0 * f64::from(data.cost[p * 9 + lv * 3 + lu]);
+                for (k, lab) in labels.iter().enumerate() {
+                    let f = space.flow(k, p, usize::from(lab[p]));
+                    want += 0.5 * f64::from(f.abs());
+                    for q in [(x + 1 < w).then(|| p + 1), (y + 1 < h).then(|| p + w)]
+                        .into_iter()
+                        .flatten()
+                    {
+                        let g = space.flow(k, q, usize::from(lab[q]));
+                        want += (3.0 * f64::from((f - g).abs())).min(5.0);
+                    }
+                }
+            }
+        }
+        let got = energy(&data, &space, &labels, &wts);
+        assert!((got - want).abs() < 1e-3, "{got} vs {want}");
+    }
+
+    #[test]
+    fn pixels_without_a_data_term_cost_nothing_and_stay_out_of_the_median() {
+        use crate::vision::Image;
+        use crate::vision::dense::dense_sift::{DenseSiftParams, dense_sift};
+        let (w, h) = (20, 12);
+        let img = Image::from_vec(
+            w,
+            h,
+            // Flat (zero descriptors, matches among them cost 0) where the
+            // mask below leaves the data term out.
+            (0..w * h)
+                .map(|p| {
+                    if p % w < 8 {
+                        0.5
+                    } else {
+                        ((p * 7919 % 97) as f32 / 97.0).sin().abs()
+                    }
+                })
+                .collect(),
+        )
+        .unwrap();
+        let d = dense_sift(&img, &DenseSiftParams { cell_size: 1 });
+        let space = LabelSpace {
+            width: w,
+            height: h,
+            window: [3, 1],
+            offset: [vec![0; w * h], vec![0; w * h]],
+        };
+        let valid1: Vec<bool> = (0..w * h).map(|p| p % w >= 6).collect();
+        let all = DataTerm::compute(&d, &d, &space, None, None, None);
+        let some = DataTerm::compute(&d, &d, &space, Some(&valid1), None, None);
+        let per = space.states(0) * space.states(1);
+        // The median of the matches inside, from the valid pixels only.
+        let mut inside: Vec<u16> = Vec::new();
+        for p in (0..w * h).filter(|&p| valid1[p]) {
+            for lv in 0..space.states(1) {
+                for lu in 0..space.states(0) {
+                    let (x, y) = (
+                        (p % w) as i64 + lu as i64 - 3,
+                        (p / w) as i64 + lv as i64 - 1,
+                    );
+                    if x >= 0 && y >= 0 && x < w as i64 && y < h as i64 {
+                        inside.push(all.cost[p * per + lv * space.states(0) + lu]);
+                    }
+                }
+            }
+        }
+        inside.sort_unstable();
+        let median = inside[inside.len() / 2];
+        assert!(
+            some.outside_cost.abs_diff(median) <= 1,
+            "{} vs {median}",
+            some.outside_cost
+        );
+        assert!(
+            all.outside_cost + 1 < median,
+            "the test's flat band must pull the median"
+        );
+        for (p, &valid) in valid1.iter().enumerate() {
+            let c = &some.cost[p * per..(p + 1) * per];
+            if valid {
+                // Inside matches as without the mask; outside ones at the median.
+                for (l, (&a, &b)) in c.iter().zip(&all.cost[p * per..(p + 1) * per]).enumerate() {
+                    assert!(
+                        a == b || a == some.outside_cost,
+                        "pixel {p} label {l}: {a} vs {b}"
+                    );
+                }
+            } else {
+                assert!(c.iter().all(|&x| x == 0), "pixel {p} has a data term");
+            }
+        }
+    }
+}

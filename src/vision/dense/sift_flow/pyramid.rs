@@ -1,0 +1,194 @@
+//! Coarse-to-fine plumbing: halving images, descriptor images and masks, and
+//! carrying a flow field from one level to the next finer one.
+//!
+//! Halving blurs with the binomial kernel [1 4 6 4 1]/16 (σ ≈ 1) and keeps
+//! every second sample, so level `l + 1` is `⌈w/2⌉ × ⌈h/2⌉` and its pixel `i`
+//! sits at `2i` of level `l`.
+
+use rayon::prelude::*;
+
+use crate::vision::Image;
+use crate::vision::dense::dense_sift::{DESCRIPTOR_LEN, DescriptorImage};
+use crate::vision::filter::blur::BINOMIAL_5 as BINOMIAL;
+
+/// Size of the next coarser level.
+#[must_use]
+pub fn half_size(n: usize) -> usize {
+    n.div_ceil(2)
+}
+
+/// Index clamped into `0..n`.
+#[inline]
+fn clamp_index(i: isize, n: usize) -> usize {
+    i.clamp(0, n as isize - 1) as usize
+}
+
+/// Blurs and halves a multi-channel row-major `f32` buffer.
+fn halve_channels(src: &[f32], w: usize, h: usize, ch: usize) -> Vec<f32> {
+    let (w2, h2) = (half_size(w), half_size(h));
+    // Horizontal pass at the kept columns only.
+    let mut tmp = vec![0f32; w2 * h * ch];
+    tmp.par_chunks_mut(w2 * ch)
+        .enumerate()
+        .for_each(|(y, row)| {
+            let s = &src[y * w * ch..(y + 1) * w * ch];
+            for (x2, out) in row.chunks_exact_mut(ch).enumerate() {
+                for (t, &k) in BINOMIAL.iter().enumerate() {
+                    let sx = clamp_index(2 * x2 as isize + t as isize - 2, w);
+                    for (o, &v) in out.iter_mut().zip(&s[sx * ch..(sx + 1) * ch]) {
+                        *o += k * v;
+                    }
+                }
+            }
+        });
+    let mut out = vec![0f32; w2 * h2 * ch];
+    out.par_chunks_mut(w2 * ch)
+        .enumerate()
+        .for_each(|(y2, row)| {
+            for (t, &k) in BINOMIAL.iter().enumerate() {
+                let sy = clamp_index(2 * y2 as isize + t as isize - 2, h);
+                for (o, &v) in row.iter_mut().zip(&tmp[sy * w2 * ch..(sy + 1) * w2 * ch]) {
+                    *o += k * v;
+                }
+            }
+        });
+    out
+}
+
+/// The next coarser level of an intensity image.
+#[must_use]
+pub fn halve_image(img: &Image) -> Image {
+    let (w, h) = img.dimensions();
+    let data = halve_channels(img.data(), w, h, 1);
+    Image::from_vec(half_size(w), half_size(h), data).expect("halved buffer has the halved size")
+}
+
+/// The next coarser level of a descriptor image (the reference code's pyramid
+/// of SIFT images: every channel blurred and subsampled, not recomputed).
+#[must_use]
+pub fn halve_descriptors(d: &DescriptorImage) -> DescriptorImage {
+    let (w, h) = (d.width(), d.height());
+    let (w2, h2) = (half_size(w), half_size(h));
+    let mut out = DescriptorImage::zeros(w2, h2);
+    // Row by row, to keep the f32 copy small.
+    out.data_mut()
+        .par_chunks_mut(w2 * DESCRIPTOR_LEN)
+        .enumerate()
+        .for_each(|(y2, row)| {
+            let mut acc = vec![0f32; w2 * DESCRIPTOR_LEN];
+            for (ty, &ky) in BINOMIAL.iter().enumerate() {
+                let sy = clamp_index(2 * y2 as isize + ty as isize - 2, h);
+                let src = &d.data()[sy * w * DESCRIPTOR_LEN..(sy + 1) * w * DESCRIPTOR_LEN];
+                for (x2, a) in acc.chunks_exact_mut(DESCRIPTOR_LEN).enumerate() {
+                    for (tx, &kx) in BINOMIAL.iter().enumerate() {
+                        let sx = clamp_index(2 * x2 as isize + tx as isize - 2, w);
+                        let k = ky * kx;
+                        for (o, &v) in a
+                            .iter_mut()
+                            .zip(&src[sx * DESCRIPTOR_LEN..(sx + 1) * DESCRIPTOR_LEN])
+                        {
+                            *o += k * f32::from(v);
+                        }
+                    }
+                }
+            }
+            for (o, &a) in row.iter_mut().zip(&acc) {
+                // A convex combination of u8 values.
+                #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
+                let q = (a + 0.5).min(255.0) as u8;
+                *o = q;
+            }
+        });
+    out
+}
+
+/// The next coarser level of a validity mask: a coarse pixel is valid when
+/// the fine pixel it sits on and its right and lower neighbours are.
+#[must_use]
+pub fn halve_mask(mask: &[bool], w: usize, h: usize) -> Vec<bool> {
+    let (w2, h2) = (half_size(w), half_size(h));
+    let mut out = vec![false; w2 * h2];
+    for y2 in 0..h2 {
+        for x2 in 0..w2 {
+            let (x, y) = (2 * x2, 2 * y2);
+            let (x1, y1) = ((x + 1).min(w - 1), (y + 1).min(h - 1));
+            out[y2 * w2 + x2] =
+                mask[y * w + x] && mask[y * w + x1] && mask[y1 * w + x] && mask[y1 * w + x1];
+        }
+    }
+    out
+}
+
+/// Carries the flow component `coarse` (`wc × hc`, coarse pixels) to the
+/// finer grid `wf × hf`: bilinear interpolation at `x / 2`, times two, rounded
+/// to the integer offsets of the finer level's label windows.
+#[must_use]
+pub fn upsample_offsets(coarse: &[f32], wc: usize, hc: usize, wf: usize, hf: usize) -> Vec<i32> {
+    let mut out = vec![0i32; wf * hf];
+    out.par_chunks_mut(wf).enumerate().for_each(|(y, row)| {
+        let fy = (y as f32 / 2.0).min((hc - 1) as f32);
+        let y0 = fy.floor() as usize;
+        let y1 = (y0 + 1).min(hc - 1);
+        let ty = fy - y0 as f32;
+        for (x, o) in row.iter_mut().enumerate() {
+            let fx = (x as f32 / 2.0).min((wc - 1) as f32);
+            let x0 = fx.floor() as usize;
+            let x1 = (x0 + 1).min(wc - 1);
+            let tx = fx - x0 as f32;
+            let top = coarse[y0 * wc + x0] * (1.0 - tx) + coarse[y0 * wc + x1] * tx;
+            let bottom = coarse[y1 * wc + x0] * (1.0 - tx) + coarse[y1 * wc + x1] * tx;
+            // Flows are bounded by the image size.
+            #[allow(clippy::cast_possible_truncation)]
+            let v = (2.0 * (top * (1.0 - ty) + bottom * ty)).round() as i32;
+            *o = v;
+        }
+    });
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn halving_keeps_constants_and_sizes() {
+        let img = Image::filled(7, 5, 0.25);
+        let h = halve_image(&img);
+        assert_eq!(h.dimensions(), (4, 3));
+        assert!(h.data().iter().all(|&v| (v - 0.25).abs() < 1e-6));
+    }
+
+    #[test]
+    fn halving_descriptors_matches_halving_each_channel() {
+        let (w, h) = (9, 6);
+        let mut d = DescriptorImage::zeros(w, h);
+        for (i, v) in d.data_mut().iter_mut().enumerate() {
+            *v = ((i * 31) % 251) as u8;
+        }
+        let fast = halve_descriptors(&d);
+        for c in [0, 17, 127] {
+            let plane: Vec<f32> = (0..w * h)
+                .map(|p| f32::from(d.data()[p * DESCRIPTOR_LEN + c]))
+                .collect();
+            let halved = halve_channels(&plane, w, h, 1);
+            for (p, &v) in halved.iter().enumerate() {
+                let got = fast.data()[p * DESCRIPTOR_LEN + c];
+                assert!(
+                    (f32::from(got) - v).abs() <= 0.5 + 1e-3,
+                    "channel {c} pixel {p}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn upsampling_doubles_a_linear_flow() {
+        // Coarse flow 1 + 0.5 x: at fine x = 2i the flow is 2 (1 + 0.5 i) = 2 + x / 2.
+        let (wc, hc) = (5, 3);
+        let coarse: Vec<f32> = (0..wc * hc).map(|p| 1.0 + 0.5 * (p % wc) as f32).collect();
+        let fine = upsample_offsets(&coarse, wc, hc, 9, 5);
+        for (x, &f) in fine.iter().take(9).enumerate() {
+            assert_eq!(f, (2.0 + x as f32 / 2.0).round() as i32);
+        }
+    }
+}

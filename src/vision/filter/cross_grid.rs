@@ -1,0 +1,415 @@
+//! The cross (joint) bilateral grid: a window whose weights follow a guide
+//! image, for the edge-aware sums of the flow refinement.
+
+use rayon::prelude::*;
+
+use super::blur::BINOMIAL_5 as XB_KERNEL;
+use super::blur::blur_plane;
+
+/// Cells of padding on every side of the cross-bilateral grid: the trilinear
+/// splat reaches one cell beyond a pixel's, the binomial blur two more.
+const XB_PAD: usize = 2;
+/// Range cells at most; a wider intensity range coarsens the range sampling.
+const XB_MAX_RANGE_CELLS: usize = 96;
+/// Variance, in cells², of the whole grid filter along one axis: trilinear
+/// splat (1/6), binomial blur (1), trilinear slice (1/6).
+const XB_CELL_VARIANCE: f32 = 4.0 / 3.0;
+/// σ (pixels) of the Gaussian pre-smoothing of the key image.
+const XB_KEY_PRESMOOTH: f32 = 1.0;
+
+/// Joint (cross) bilateral aggregation keyed on one image (Paris & Durand's
+/// bilateral grid, with a guide image as in Petschnigg et al. 2004 and
+/// Eisemann & Durand 2004): the weight of pixel `q` in the sum at `p` falls
+/// with their distance (σ `window_sigma`) and with the difference of the
+/// key's values at `p` and `q` (σ `range_sigma`), the adaptive support
+/// weights of Yoon & Kweon (2006), so a window does not straddle an edge of
+/// the key image. Sums are normalised by the same weights of all pixels (the
+/// Gaussian window's normalisation), so invalid pixels count as zeros.
+///
+/// Values are splatted trilinearly at `(x/c, y/c, key/c_r)`, the grid blurred
+/// by the binomial kernel along each axis and sliced trilinearly; the cell
+/// sizes `c = σ/√(4/3)` give the filter the asked variances. Grid rows are
+/// splatted by gathering their pixel rows, in parallel and in a fixed order:
+/// the result does not depend on the thread count.
+pub(crate) struct CrossGrid {
+    w: usize,
+    h: usize,
+    nx: usize,
+    ny: usize,
+    nz: usize,
+    /// Spatial cell size, pixels.
+    cell: f32,
+    /// Range coordinate of every pixel, cells (padding included).
+    fz: Vec<f32>,
+    /// The filter's weight sum at every pixel (the normaliser).
+    norm: Vec<f32>,
+}
+
+impl CrossGrid {
+    /// The grid of `key` (one value per pixel, `w × h`) for a window of
+    /// `sigma_s` pixels and a range σ of `sigma_r` key units.
+    #[cfg(test)]
+    pub(crate) fn new(key: &[f32], w: usize, h: usize, sigma_s: f32, sigma_r: f32) -> Self {
+        let mut ones = vec![[1f32; 1]; w * h];
+        Self::with_sums(key, w, h, sigma_s, sigma_r, &mut ones)
+    }
+
+    /// The grid of [`CrossGrid::new`], and in `values` their un-normalised
+    /// sums through it: the last channel must hold ones, whose sums become
+    /// the normaliser, so one pass of the filter serves both (channels do not
+    /// mix: each one's sums are those of a pass of its own).
+    pub(crate) fn with_sums<const C: usize>(
+        key: &[f32],
+        w: usize,
+        h: usize,
+        sigma_s: f32,
+        sigma_r: f32,
+        values: &mut [[f32; C]],
+    ) -> Self {
+        let scale = XB_CELL_VARIANCE.sqrt();
+        let cell = (sigma_s / scale).max(0.5);
+        let (lo, hi) = key
+            .iter()
+            .fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), &k| {
+                (lo.min(k), hi.max(k))
+            });
+        let (lo, hi) = if lo <= hi { (lo, hi) } else { (0.0, 0.0) };
+        let mut cell_r = (sigma_r / scale).max(1e-6);
+        if (hi - lo) / cell_r > (XB_MAX_RANGE_CELLS - 2 - 2 * XB_PAD) as f32 {
+            cell_r = (hi - lo) / (XB_MAX_RANGE_CELLS - 2 - 2 * XB_PAD) as f32;
+        }
+        let cells = |extent: f32, c: f32| (extent / c).floor() as usize + 2 + 2 * XB_PAD;
+        let fz: Vec<f32> = key
+            .iter()
+            .map(|&k| (k - lo) / cell_r + XB_PAD as f32)
+            .collect();
+        let mut g = Self {
+            w,
+            h,
+            nx: cells((w - 1) as f32, cell),
+            ny: cells((h - 1) as f32, cell),
+            nz: cells(hi - lo, cell_r),
+            cell,
+            fz,
+            norm: Vec::new(),
+        };
+        let (mut ga, mut gb) = (Vec::new(), Vec::new());
+        g.sums(values, &mut ga, &mut gb, None);
+        g.norm = values.iter().map(|v| v[C - 1]).collect();
+        g
+    }
+
+    /// Replaces every pixel of `buf` by its normalised weighted sum (only
+    /// those `wanted` marks, the others by zeros; `None`: all); `grid` and
+    /// `scratch` are reused buffers (resized as needed).
+    pub(crate) fn aggregate<const C: usize>(
+        &self,
+        buf: &mut [[f32; C]],
+        grid: &mut Vec<[f32; C]>,
+        scratch: &mut Vec<[f32; C]>,
+        wanted: Option<&[bool]>,
+    ) {
+        self.sums(buf, grid, scratch, wanted);
+        buf.par_iter_mut().zip(&self.norm).for_each(|(v, &n)| {
+            let inv = if n > 1e-12 { 1.0 / n } else { 0.0 };
+            for c in v.iter_mut() {
+                *c *= inv;
+            }
+        });
+    }
+
+    /// Un-normalised sums: splat, blur, slice (at the pixels `wanted` marks,
+    /// zeros elsewhere; `None`: all).
+    fn sums<const C: usize>(
+        &self,
+        buf: &mut [[f32; C]],
+        grid: &mut Vec<[f32; C]>,
+        scratch: &mut Vec<[f32; C]>,
+        wanted: Option<&[bool]>,
+    ) {
+        let (w, h, nx, ny, nz) = (self.w, self.h, self.nx, self.ny, self.nz);
+        let slab = nx * nz;
+        grid.clear();
+        grid.resize(slab * ny, [0f32; C]);
+        scratch.clear();
+        scratch.resize(slab * ny, [0f32; C]);
+        let cell = self.cell;
+        let pad = XB_PAD as f32;
+        // Splat: every grid row gathers the pixel rows within one cell of it.
+        let src: &[[f32; C]] = buf;
+        grid.par_chunks_mut(slab).enumerate().for_each(|(gy, s)| {
+            let y_lo = ((gy as f32 - 1.0 - pad) * cell).floor().max(0.0) as usize;
+            let y_hi = (((gy as f32 + 1.0 - pad) * cell).ceil().max(0.0) as usize).min(h);
+            for y in y_lo..y_hi {
+                let dy = y as f32 / cell + pad - gy as f32;
+                if dy.abs() >= 1.0 {
+                    continue;
+                }
+                let wy = 1.0 - dy.abs();
+                for x in 0..w {
+                    let p = y * w + x;
+                    let v = &src[p];
+                    if v.iter().all(|&b| b == 0.0) {
+                        // Adds nothing (the refinement's products are zero
+                        // at unusable pixels: the fill of a rotated canvas).
+                        continue;
+                    }
+                    let fx = x as f32 / cell + pad;
+                    let fz = self.fz[p];
+                    let (x0, z0) = (fx as usize, fz as usize); // positive: truncation is the floor
+                    let (tx, tz) = (fx - x0 as f32, fz - z0 as f32);
+                    for (dz, wz) in [(0, 1.0 - tz), (1, tz)] {
+                        for (dx, wx) in [(0, 1.0 - tx), (1, tx)] {
+                            let k = wy * wz * wx;
+                            let cellv = &mut s[(z0 + dz) * nx + x0 + dx];
+                            for (a, &b) in cellv.iter_mut().zip(v) {
+                                *a += k * b;
+                            }
+                        }
+                    }
+                }
+            }
+        });
+        // Blur along x, z (inside every slab, i.e. grid row) and y. The data
+        // sit at least `XB_PAD` cells from every border and the slice reads
+        // only those interior cells: each pass computes the interior of its
+        // axis, where every tap is inside the grid (no bounds tests).
+        let (px, pz) = (XB_PAD..nx - XB_PAD, XB_PAD..nz - XB_PAD);
+        scratch
+            .par_chunks_mut(slab)
+            .zip(grid.par_chunks_mut(slab))
+            .for_each(|(out, s)| {
+                // x: s → out
+                for z in 0..nz {
+                    let (si, oi) = (&s[z * nx..(z + 1) * nx], &mut out[z * nx..(z + 1) * nx]);
+                    for x in px.clone() {
+                        let mut acc = [0f32; C];
+                        for (t, &k) in XB_KERNEL.iter().enumerate() {
+                            for (a, &b) in acc.iter_mut().zip(&si[x + t - 2]) {
+                                *a += k * b;
+                            }
+                        }
+                        oi[x] = acc;
+                    }
+                }
+                // z: out → s
+                for z in pz.clone() {
+                    let row = &mut s[z * nx..(z + 1) * nx];
+                    row.fill([0f32; C]);
+                    for (t, &k) in XB_KERNEL.iter().enumerate() {
+                        let j = z + t - 2;
+                        let src = &out[j * nx..(j + 1) * nx];
+                        for (o, v) in row[px.clone()].iter_mut().zip(&src[px.clone()]) {
+                            for (a, &b) in o.iter_mut().zip(v) {
+                                *a += k * b;
+                            }
+                        }
+                    }
+                }
+            });
+        // y: grid → scratch.
+        let g: &[[f32; C]] = grid;
+        scratch
+            .par_chunks_mut(slab)
+            .enumerate()
+            .for_each(|(gy, out)| {
+                if gy < XB_PAD || gy + XB_PAD >= ny {
+                    return;
+                }
+                out.fill([0f32; C]);
+                for (t, &k) in XB_KERNEL.iter().enumerate() {
+                    let j = gy + t - 2;
+                    for (o, v) in out.iter_mut().zip(&g[j * slab..(j + 1) * slab]) {
+                        for (a, &b) in o.iter_mut().zip(v) {
+                            *a += k * b;
+                        }
+                    }
+                }
+            });
+        // Slice: trilinear at (x, y, key).
+        let s: &[[f32; C]] = scratch;
+        buf.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+            let fy = y as f32 / cell + pad;
+            let y0 = fy.floor() as usize;
+            let ty = fy - y0 as f32;
+            for (x, o) in row.iter_mut().enumerate() {
+                let p = y * w + x;
+                if wanted.is_some_and(|m| !m[p]) {
+                    *o = [0f32; C];
+                    continue;
+                }
+                let fx = x as f32 / cell + pad;
+                let fz = self.fz[p];
+                let (x0, z0) = (fx as usize, fz as usize); // positive: truncation is the floor
+                let (tx, tz) = (fx - x0 as f32, fz - z0 as f32);
+                let mut acc = [0f32; C];
+                for (dy, wy) in [(0, 1.0 - ty), (1, ty)] {
+                    for (dz, wz) in [(0, 1.0 - tz), (1, tz)] {
+                        for (dx, wx) in [(0, 1.0 - tx), (1, tx)] {
+                            let k = wy * wz * wx;
+                            let v = &s[(y0 + dy) * slab + (z0 + dz) * nx + x0 + dx];
+                            for (a, &b) in acc.iter_mut().zip(v) {
+                                *a += k * b;
+                            }
+                        }
+                    }
+                }
+                *o = acc;
+            }
+        });
+    }
+}
+
+/// The key of the cross-bilateral aggregation: the first image lightly
+/// smoothed, in units of its standard deviation (sequential sums: the same
+/// figure whatever the thread count).
+pub(crate) fn range_key(img: &[f32], w: usize, h: usize) -> Vec<f32> {
+    let finite: Vec<f32> = img
+        .iter()
+        .map(|&v| if v.is_finite() { v } else { 0.0 })
+        .collect();
+    let s = blur_plane(&finite, w, h, XB_KEY_PRESMOOTH);
+    let n = s.len().max(1) as f64;
+    let mean = s.iter().map(|&v| f64::from(v)).sum::<f64>() / n;
+    let var = s
+        .iter()
+        .map(|&v| (f64::from(v) - mean).powi(2))
+        .sum::<f64>()
+        / n;
+    let inv = if var > 0.0 { 1.0 / var.sqrt() } else { 1.0 };
+    s.iter()
+        .map(|&v| ((f64::from(v) - mean) * inv) as f32)
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The filter the cross-bilateral grid computes, written as a sum over
+    /// pixel pairs: `out(p) = Σ_q K(p, q) f_q / Σ_q K(p, q)` with
+    /// `K(p, q) = Σ_c Σ_c' tri(p, c) · g(c − c') · tri(q, c')` over the grid
+    /// corners `c` around `p` (slice) and `c'` around `q` (splat), `tri` the
+    /// trilinear weights and `g` the separable binomial kernel.
+    fn naive_cross(values: &[[f32; 2]], key: &[f32], w: usize, g: &CrossGrid) -> Vec<[f32; 2]> {
+        let pad = XB_PAD as f32;
+        let corners = |p: usize| -> Vec<([i64; 3], f32)> {
+            let f = [
+                (p % w) as f32 / g.cell + pad,
+                (p / w) as f32 / g.cell + pad,
+                g.fz[p],
+            ];
+            let mut out = Vec::new();
+            for d in 0..8 {
+                let mut c = [0i64; 3];
+                let mut wt = 1f32;
+                for (k, fk) in f.iter().enumerate() {
+                    let base = fk.floor();
+                    let t = fk - base;
+                    let up = (d >> k) & 1 == 1;
+                    c[k] = base as i64 + i64::from(up);
+                    wt *= if up { t } else { 1.0 - t };
+                }
+                out.push((c, wt));
+            }
+            out
+        };
+        let binom = |k: i64| {
+            if k.abs() <= 2 {
+                XB_KERNEL[(k + 2) as usize]
+            } else {
+                0.0
+            }
+        };
+        let n = key.len();
+        (0..n)
+            .map(|p| {
+                let cp = corners(p);
+                let (mut num, mut den) = ([0f64; 2], 0f64);
+                for (q, vq) in values.iter().enumerate() {
+                    let mut k = 0f64;
+                    for (c, wc) in &cp {
+                        for (d, wd) in corners(q) {
+                            let kern = binom(c[0] - d[0]) * binom(c[1] - d[1]) * binom(c[2] - d[2]);
+                            k += f64::from(wc * wd * kern);
+                        }
+                    }
+                    num[0] += k * f64::from(vq[0]);
+                    num[1] += k * f64::from(vq[1]);
+                    den += k;
+                }
+                [(num[0] / den) as f32, (num[1] / den) as f32]
+            })
+            .collect()
+    }
+
+    #[test]
+    fn cross_bilateral_grid_matches_the_pairwise_definition() {
+        let (w, h) = (15, 11);
+        // A key with a bright region (an edge the sums must respect) and a ramp.
+        let key: Vec<f32> = (0..w * h)
+            .map(|p| {
+                let (x, y) = (p % w, p / w);
+                0.1 * y as f32
+                    + if x > 8 {
+                        3.0
+                    } else {
+                        (x as f32 * 0.9).sin() * 0.4
+                    }
+            })
+            .collect();
+        let values: Vec<[f32; 2]> = (0..w * h)
+            .map(|p| [((p * 37) % 17) as f32, if p % 5 == 0 { 0.0 } else { 1.0 }])
+            .collect();
+        for (sigma_s, sigma_r) in [(2.0f32, 0.7f32), (3.5, 2.5)] {
+            let g = CrossGrid::new(&key, w, h, sigma_s, sigma_r);
+            let mut fast = values.clone();
+            let (mut ga, mut gb) = (Vec::new(), Vec::new());
+            g.aggregate(&mut fast, &mut ga, &mut gb, None);
+            let slow = naive_cross(&values, &key, w, &g);
+            for (a, b) in fast.iter().zip(&slow) {
+                for c in 0..2 {
+                    assert!(
+                        (a[c] - b[c]).abs() < 1e-3 * (1.0 + b[c].abs()),
+                        "σs {sigma_s} σr {sigma_r}: {a:?} vs {b:?}"
+                    );
+                }
+            }
+            // Only the wanted pixels: the same sums there, zeros elsewhere.
+            let wanted: Vec<bool> = (0..w * h).map(|p| p % 3 != 0).collect();
+            let mut some = values.clone();
+            g.aggregate(&mut some, &mut ga, &mut gb, Some(&wanted));
+            for ((a, b), &keep) in some.iter().zip(&fast).zip(&wanted) {
+                if keep {
+                    assert_eq!(a, b);
+                } else {
+                    assert_eq!(a, &[0.0; 2]);
+                }
+            }
+        }
+    }
+
+    /// Sums taken while the grid is built are those of a separate pass, to
+    /// the bit, and the ones channel gives the same normaliser.
+    #[test]
+    fn sums_taken_with_the_grid_equal_a_separate_pass() {
+        let (w, h) = (23, 17);
+        let key: Vec<f32> = (0..w * h).map(|p| ((p * 13) % 7) as f32 * 0.3).collect();
+        let vals: Vec<f32> = (0..w * h).map(|p| ((p * 37) % 17) as f32 - 8.0).collect();
+        let g = CrossGrid::new(&key, w, h, 3.0, 0.5);
+        let mut separate: Vec<[f32; 1]> = vals.iter().map(|&v| [v]).collect();
+        let (mut ga, mut gb) = (Vec::new(), Vec::new());
+        g.sums(&mut separate, &mut ga, &mut gb, None);
+        let mut joint: Vec<[f32; 2]> = vals.iter().map(|&v| [v, 1.0]).collect();
+        let gj = CrossGrid::with_sums(&key, w, h, 3.0, 0.5, &mut joint);
+        assert_eq!(gj.norm, g.norm);
+        for (j, s) in joint.iter().zip(&separate) {
+            assert_eq!(j[0].to_bits(), s[0].to_bits());
+        }
+        let moved = joint
+            .iter()
+            .zip(&vals)
+            .filter(|(j, v)| (j[0] / j[1] - **v).abs() > 0.1);
+        assert!(moved.count() > w * h / 2, "the sums smooth");
+    }
+}
