@@ -112,3 +112,57 @@ fn sim_zeiss_runs_end_to_end_over_remcon32_and_the_store_folder() {
     assert_eq!(stored["sem_serial"], "sdsem-sim");
     assert!(stored["sem_version"].starts_with("sdsem-sim"), "{stored:?}");
 }
+
+#[test]
+fn sim_sharksem_runs_end_to_end_over_one_sharksem_session() {
+    let dir = tempfile::tempdir().unwrap();
+    let record = acquire("config/sim-sharksem.toml", dir.path(), &[]);
+
+    let summary = read_summary(&record).unwrap();
+    assert_eq!(
+        summary.outcome.as_ref().unwrap().status,
+        RunStatus::Succeeded
+    );
+    assert_eq!(summary.frames_by_role.get("left"), Some(&1));
+    assert_eq!(summary.frames_by_role.get("right"), Some(&1));
+    assert!(summary.frames_by_role.get("tracking").copied().unwrap_or(0) >= 8);
+
+    // Every SharkSEM function decoded by name with its arguments, answered ones timed.
+    let io = stage_io(&record);
+    let commands: Vec<&str> = io.iter().filter_map(|e| e.command.as_deref()).collect();
+    for name in [
+        "TcpGetVersion",
+        "StgGetPosition",
+        "StgMoveTo(",
+        "ScScanXY(",
+        "ScStopScan",
+    ] {
+        assert!(
+            commands.iter().any(|c| c.starts_with(name)),
+            "{name} not in {commands:?}"
+        );
+    }
+    let timed = io
+        .iter()
+        .filter(|e| e.outcome == IoOutcome::Replied)
+        .inspect(|e| assert!(e.rtt_ns.is_some(), "{e:?}"))
+        .count();
+    assert!(timed > 20, "{timed} answered exchanges");
+    assert!(
+        !io.iter().any(|e| e.outcome == IoOutcome::Timeout),
+        "a timeout"
+    );
+
+    let infos = frame_infos(&record);
+    assert_eq!(infos.len() as u64, summary.message_count(topics::SEM_FRAME));
+    let ids = summary
+        .metadata_record(topics::METADATA_INSTRUMENTS)
+        .unwrap();
+    assert_eq!(ids["stage_protocol"], "sharksem");
+    assert_eq!(ids["sem_protocol"], "sharksem");
+    assert_eq!(ids["sem_vendor"], "TESCAN");
+    assert!(
+        !ids["sem_version"].is_empty() && !ids["sem_serial"].is_empty(),
+        "{ids:?}"
+    );
+}

@@ -81,6 +81,35 @@ fn a_pi_stage_and_the_sdsem_link_are_identified() {
     );
 }
 
+#[test]
+fn a_tescan_sem_is_identified_over_one_sharksem_session() {
+    let report = ok_json(&probe(&["--config", "config/sim-sharksem.toml", "--json"]));
+    let stage = &report["stage"];
+    assert_eq!(stage["protocol"], "sharksem");
+    assert_eq!(stage["identity"]["vendor"], "TESCAN");
+    assert!(
+        stage["identity"]["raw"]
+            .as_str()
+            .unwrap()
+            .contains("SharkSEM 2.0.25"),
+        "{stage}"
+    );
+    // 2.0.22+ reports its limits (StgGetLimits): they are shown and narrow ours.
+    let tilt = &stage["limits"][2];
+    assert!(tilt["instrument"].is_array(), "{tilt}");
+    assert_eq!(fact(&stage["facts"], "StgIsCalibrated"), "1 (yes)");
+    assert_eq!(fact(&stage["facts"], "StgIsBusy"), "0 (idle)");
+    let imaging = &report["imaging"];
+    assert_eq!(imaging["protocol"], "sharksem");
+    assert_eq!(imaging["identity"]["vendor"], "TESCAN");
+    assert!(!fact(&imaging["facts"], "DtEnumDetectors").is_empty());
+    assert!(
+        fact(&imaging["facts"], "imaging.detector").starts_with("a run selects "),
+        "{imaging}"
+    );
+    assert!(fact(&imaging["facts"], "GetViewField").contains(" mm: pixel "));
+}
+
 /// A Zeiss micrograph as SmartSEM stores it (tag 34118), at 12° tilt.
 fn stored_zeiss(dir: &Path, name: &str) {
     let (w, h) = (64, 48);
@@ -176,12 +205,14 @@ fn a_wrong_port_is_one_line_with_cause_and_remedy() {
         .unwrap()
         .port();
     let endpoint = format!("tcp://127.0.0.1:{port}");
-    for protocol in ["pi-gcs", "remcon32"] {
+    for (protocol, remedy) in [
+        ("pi-gcs", "is the port right?"),
+        ("remcon32", "is the port right?"),
+        ("sharksem", "SharkSEM remote control enabled on that port"),
+    ] {
         let line = one_error_line(&probe(&["--config", &rig(dir.path(), protocol, &endpoint)]));
         assert!(
-            line.contains(&format!("cannot open the stage controller at {endpoint}"))
-                && line.contains("refused")
-                && line.contains("is the port right?"),
+            line.contains(&endpoint) && line.contains("refused") && line.contains(remedy),
             "{protocol}: {line}"
         );
     }
@@ -210,4 +241,13 @@ fn a_silent_server_is_one_line_with_cause_and_remedy() {
             "{protocol}: {line}"
         );
     }
+    // SharkSEM answers nothing it does not accept, so silence is named as such.
+    let line = one_error_line(&probe(&[
+        "--config",
+        &rig(dir.path(), "sharksem", &endpoint),
+    ]));
+    assert!(
+        line.contains(&endpoint) && line.contains("did not answer") && line.contains("check"),
+        "sharksem: {line}"
+    );
 }
