@@ -138,7 +138,12 @@ pub fn io_tally(entries: &[StageIo]) -> IoTally {
         }
         if let Some(command) = &e.command {
             t.commands += 1;
-            let mnemonic = command.split_whitespace().next().unwrap_or("").to_owned();
+            // `POS? T` → `POS?`; `StgMoveTo(x=0, …)` → `StgMoveTo`.
+            let mnemonic = command
+                .split(|c: char| c.is_whitespace() || c == '(')
+                .next()
+                .unwrap_or("")
+                .to_owned();
             *t.by_command.entry(mnemonic).or_insert(0) += 1;
         }
         match e.outcome {
