@@ -138,7 +138,12 @@ pub fn io_tally(entries: &[StageIo]) -> IoTally {
         }
         if let Some(command) = &e.command {
             t.commands += 1;
-            let mnemonic = command.split_whitespace().next().unwrap_or("").to_owned();
+            // `POS? T` → `POS?`; `StgMoveTo(x=0, …)` → `StgMoveTo`.
+            let mnemonic = command
+                .split(|c: char| c.is_whitespace() || c == '(')
+                .next()
+                .unwrap_or("")
+                .to_owned();
             *t.by_command.entry(mnemonic).or_insert(0) += 1;
         }
         match e.outcome {
@@ -260,7 +265,11 @@ pub fn ideal_series_time(
     }
     t.scan_s = frames
         .iter()
-        .map(|f| f64::from(f.width) * f64::from(f.height) * f.dwell_us * 1e-6)
+        .map(|f| {
+            // A stored micrograph brought down to the frame size was scanned at full size.
+            let d = f64::from(f.file.as_ref().map_or(1, |file| file.downsampled));
+            f64::from(f.width) * d * f64::from(f.height) * d * f.dwell_us * 1e-6
+        })
         .sum();
     t
 }
@@ -590,6 +599,194 @@ async fn real_time_figures(work: &Path, quick: bool) -> anyhow::Result<RealTimeF
     })
 }
 
+/// Real time on the simulator of any configuration (`sdsem eval acquisition --config FILE`):
+/// its dialects as configured, the simulator at time scale 1.
+#[derive(Debug, Clone, Serialize)]
+pub struct DialectFigures {
+    pub config: PathBuf,
+    pub stage_protocol: String,
+    pub imaging_protocol: String,
+    pub real_time: RealTimeFigures,
+    /// Moves started (re-issues included), and those with a target outside the configured
+    /// limits (target 0: the safety layer refuses them before anything is sent).
+    pub moves: usize,
+    pub moves_outside_limits: usize,
+    pub moves_reissued: usize,
+    pub io: IoTally,
+}
+
+/// Runs `path`'s configuration on its own simulator (started by the run, as `sdsem acquire`
+/// does) at time scale 1 (0.1 with `quick`): the series' wall time against motion + settle + scan.
+async fn dialect_figures(work: &Path, path: &Path, quick: bool) -> anyhow::Result<DialectFigures> {
+    let time_scale = if quick { 0.1 } else { 1.0 };
+    let mut config = Config::load_with_env(
+        Some(path),
+        &[
+            format!("run.output_dir={}", work.join("runs").display()),
+            "run.reconstruct=false".into(),
+            "run.name=real-time".into(),
+        ],
+        std::iter::empty(),
+    )?;
+    // Waits that a faster simulator shortened are a real instrument's again.
+    let defaults = crate::stage::StageConfig::default();
+    config.stage.poll_interval_s = defaults.poll_interval_s * time_scale;
+    config.stage.moving_flag_delay_s = defaults.moving_flag_delay_s * time_scale;
+    let sim = config
+        .simulator
+        .as_mut()
+        .with_context(|| format!("{} has no [simulator] section", path.display()))?;
+    sim.time_scale = time_scale;
+    if let Some(folder) = sim.folder.as_mut() {
+        folder.dir = work.join("store");
+    }
+    let physics = StagePhysics {
+        tilt_speed_deg_s: sim.stage.tilt_speed_deg_s,
+        xy_speed_um_s: sim.stage.xy_speed_um_s,
+        settle_s: sim.stage.settle_s,
+    };
+    let name = RunName::new(&config.run.name)?;
+    let run_dir = RunDir::create(&config.run.output_dir, &name, std::time::SystemTime::now())?;
+    let (load_before, cpu_before) = (load_average(), process_cpu_s());
+    let started = Instant::now();
+    let hooks = RunHooks {
+        logs: crate::cli::logging::record_logs(),
+        ..RunHooks::detached()
+    };
+    let report = run_job(&config, None, &run_dir, hooks).await?;
+    let job_wall_s = started.elapsed().as_secs_f64();
+    let cpu_s = process_cpu_s().zip(cpu_before).map(|(a, b)| a - b);
+    let record = run_dir.join(files::RECORD);
+    let series = report
+        .series
+        .as_ref()
+        .with_context(|| format!("the series did not run: {:?}", report.outcome))?;
+    let states: Vec<StageState> = record::read_json(&record, topics::STAGE_STATE)?
+        .items
+        .iter()
+        .map(record::RecordedJson::parse)
+        .collect::<Result<_, _>>()?;
+    let frames: Vec<FrameInfo> = record::read_json(&record, topics::SEM_FRAME_INFO)?
+        .items
+        .iter()
+        .map(record::RecordedJson::parse)
+        .collect::<Result<_, _>>()?;
+    let moves = moves_from_states(&states);
+    let moves_outside_limits = moves
+        .iter()
+        .filter(|m| {
+            m.axes.iter().any(|&(axis, _, to)| {
+                let (lo, hi) = config.stage.limits(axis);
+                !(lo..=hi).contains(&to)
+            })
+        })
+        .count();
+    let moves_reissued = states
+        .iter()
+        .filter(|s| s.event == StageEvent::MoveReissued)
+        .count();
+    let ideal = ideal_series_time(&moves, &frames, &physics);
+    let ideal_wall_s = ideal.total_s() * time_scale;
+    Ok(DialectFigures {
+        config: path.to_owned(),
+        stage_protocol: config.stage.protocol.as_str().to_owned(),
+        imaging_protocol: config.imaging.protocol.as_str().to_owned(),
+        real_time: RealTimeFigures {
+            time_scale,
+            physics,
+            poll_interval_s: config.stage.poll_interval_s,
+            outcome: report.outcome.clone(),
+            series_wall_s: series.timings.total_s,
+            job_wall_s,
+            ideal,
+            ideal_wall_s,
+            overhead: overhead(series.timings.total_s, ideal_wall_s),
+            timings: series.timings.clone(),
+            cpu_s,
+            load_before,
+            load_after: load_average(),
+        },
+        moves: moves.len(),
+        moves_outside_limits,
+        moves_reissued,
+        io: io_tally(&read_io(&record)?),
+    })
+}
+
+/// `sdsem eval acquisition --config FILE`: prints the real-time figures of that configuration's
+/// dialects; `Ok(false)` when a target is missed (overhead ≤ 10 % at time scale 1, no move
+/// outside the limits, the run completed).
+///
+/// # Errors
+/// When the configuration does not load, the simulator cannot start or the record cannot be read.
+pub fn run_config(opts: &EvalOptions, path: &Path) -> anyhow::Result<bool> {
+    let work = std::env::temp_dir().join(format!("sdsem-eval-dialect-{}", std::process::id()));
+    std::fs::create_dir_all(&work).with_context(|| format!("cannot create {}", work.display()))?;
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .context("cannot start the async runtime")?;
+    let figures = runtime.block_on(dialect_figures(&work, path, opts.quick));
+    let _ = std::fs::remove_dir_all(&work);
+    let f = figures?;
+    let rt = &f.real_time;
+    let met = rt.outcome.is_completed()
+        && f.moves_outside_limits == 0
+        && (rt.time_scale != 1.0 || rt.overhead <= targets::OVERHEAD);
+    if opts.json {
+        println!("{}", serde_json::to_string_pretty(&f)?);
+        return Ok(met);
+    }
+    use std::fmt::Write as _;
+    let mut o = String::new();
+    let _ = writeln!(
+        o,
+        "sdsem eval acquisition --config {}: stage {}, imaging {}, time scale {} (tilt {}°/s, \
+         X/Y {} µm/s, settle {} s, poll every {:.3} s)",
+        f.config.display(),
+        f.stage_protocol,
+        f.imaging_protocol,
+        rt.time_scale,
+        rt.physics.tilt_speed_deg_s,
+        rt.physics.xy_speed_um_s,
+        rt.physics.settle_s,
+        rt.poll_interval_s
+    );
+    format_real_time(&mut o, rt);
+    let io = &f.io;
+    let by: Vec<String> = io
+        .by_command
+        .iter()
+        .map(|(k, v)| format!("{k} {v}"))
+        .collect();
+    let _ = writeln!(
+        o,
+        "  /stage/io           {} commands ({}); {} answered, round trip median {:.2} ms, max \
+         {:.2} ms; {} timeouts, {} garbled, {} strays",
+        io.commands,
+        by.join(", "),
+        io.replied,
+        io.rtt_median_ms.unwrap_or(f64::NAN),
+        io.rtt_max_ms.unwrap_or(f64::NAN),
+        io.timeouts,
+        io.garbled,
+        io.strays
+    );
+    let _ = writeln!(
+        o,
+        "  moves               {} started, {} re-issued, {} outside the limits (target 0)",
+        f.moves, f.moves_reissued, f.moves_outside_limits
+    );
+    let _ = writeln!(
+        o,
+        "  outcome             {:?}: {}",
+        rt.outcome,
+        if met { "PASS" } else { "FAIL" }
+    );
+    print!("{o}");
+    Ok(met)
+}
+
 /// `python3 tests/check_mcap.py RECORD [--require-all-topics]`, when it can run.
 fn check_mcap(record: &Path, require_all: bool) -> McapCheck {
     // The script of the source tree this binary was built from (the workspace root above eval/).
@@ -774,6 +971,45 @@ fn fmt_load(l: Option<[f64; 3]>) -> String {
     )
 }
 
+/// The real-time lines of a table: wall time against the hardware's floor, where it went, CPU.
+fn format_real_time(o: &mut String, rt: &RealTimeFigures) {
+    use std::fmt::Write as _;
+    let scale = rt.time_scale;
+    let _ = writeln!(
+        o,
+        "  series wall time    {:.2} s vs motion {:.2} + settle {:.2} + scans {:.2} = {:.2} s: \
+         overhead {:+.1} % (target within ±{:.0} %)",
+        rt.series_wall_s,
+        rt.ideal.motion_s * scale,
+        rt.ideal.settle_s * scale,
+        rt.ideal.scan_s * scale,
+        rt.ideal_wall_s,
+        100.0 * rt.overhead,
+        100.0 * targets::OVERHEAD
+    );
+    let t = &rt.timings;
+    let _ = writeln!(
+        o,
+        "  where it went       tilt moves {:.2} s, re-centring moves {:.2} s, micrographs {:.2} s, \
+         tracking frames {:.2} s, tracking computation {:.3} s, return to safe {:.2} s",
+        t.tilt_moves_s,
+        t.recentre_moves_s,
+        t.micrographs_s,
+        t.tracking_frames_s,
+        t.tracking_compute_s,
+        t.return_to_safe_s
+    );
+    let _ = writeln!(
+        o,
+        "  job wall time       {:.2} s (connect, series, TIFFs, record); CPU (user+sys, whole \
+         process incl. simulator) {}; load average {} before, {} after",
+        rt.job_wall_s,
+        rt.cpu_s.map_or("unknown".into(), |c| format!("{c:.2} s")),
+        fmt_load(rt.load_before),
+        fmt_load(rt.load_after)
+    );
+}
+
 /// The figures as the table `sdsem-eval acquisition` prints.
 #[must_use]
 pub fn format_figures(f: &AcquisitionFigures) -> String {
@@ -941,40 +1177,7 @@ pub fn format_figures(f: &AcquisitionFigures) -> String {
         rt.physics.settle_s,
         rt.poll_interval_s
     );
-    let scale = rt.time_scale;
-    let _ = writeln!(
-        o,
-        "  series wall time    {:.2} s vs motion {:.2} + settle {:.2} + scans {:.2} = {:.2} s: \
-         overhead {:+.1} % (target within ±{:.0} %)",
-        rt.series_wall_s,
-        rt.ideal.motion_s * scale,
-        rt.ideal.settle_s * scale,
-        rt.ideal.scan_s * scale,
-        rt.ideal_wall_s,
-        100.0 * rt.overhead,
-        100.0 * targets::OVERHEAD
-    );
-    let t = &rt.timings;
-    let _ = writeln!(
-        o,
-        "  where it went       tilt moves {:.2} s, re-centring moves {:.2} s, micrographs {:.2} s, \
-         tracking frames {:.2} s, tracking computation {:.3} s, return to safe {:.2} s",
-        t.tilt_moves_s,
-        t.recentre_moves_s,
-        t.micrographs_s,
-        t.tracking_frames_s,
-        t.tracking_compute_s,
-        t.return_to_safe_s
-    );
-    let _ = writeln!(
-        o,
-        "  job wall time       {:.2} s (connect, series, TIFFs, record); CPU (user+sys, whole \
-         process incl. simulator) {}; load average {} before, {} after",
-        rt.job_wall_s,
-        rt.cpu_s.map_or("unknown".into(), |c| format!("{c:.2} s")),
-        fmt_load(rt.load_before),
-        fmt_load(rt.load_after)
-    );
+    format_real_time(&mut o, rt);
 
     let _ = writeln!(o, "\nrecord in the Python mcap reader:");
     match &f.mcap_check {

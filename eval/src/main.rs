@@ -45,7 +45,12 @@ pub enum Which {
     /// The 0→7° series on the simulator: tilts, frames, stage I/O, re-centring
     /// against ground truth, real-time overhead, the record in the Python reader.
     #[command(after_help = EVAL_ACQUISITION)]
-    Acquisition,
+    Acquisition {
+        /// Only the real-time figures, on the simulator of this configuration (its stage and
+        /// imaging dialects, e.g. config/sim-zeiss.toml), at time scale 1.
+        #[arg(long, value_name = "FILE")]
+        config: Option<PathBuf>,
+    },
     /// SIFT flow on Middlebury RubberWhale against its ground truth (paper Table 3).
     #[command(after_help = EVAL_FLOW)]
     Flow {
@@ -224,8 +229,12 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<ExitCode> {
         json: args.json,
     };
     match &args.which {
-        Which::Acquisition => {
-            if !acquisition::run(&opts)? {
+        Which::Acquisition { config } => {
+            let met = match config {
+                Some(path) => acquisition::run_config(&opts, path)?,
+                None => acquisition::run(&opts)?,
+            };
+            if !met {
                 return Ok(ExitCode::FAILURE);
             }
         }
@@ -323,7 +332,9 @@ Examples:
 const EVAL_ACQUISITION: &str = "\
 Examples:
   sdsem-eval acquisition
-  sdsem-eval acquisition --quick --json";
+  sdsem-eval acquisition --quick --json
+  sdsem-eval acquisition --config config/sim-zeiss.toml
+      real-time overhead of another dialect (here RemCon32 + watch folder)";
 
 const EVAL_SPARSE: &str = "\
 Examples:

@@ -184,6 +184,10 @@ pub struct RemconSimConfig {
     pub rotation_deg: f64,
     /// M, mm (set at once by `C95`). Default 0.
     pub m_mm: f64,
+    /// Answer to `DET?`. Default `SE2`.
+    pub detector: String,
+    /// Answer to `EHT?`, kV. Default 5.
+    pub eht_kv: f64,
 }
 
 impl Default for RemconSimConfig {
@@ -197,6 +201,8 @@ impl Default for RemconSimConfig {
             z_mm: 10.0,
             rotation_deg: 0.0,
             m_mm: 0.0,
+            detector: "SE2".to_owned(),
+            eht_kv: 5.0,
         }
     }
 }

@@ -11,6 +11,12 @@
 //!
 //! Names are `PREFIX0001.tif`, `PREFIX0002.tif`, … from `first_number`. Occurrences of
 //! faults count stored micrographs from 1; random ones are drawn from the folder's seed.
+//!
+//! What is stored at which size: RemCon32 has no store-resolution command (VENDORS §1.5), so
+//! `FREC` stores at the folder's own `width` × `height` and `dwell_us` (SmartSEM's store
+//! resolution and scan speed, set by the operator), and `MAC n` runs the lab's macro REMCONn,
+//! which sets its own store resolution and speed for one photo and restores them ([`FolderMacro`],
+//! e.g. a quick tracking frame). A macro that is not set up answers `*616`.
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -30,6 +36,7 @@ use crate::clock::Clock;
 use crate::config::FaultTrigger;
 use crate::sem::SimSem;
 use crate::simulator::ServiceServer;
+use crate::store::StoreCommand;
 use crate::vendor_tiff::{self, Samples, StoredMeta, Vendor};
 
 /// The simulated store folder (`[simulator.folder]`).
@@ -50,6 +57,7 @@ use crate::vendor_tiff::{self, Samples, StoredMeta, Vendor};
 /// | `stale_file` | false | at start, a finished file (tilt 45°) under the first name |
 /// | `wrong_tilt` | never | micrographs whose metadata records the tilt + `wrong_tilt_deg` |
 /// | `wrong_tilt_deg` | 5 | the error of such a micrograph's recorded tilt, degrees |
+/// | `macros` | none | the SmartSEM macros REMCONn that `MAC n` runs: `{ number, width, height, dwell_us }` each |
 /// | `seed` | derived | seed of the random faults |
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -69,8 +77,30 @@ pub struct FolderSimConfig {
     pub stale_file: bool,
     pub wrong_tilt: FaultTrigger,
     pub wrong_tilt_deg: f64,
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub macros: Vec<FolderMacro>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub seed: Option<u64>,
+}
+
+/// The store resolution and pixel dwell of one stored micrograph.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct StoreSettings {
+    pub width: usize,
+    pub height: usize,
+    pub dwell_us: f64,
+}
+
+/// A SmartSEM macro REMCONn that stores one micrograph at its own store resolution and scan
+/// speed (restoring the operator's afterwards), run by RemCon32 `MAC n`.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FolderMacro {
+    /// n of `MAC n`.
+    pub number: u32,
+    pub width: usize,
+    pub height: usize,
+    pub dwell_us: f64,
 }
 
 impl Default for FolderSimConfig {
@@ -91,6 +121,7 @@ impl Default for FolderSimConfig {
             stale_file: false,
             wrong_tilt: FaultTrigger::default(),
             wrong_tilt_deg: 5.0,
+            macros: Vec::new(),
             seed: None,
         }
     }
@@ -124,20 +155,25 @@ impl FolderSimConfig {
                 ),
             ));
         }
-        let max = sdsem_protocol::sem::MAX_SIDE as usize;
-        for (field, side) in [("folder.width", self.width), ("folder.height", self.height)] {
-            if side == 0 || side > max {
+        check_settings(
+            ["folder.width", "folder.height", "folder.dwell_us"],
+            &self.settings(),
+        )?;
+        for (i, m) in self.macros.iter().enumerate() {
+            if self.macros[..i].iter().any(|o| o.number == m.number) {
                 return Err(invalid(
-                    field,
-                    format!("must be 1 to {max} pixels, got {side}"),
+                    "folder.macros",
+                    format!("macro {} is set up twice", m.number),
                 ));
             }
-        }
-        if !(self.dwell_us.is_finite() && self.dwell_us > 0.0) {
-            return Err(invalid(
-                "folder.dwell_us",
-                format!("must be > 0, got {}", self.dwell_us),
-            ));
+            check_settings(
+                [
+                    "folder.macros.width",
+                    "folder.macros.height",
+                    "folder.macros.dwell_us",
+                ],
+                &m.settings(),
+            )?;
         }
         if self.bits != 8 && self.bits != 16 {
             return Err(invalid(
@@ -168,11 +204,67 @@ impl FolderSimConfig {
         Ok(())
     }
 
+    /// The operator's store resolution and dwell: what `FREC` and the timer store at.
+    #[must_use]
+    pub fn settings(&self) -> StoreSettings {
+        StoreSettings {
+            width: self.width,
+            height: self.height,
+            dwell_us: self.dwell_us,
+        }
+    }
+
+    /// What a store request stores at: `FREC` at the folder's settings, `MAC n` at its
+    /// macro's; `None` for a macro that is not set up.
+    #[must_use]
+    pub fn settings_for(&self, command: StoreCommand) -> Option<StoreSettings> {
+        match command {
+            StoreCommand::Record => Some(self.settings()),
+            StoreCommand::Macro(n) => self
+                .macros
+                .iter()
+                .find(|m| m.number == n)
+                .map(FolderMacro::settings),
+        }
+    }
+
     /// The name of micrograph number `n`.
     #[must_use]
     pub fn file_name(&self, n: u64) -> String {
         format!("{}{n:04}.tif", self.prefix)
     }
+}
+
+impl FolderMacro {
+    /// What this macro stores at.
+    #[must_use]
+    pub fn settings(&self) -> StoreSettings {
+        StoreSettings {
+            width: self.width,
+            height: self.height,
+            dwell_us: self.dwell_us,
+        }
+    }
+}
+
+/// Checks a store resolution and dwell, naming `fields` (width, height, dwell).
+fn check_settings(fields: [&'static str; 3], s: &StoreSettings) -> Result<(), SimError> {
+    let max = sdsem_protocol::sem::MAX_SIDE as usize;
+    for (field, side) in [(fields[0], s.width), (fields[1], s.height)] {
+        if side == 0 || side > max {
+            return Err(invalid(
+                field,
+                format!("must be 1 to {max} pixels, got {side}"),
+            ));
+        }
+    }
+    if !(s.dwell_us.is_finite() && s.dwell_us > 0.0) {
+        return Err(invalid(
+            fields[2],
+            format!("must be > 0, got {}", s.dwell_us),
+        ));
+    }
+    Ok(())
 }
 
 /// One micrograph stored.
@@ -301,13 +393,25 @@ impl FolderWriter {
         )
     }
 
-    /// Scans one frame where the stage is now and stores it (taking the scan time and the
-    /// write time on the clock). `cancel` ends a scan or a slow write early (the simulator
-    /// is stopping): the file is then left as far as it got.
+    /// Scans one frame where the stage is now and stores it at the folder's settings (taking
+    /// the scan time and the write time on the clock). `cancel` ends a scan or a slow write
+    /// early (the simulator is stopping): the file is then left as far as it got.
     ///
     /// # Errors
     /// The file cannot be written.
     pub fn store(&self, cancel: &AtomicBool) -> std::io::Result<StoredFile> {
+        self.store_at(&self.cfg.settings(), cancel)
+    }
+
+    /// [`Self::store`] at the given store resolution and dwell (a macro's).
+    ///
+    /// # Errors
+    /// The file cannot be written.
+    pub fn store_at(
+        &self,
+        settings: &StoreSettings,
+        cancel: &AtomicBool,
+    ) -> std::io::Result<StoredFile> {
         let _one_at_a_time = self.busy.lock().unwrap_or_else(PoisonError::into_inner);
         let (number, wrong) = {
             let mut state = self.state();
@@ -317,11 +421,11 @@ impl FolderWriter {
             let k = state.stored;
             (number, fires(&self.cfg.wrong_tilt, k, &mut state.rng))
         };
-        let (w, h) = (self.cfg.width, self.cfg.height);
+        let (w, h) = (settings.width, settings.height);
         let grab = GrabRequest {
             width: u32::try_from(w).unwrap_or(u32::MAX),
             height: u32::try_from(h).unwrap_or(u32::MAX),
-            dwell_us: self.cfg.dwell_us,
+            dwell_us: settings.dwell_us,
             role: Role::Left,
             bits: if self.cfg.bits == 8 {
                 Bits::Eight
@@ -412,13 +516,18 @@ fn fires(trigger: &FaultTrigger, k: u64, rng: &mut ChaCha8Rng) -> bool {
 /// SEM does on RemCon32 `FREC` / `MAC n`). Cheap to clone, safe to share.
 #[derive(Clone, Debug)]
 pub struct StoreRequests {
-    tx: mpsc::Sender<()>,
+    tx: mpsc::Sender<Option<StoreSettings>>,
 }
 
 impl StoreRequests {
-    /// Queues one store; false when the folder's thread has stopped.
+    /// Queues one store at the folder's settings; false when the folder's thread has stopped.
     pub fn store_now(&self) -> bool {
-        self.tx.send(()).is_ok()
+        self.tx.send(None).is_ok()
+    }
+
+    /// Queues one store at `settings` (a macro's); false when the folder's thread has stopped.
+    pub fn store_at(&self, settings: StoreSettings) -> bool {
+        self.tx.send(Some(settings)).is_ok()
     }
 }
 
@@ -431,7 +540,7 @@ pub(crate) fn serve(
     writer: Arc<FolderWriter>,
     stop: Arc<AtomicBool>,
 ) -> Result<(StoreRequests, ServiceServer), SimError> {
-    let (tx, rx) = mpsc::channel::<()>();
+    let (tx, rx) = mpsc::channel::<Option<StoreSettings>>();
     let endpoint = writer.dir().display().to_string();
     let thread = std::thread::Builder::new()
         .name("sim-folder".into())
@@ -444,19 +553,21 @@ pub(crate) fn serve(
             };
             while !stop.load(Ordering::Relaxed) {
                 let mut store = match rx.recv_timeout(TICK) {
-                    Ok(()) => true,
-                    Err(RecvTimeoutError::Timeout) => false,
+                    Ok(settings) => Some(settings.unwrap_or_else(|| writer.cfg.settings())),
+                    Err(RecvTimeoutError::Timeout) => None,
                     Err(RecvTimeoutError::Disconnected) => {
                         // No one can ask any more: the timer alone remains.
                         std::thread::sleep(TICK);
-                        false
+                        None
                     }
                 };
                 if writer.clock.now_s() >= due {
-                    store = true;
+                    store.get_or_insert_with(|| writer.cfg.settings());
                     due += every;
                 }
-                if store && let Err(e) = writer.store(&stop) {
+                if let Some(settings) = store
+                    && let Err(e) = writer.store_at(&settings, &stop)
+                {
                     warn!(dir = %writer.dir().display(), "cannot store a micrograph: {e}");
                 }
             }

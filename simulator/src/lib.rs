@@ -44,7 +44,9 @@ pub use config::{
     FaultConfig, FaultTrigger, RemconSimConfig, SemSimConfig, SimConfig, SimEndpoint,
     SimStageProtocol, StageSimConfig, derive_seed,
 };
-pub use folder_writer::{FolderSimConfig, FolderWriter, StoreRequests, StoredFile};
+pub use folder_writer::{
+    FolderMacro, FolderSimConfig, FolderWriter, StoreRequests, StoreSettings, StoredFile,
+};
 pub use sem::{FrameRecord, SimSem};
 pub use simulator::{ServiceEndpoint, SimHandle, Simulator};
 pub use stage::SimStage;

@@ -40,7 +40,8 @@ STAGE LINK with --stage-protocol remcon32 (Zeiss SmartSEM RemCon32; ASCII,
   C95? -> x y z t r m moving (mm, mm, mm, deg, deg, mm, 1.0 = moving)
   C95 x y z t r m (all axes, absolute; returns before the move ends)
   STG? STG x y z  IST? (type init, 0 = initialised)  ABO  VER?  PIX? (nm)
-  MAG?  FREC (store a photo)  MAC n (run macro REMCONn)  PHN? (photo count)
+  MAG?  DET? (detector)  EHT? (kV)  FREC (store a photo)  PHN? (photo count)
+  MAC n (run macro REMCONn: a [folder.macros] entry, else *616)
   Unknown words: @ then *600; wrong value count to C95/STG: # alone;
   targets beyond the limits: *603; an empty line (null command): no reply.
   Faults as for GCS; a stale on-target flag is a move that starts late (still
@@ -63,6 +64,8 @@ STORE FOLDER (the SEM's own software storing micrographs, VENDORS 4)
   vendor TIFFs (zeiss: tag 34118; fei: tag 34682 and a data bar; tescan: tag
   50431 and an info strip), scanned where the stage is, named PREFIX0001.tif,
   PREFIX0002.tif, ...: every --store-every simulated seconds, and on request.
+  FREC stores at the folder's width x height and dwell_us (SmartSEM's store
+  resolution); MAC n at those of its [[folder.macros]] entry (number = n).
   Faults in [folder]: write_s/write_chunks (slow, partial files),
   temp_then_rename, stale_file, wrong_tilt (a recorded tilt that is off).
 

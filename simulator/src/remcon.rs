@@ -44,6 +44,8 @@ pub struct RemconStage {
     stage_type: i64,
     pixel_size_nm: f64,
     magnification: f64,
+    detector: String,
+    eht_kv: f64,
     extra: Mutex<Extra>,
     store: Arc<StoreTrigger>,
 }
@@ -64,6 +66,8 @@ impl RemconStage {
             stage_type: config.stage_type,
             pixel_size_nm,
             magnification,
+            detector: config.detector.clone(),
+            eht_kv: config.eht_kv,
             extra: Mutex::new(Extra {
                 z_mm: config.z_mm,
                 r_deg: config.rotation_deg.rem_euclid(360.0),
@@ -218,6 +222,8 @@ impl RemconStage {
             Command::Record => self.store(StoreCommand::Record),
             Command::Macro(n) => self.store(StoreCommand::Macro(*n)),
             Command::PhotoNumberQuery => Reply::Done(self.extra().photos.to_string()),
+            Command::DetectorQuery => Reply::Done(self.detector.clone()),
+            Command::EhtQuery => Reply::Done(format!("{:.3}", self.eht_kv)),
         }
     }
 }
@@ -411,6 +417,8 @@ mod tests {
         );
         assert_eq!(store.requests(), 4);
         assert_eq!(data(&s, "PIX?"), "250.0000");
+        assert_eq!(data(&s, "DET?"), "SE2");
+        assert_eq!(data(&s, "EHT?"), "5.000");
     }
 
     #[test]

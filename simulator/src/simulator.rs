@@ -22,7 +22,7 @@ use crate::sharksem::{self, SharkSemDevice};
 use crate::stage::SimStage;
 use crate::stage_link::{SessionFactory, gcs_sessions, serve_pty, serve_tcp};
 use crate::stage_model::StageSnapshot;
-use crate::store::StoreTrigger;
+use crate::store::{StoreCommand, StoreTrigger};
 
 /// One endpoint the simulator serves, e.g. `stage` at `tcp://127.0.0.1:40123`.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -153,10 +153,27 @@ impl Simulator {
             let writer = Arc::new(FolderWriter::new(folder, seed, Arc::clone(&sem), clock)?);
             let (requests, server) = folder_writer::serve(Arc::clone(&writer), Arc::clone(&stop))?;
             // RemCon32 FREC / MAC n: the SEM stores a micrograph on its own thread; the
-            // command is done once asked, the file arrives when scanned and written.
+            // command is done once asked, the file arrives when scanned and written. FREC
+            // stores at the folder's settings, MAC n at its macro's.
             let line = requests.clone();
-            handle.store.set_hook(Arc::new(move |_request| {
-                if line.store_now() {
+            let folder_config = folder.clone();
+            handle.store.set_hook(Arc::new(move |request| {
+                let Some(settings) = folder_config.settings_for(request.command) else {
+                    let known: Vec<String> = folder_config
+                        .macros
+                        .iter()
+                        .map(|m| m.number.to_string())
+                        .collect();
+                    let name = match request.command {
+                        StoreCommand::Macro(n) => format!("REMCON{n}"),
+                        StoreCommand::Record => "FREC".to_owned(),
+                    };
+                    return Err(format!(
+                        "no macro {name} is set up (simulator.folder.macros has [{}])",
+                        known.join(", ")
+                    ));
+                };
+                if line.store_at(settings) {
                     Ok(())
                 } else {
                     Err("the store folder has stopped".into())

@@ -273,6 +273,10 @@ fn zeiss_text(width: usize, height: usize, m: &StoredMeta) -> Vec<u8> {
         ("AP_DATE", format!("Date :{d} {month} {y}")),
         ("AP_TIME", format!("Time :{h:02}:{mi:02}:{s:02}")),
         ("SV_SERIAL_NUMBER", "Serial No. = sdsem-sim".to_owned()),
+        (
+            "SV_VERSION",
+            format!("Version = sdsem-sim {}", env!("CARGO_PKG_VERSION")),
+        ),
     ];
     let mut text = format!(
         "0\r\n0\r\n0\r\n{:e}\r\n{}\r\n",

@@ -126,12 +126,12 @@ impl Instruments {
     ) -> Result<Self, InstrumentsError> {
         let (stage_config, imaging_config, simulator) = Self::endpoints(config)?;
         if imaging_config.protocol == ImagingProtocol::WatchFolder
-            && !imaging_config.trigger.trim().is_empty()
             && !carries_sem_commands(stage_config.protocol)
+            && let Some(command) = imaging_config.triggers().first()
         {
             // Refused before anything is opened or moved.
             return Err(ImagingError::NoTriggerLink {
-                command: imaging_config.trigger.trim().to_owned(),
+                command: (*command).to_owned(),
             }
             .into());
         }

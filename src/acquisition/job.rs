@@ -21,6 +21,7 @@ use super::run_dir::RunDir;
 use super::runner::{Captured, SeriesContext, SeriesRecord, run_series};
 use crate::config::Config;
 use crate::export::atomic::OutputDir;
+use crate::imaging::SourceIdentity;
 use crate::imaging::file::{MicrographTags, SampleDepth, encode_micrograph_tiff};
 use crate::progress::Stage;
 use crate::record::{
@@ -216,7 +217,13 @@ async fn acquire(
         }
     }
     ids.insert("sem".to_owned(), instruments.sem_identity.clone());
-    let _ = rec.metadata("sdsem.instruments", ids);
+    ids.insert(
+        "sem_protocol".to_owned(),
+        config.imaging.protocol.as_str().to_owned(),
+    );
+    let known = instruments.imaging.identity();
+    insert_sem_identity(&mut ids, &known);
+    let _ = rec.metadata(topics::METADATA_INSTRUMENTS, ids);
 
     let mut series = Series::new(plan, config.tracking, config.stage.safe_tilt_deg);
     let mut ctx = SeriesContext {
@@ -229,6 +236,13 @@ async fn acquire(
     };
     let record = run_series(&mut series, &mut ctx, &mut cancel).await;
     instruments.observer.detach();
+    let learnt = instruments.imaging.identity();
+    if learnt != known && !learnt.is_empty() {
+        // A watched folder names who stored the files only in the files themselves.
+        let mut ids = BTreeMap::new();
+        insert_sem_identity(&mut ids, &learnt);
+        let _ = rec.metadata(topics::METADATA_INSTRUMENTS_FROM_FRAMES, ids);
+    }
 
     let mut outcome = record.outcome.clone();
     if outcome.is_completed()
@@ -246,6 +260,20 @@ async fn acquire(
         }
     }
     (outcome, Some(record))
+}
+
+/// `sem_vendor`, `sem_model`, `sem_version`, `sem_serial`: those known.
+fn insert_sem_identity(ids: &mut BTreeMap<String, String>, id: &SourceIdentity) {
+    for (key, value) in [
+        ("sem_vendor", &id.vendor),
+        ("sem_model", &id.model),
+        ("sem_version", &id.version),
+        ("sem_serial", &id.serial),
+    ] {
+        if !value.is_empty() {
+            ids.insert(key.to_owned(), value.clone());
+        }
+    }
 }
 
 /// Reconstructs the end micrographs into the run directory (every file new) and the

@@ -14,6 +14,7 @@ use super::Cli;
 /// Examples under `sdsem --help`.
 pub const ROOT: &str = "\
 Examples:
+  sdsem probe --config /etc/sdsem/sdsem.toml     what the microscope says it is; moves nothing
   sdsem acquire --config config/sim.toml         one run on the built-in simulator
   sdsem reconstruct left.tif right.tif -o out    height map, point cloud and mesh of a pair
   sdsem inspect runs/sim-20261122T062642Z/run.mcap
@@ -30,6 +31,13 @@ Examples:
       a 0→7° run on the built-in simulator; the last line is the run directory
   sdsem acquire -c /etc/sdsem/sdsem.toml --set series.end_tilt_deg=5
       one run on the microscope, ending at 5°";
+
+pub const PROBE: &str = "\
+Examples:
+  sdsem probe --config /etc/sdsem/sdsem.toml
+      what the stage and the SEM say they are, where the stage is, its limits; moves nothing
+  sdsem probe -c config/sim-zeiss.toml --json
+      the same as JSON, here against the built-in simulator of a Zeiss SEM";
 
 pub const RECONSTRUCT: &str = "\
 Examples:

@@ -15,6 +15,7 @@ mod daemon;
 mod inspect;
 pub mod logging;
 mod manual;
+mod probe;
 mod progress;
 mod replay;
 mod status;
@@ -67,6 +68,15 @@ pub enum Command {
     Acquire {
         #[command(flatten)]
         config: ConfigArgs,
+    },
+    /// Connect to the stage and the SEM, say what they are and where the stage is; moves nothing.
+    #[command(after_help = manual::PROBE)]
+    Probe {
+        #[command(flatten)]
+        config: ConfigArgs,
+        /// Print the report as JSON.
+        #[arg(long)]
+        json: bool,
     },
     /// Height map, point cloud and mesh from a stereo pair (SD-SEM).
     #[command(after_help = manual::RECONSTRUCT)]
@@ -123,7 +133,7 @@ impl Command {
     /// reads one and it loads.
     fn log_config(&self) -> Option<crate::config::LogConfig> {
         let config = match self {
-            Self::Acquire { config } => config.load().ok()?,
+            Self::Acquire { config } | Self::Probe { config, .. } => config.load().ok()?,
             Self::Reconstruct(args) => args.config.load().ok()?,
             Self::Rectify(args) => args.config.load().ok()?,
             Self::Flow(args) => args.config.load().ok()?,
@@ -184,6 +194,7 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
     );
     match cli.command {
         Command::Acquire { config } => acquire::run(&config),
+        Command::Probe { config, json } => probe::run(&config, json),
         Command::Inspect { record, json } => inspect::run(&record, json),
         Command::Reconstruct(args) => vision::run_reconstruct(&args),
         Command::Rectify(args) => vision::run_rectify(&args),

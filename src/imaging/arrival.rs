@@ -46,7 +46,9 @@ pub struct FileKey {
 }
 
 impl FileKey {
-    fn of(e: &ListedEntry) -> Self {
+    /// The version of a listed entry.
+    #[must_use]
+    pub fn of(e: &ListedEntry) -> Self {
         Self {
             name: e.name.clone(),
             len: e.len,
@@ -192,12 +194,16 @@ pub struct ArrivalRules {
 }
 
 impl ArrivalRules {
-    fn is_image(&self, name: &str) -> bool {
+    /// Whether `name` is a micrograph's name (a pattern matches, no temporary name does).
+    #[must_use]
+    pub fn is_image(&self, name: &str) -> bool {
         !self.ignore.iter().any(|p| p.matches(name))
             && self.patterns.iter().any(|p| p.matches(name))
     }
 
-    fn sidecar_name(&self, image: &str) -> Option<String> {
+    /// The name (lower case) of the sidecar `image` needs, if sidecars are configured.
+    #[must_use]
+    pub fn sidecar_name(&self, image: &str) -> Option<String> {
         let ext = self.sidecar_ext.as_ref()?;
         let stem = image.rsplit_once('.').map_or(image, |(s, _)| s);
         Some(format!("{stem}.{ext}").to_lowercase())

@@ -61,6 +61,7 @@ impl ImagingProtocol {
 /// | `timeout_ms` | 5000 | connecting, and waiting for a reply beyond the scan time itself |
 /// | `watch_dir` | "" | watch-folder: the folder the SEM stores its micrographs in |
 /// | `trigger` | "" | watch-folder: command sent over the stage link to store one micrograph ("" = wait) |
+/// | `tracking_trigger` | "" | watch-folder: the command for a tracking frame, e.g. `MAC 1` running a macro that stores a small, fast frame ("" = `trigger`) |
 /// | `watch_patterns` | `*.tif`, `*.tiff` | watch-folder: names of micrographs (case-insensitive) |
 /// | `watch_ignore` | `~*`, `.*`, `*.tmp`, `*.part` | watch-folder: temporary names never read |
 /// | `watch_sidecar` | "" | watch-folder: extension of a metadata file beside each image (`txt`: Hitachi, JEOL) |
@@ -87,6 +88,7 @@ pub struct ImagingConfig {
     pub timeout_ms: u64,
     pub watch_dir: PathBuf,
     pub trigger: String,
+    pub tracking_trigger: String,
     pub watch_patterns: Vec<String>,
     pub watch_ignore: Vec<String>,
     pub watch_sidecar: String,
@@ -121,6 +123,7 @@ impl Default for ImagingConfig {
             timeout_ms: 5000,
             watch_dir: PathBuf::new(),
             trigger: String::new(),
+            tracking_trigger: String::new(),
             watch_patterns: vec!["*.tif".into(), "*.tiff".into()],
             watch_ignore: vec!["~*".into(), ".*".into(), "*.tmp".into(), "*.part".into()],
             watch_sidecar: String::new(),
@@ -316,7 +319,30 @@ impl ImagingConfig {
         }
     }
 
-    /// [`Self::timeout_ms`] as a duration.
+    /// The watch-folder trigger for a frame of `role`: `tracking_trigger` for tracking frames
+    /// when set, else `trigger`; trimmed, "" when none.
+    #[must_use]
+    pub fn trigger_for(&self, role: Role) -> &str {
+        let tracking = self.tracking_trigger.trim();
+        if role == Role::Tracking && !tracking.is_empty() {
+            tracking
+        } else {
+            self.trigger.trim()
+        }
+    }
+
+    /// Every trigger command configured (micrograph, then tracking), without empty ones.
+    #[must_use]
+    pub fn triggers(&self) -> Vec<&str> {
+        let mut all = Vec::new();
+        for t in [self.trigger.trim(), self.tracking_trigger.trim()] {
+            if !t.is_empty() && !all.contains(&t) {
+                all.push(t);
+            }
+        }
+        all
+    }
+
     /// The `host:port` to connect to: `endpoint` without an optional `tcp://`
     /// (the form `sdsem-sim` prints).
     #[must_use]
@@ -325,6 +351,7 @@ impl ImagingConfig {
         e.strip_prefix("tcp://").unwrap_or(e)
     }
 
+    /// [`Self::timeout_ms`] as a duration.
     #[must_use]
     pub fn timeout(&self) -> Duration {
         Duration::from_millis(self.timeout_ms)
@@ -369,6 +396,23 @@ mod tests {
                 .to_string()
                 .contains("imaging.tracking")
         );
+    }
+
+    #[test]
+    fn tracking_frames_take_their_own_trigger_when_set() {
+        let mut c = ImagingConfig {
+            trigger: " FREC ".into(),
+            ..ImagingConfig::default()
+        };
+        assert_eq!(c.trigger_for(Role::Tracking), "FREC");
+        assert_eq!(c.triggers(), ["FREC"]);
+        c.tracking_trigger = "MAC 1".into();
+        assert_eq!(c.trigger_for(Role::Tracking), "MAC 1");
+        assert_eq!(c.trigger_for(Role::Left), "FREC");
+        assert_eq!(c.triggers(), ["FREC", "MAC 1"]);
+        c.trigger.clear();
+        assert_eq!(c.trigger_for(Role::Right), "");
+        assert_eq!(c.triggers(), ["MAC 1"]);
     }
 
     #[test]

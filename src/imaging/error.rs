@@ -111,7 +111,7 @@ pub enum ImagingError {
         error: super::source::TriggerError,
     },
     #[error(
-        "imaging.trigger = {command:?} must go over the stage link, and this stage link cannot carry it; use a stage protocol that speaks to the SEM (stage.protocol = \"remcon32\"), or set imaging.trigger = \"\" and have the SEM store each micrograph on its own"
+        "the trigger {command:?} (imaging.trigger, imaging.tracking_trigger) must go over the stage link, and this stage link cannot carry it; use a stage protocol that speaks to the SEM (stage.protocol = \"remcon32\"), or set both to \"\" and have the SEM store each micrograph on its own"
     )]
     NoTriggerLink { command: String },
 }

@@ -73,6 +73,9 @@ pub struct FrameFile {
     /// Stored pixels averaged into one frame pixel per side (1: none), to bring a stored
     /// micrograph down to the tracking frame size asked for.
     pub downsampled: u32,
+    /// The instrument the file's metadata names (model, software version, serial number).
+    #[serde(default, skip_serializing_if = "super::SourceIdentity::is_empty")]
+    pub instrument: super::SourceIdentity,
 }
 impl Frame {
     /// Builds a frame from a decoded `FRAME` reply.

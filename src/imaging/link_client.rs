@@ -12,7 +12,10 @@ use sdsem_protocol::sem::{GrabRequest, Reply, ReplyDecoder, Request};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
 
-use super::{Frame, FrameSource, GrabFuture, IdentifyFuture, ImagingConfig, ImagingError};
+use super::{
+    Frame, FrameSource, GrabFuture, IdentifyFuture, ImagingConfig, ImagingError, ProbeFuture,
+    SourceIdentity,
+};
 
 /// The true height map of a simulated frame.
 #[derive(Clone, Debug, PartialEq)]
@@ -34,6 +37,8 @@ struct Connection {
 pub struct SemLinkClient {
     cfg: ImagingConfig,
     conn: Option<Connection>,
+    /// The last `*IDN?` answer.
+    idn: String,
 }
 
 impl std::fmt::Debug for SemLinkClient {
@@ -52,7 +57,11 @@ impl SemLinkClient {
     /// [`ImagingError::InvalidConfig`] when a setting is invalid.
     pub fn new(cfg: ImagingConfig) -> Result<Self, ImagingError> {
         cfg.validate()?;
-        Ok(Self { cfg, conn: None })
+        Ok(Self {
+            cfg,
+            conn: None,
+            idn: String::new(),
+        })
     }
 
     /// A client connected now, with the server's `*IDN?` answer.
@@ -78,9 +87,33 @@ impl SemLinkClient {
     pub async fn identify(&mut self) -> Result<String, ImagingError> {
         let request = Request::Identify;
         match self.exchange(&request, self.cfg.timeout()).await? {
-            Reply::Identity(id) => Ok(id),
+            Reply::Identity(id) => {
+                id.clone_into(&mut self.idn);
+                Ok(id)
+            }
             other => Err(self.unexpected(&request, &other)),
         }
+    }
+
+    /// `sdsem probe`'s lines: the pixel size at the micrograph and tracking widths
+    /// (`PIXELSIZE?`), nothing scanned.
+    async fn probe_lines(&mut self) -> Result<Vec<(String, String)>, ImagingError> {
+        let mut lines = Vec::new();
+        for (name, s) in [
+            ("micrograph", self.cfg.micrograph.clone()),
+            ("tracking frame", self.cfg.tracking.clone()),
+        ] {
+            let p = self.pixel_size_um(s.width).await?;
+            lines.push((
+                format!("pixel size, {name}"),
+                format!(
+                    "{p} µm at {} px wide (field {:.3} µm)",
+                    s.width,
+                    p * f64::from(s.width)
+                ),
+            ));
+        }
+        Ok(lines)
     }
 
     /// Pixel size (µm) of a frame `width` pixels wide (`PIXELSIZE?`).
@@ -270,6 +303,14 @@ impl FrameSource for SemLinkClient {
     fn identify(&mut self) -> IdentifyFuture<'_> {
         // The inherent `identify` (`*IDN?`).
         Box::pin(Self::identify(self))
+    }
+
+    fn identity(&self) -> SourceIdentity {
+        SourceIdentity::from_idn(&self.idn)
+    }
+
+    fn probe(&mut self) -> ProbeFuture<'_> {
+        Box::pin(self.probe_lines())
     }
 }
 

@@ -110,6 +110,48 @@ impl SemMetadata {
         (w > 0 && h > 0 && w <= width && h <= height && (w, h) != (width, height)).then_some((w, h))
     }
 
+    /// Who stored the file, as far as its metadata says: vendor, and model, software version
+    /// and serial number from the keys each vendor writes them under (Zeiss `Serial No.`,
+    /// `Version`; FEI/Thermo `[System] SystemType`/`Type`, `Software`, `Dnumber`; Tescan
+    /// `[MAIN] Device`, `SoftwareVersion`, `SerialNumber`; Hitachi `InstructName`,
+    /// `SerialNumber`; JEOL `$CM_INSTRUMENT`, `$CM_VERSION` of the format).
+    #[must_use]
+    pub fn instrument(&self) -> super::SourceIdentity {
+        let get = |keys: &[&str]| {
+            keys.iter()
+                .find_map(|k| self.raw.get(*k).filter(|v| !v.trim().is_empty()))
+                .map_or_else(String::new, |v| v.trim().to_owned())
+        };
+        let (model, version, serial) = match self.vendor {
+            Some(SemVendor::Zeiss) => (String::new(), get(&["Version"]), get(&["Serial No."])),
+            Some(SemVendor::Fei) => (
+                get(&["System.SystemType", "System.Type"]),
+                get(&["System.Software"]),
+                get(&["System.Dnumber"]),
+            ),
+            Some(SemVendor::Tescan) => (
+                get(&["MAIN.Device", "MAIN.DeviceModel"]),
+                get(&["MAIN.SoftwareVersion"]),
+                get(&["MAIN.SerialNumber"]),
+            ),
+            Some(SemVendor::Hitachi) => (
+                get(&["InstructName"]),
+                String::new(),
+                get(&["SerialNumber"]),
+            ),
+            Some(SemVendor::Jeol) => (get(&["CM_INSTRUMENT"]), String::new(), String::new()),
+            Some(SemVendor::Sdsem) | None => Default::default(),
+        };
+        super::SourceIdentity {
+            vendor: self
+                .vendor
+                .map_or_else(String::new, |v| v.as_str().to_owned()),
+            model,
+            version,
+            serial,
+        }
+    }
+
     /// Fills what `self` lacks from `other` (vendor, pixel size, tilt, raw keys).
     pub fn merge(&mut self, other: Self) {
         if self.vendor.is_none() {
@@ -572,6 +614,31 @@ AP_DATE\r\nDate :8 Mar 2016\r\n\0\0\0";
         assert_eq!(m.tilt_deg, Some(-3.0));
         assert_eq!(m.raw["Date"], "8 Mar 2016");
         assert_eq!(m.raw["Tilt Angle"], "30.0 \u{b0}");
+    }
+
+    #[test]
+    fn the_instrument_comes_from_each_vendors_own_keys() {
+        let zeiss = parse_zeiss(
+            b"SV_SERIAL_NUMBER\r\nSerial No. = 4711\r\nSV_VERSION\r\nVersion = V06.03\r\n",
+        );
+        let id = zeiss.instrument();
+        assert_eq!(
+            (id.vendor.as_str(), id.version.as_str(), id.serial.as_str()),
+            ("Zeiss", "V06.03", "4711")
+        );
+        let fei = parse_fei(b"[System]\r\nType=SEM\r\nDnumber=D1234\r\nSoftware=9.4\r\n");
+        let id = fei.instrument();
+        assert_eq!(
+            (id.model.as_str(), id.version.as_str(), id.serial.as_str()),
+            ("SEM", "9.4", "D1234")
+        );
+        let tescan = parse_tescan(b"[MAIN]\nDevice=MIRA3\nSerialNumber=VG99\n", false);
+        let id = tescan.instrument();
+        assert_eq!(
+            (id.vendor.as_str(), id.model.as_str(), id.serial.as_str()),
+            ("Tescan", "MIRA3", "VG99")
+        );
+        assert!(SemMetadata::default().instrument().is_empty());
     }
 
     #[test]

@@ -30,7 +30,7 @@ pub use frame::{Frame, FrameFile, FrameMeta, Pixels, Role};
 pub use link_client::{GroundTruth, SemLinkClient};
 pub use sharksem::SharkSemSource;
 pub use source::{
-    FrameSource, GrabContext, GrabFuture, GrabRequest, IdentifyFuture, Trigger, TriggerError,
-    TriggerFuture,
+    FrameSource, GrabContext, GrabFuture, GrabRequest, IdentifyFuture, ProbeFuture, SourceIdentity,
+    Trigger, TriggerError, TriggerFuture,
 };
 pub use watch_folder::WatchFolderSource;

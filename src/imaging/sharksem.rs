@@ -27,7 +27,7 @@ use tracing::warn;
 
 use super::{
     Frame, FrameMeta, FrameSource, GrabFuture, GrabRequest, IdentifyFuture, ImagingConfig,
-    ImagingError, Pixels,
+    ImagingError, Pixels, ProbeFuture, SourceIdentity,
 };
 use crate::sharksem::{SessionConfig, SharkError, SharkLink, SharkSession};
 use crate::stage::StageObserver;
@@ -49,6 +49,8 @@ pub struct SharkSemSource {
     tilt_axis_deg: f64,
     /// Session generation and bit depth the detector was set up for.
     configured: Option<(u64, Bits)>,
+    /// What the SEM said it is when the session was set up.
+    identity: SourceIdentity,
 }
 
 impl SharkSemSource {
@@ -92,7 +94,7 @@ impl SharkSemSource {
     ) -> Result<(Self, String), ImagingError> {
         cfg.validate()?;
         let tilt_axis_deg = check_tilt_axis(tilt_axis_deg)?;
-        let identity = {
+        let (identification, identity) = {
             let s = link.lock().await;
             if s.version() < Version::DWELL_ARGUMENT {
                 return Err(SharkError::TooOld {
@@ -102,7 +104,7 @@ impl SharkSemSource {
                 }
                 .into());
             }
-            s.info().to_string()
+            (s.info().to_string(), shark_identity(s.info()))
         };
         let source = Self {
             link,
@@ -111,8 +113,9 @@ impl SharkSemSource {
             micrograph_width: cfg.micrograph.width,
             tilt_axis_deg,
             configured: None,
+            identity,
         };
-        Ok((source, identity))
+        Ok((source, identification))
     }
 
     /// The session, to share it.
@@ -302,6 +305,77 @@ impl SharkSemSource {
     }
 }
 
+impl SharkSemSource {
+    /// `sdsem probe`'s lines: the view field and the pixel size it gives, the detectors and
+    /// the one `imaging.detector` picks; nothing is set or scanned.
+    async fn probe_lines(&mut self) -> Result<Vec<(String, String)>, ImagingError> {
+        let mut s = self.link.lock().await;
+        let wait = s.config().reply_timeout;
+        let field_mm = read_view_field(&mut s).await?;
+        let width = self.micrograph_width;
+        let mut lines = vec![(
+            "GetViewField".to_owned(),
+            format!(
+                "{field_mm} mm: pixel {} µm at the micrograph's {width} px",
+                field_mm * 1e3 / f64::from(width)
+            ),
+        )];
+        lines.push((
+            "imaging.pixel_size_um".to_owned(),
+            self.pixel_size_um.map_or_else(
+                || "unset: the SEM's field is kept".to_owned(),
+                |p| {
+                    format!(
+                        "{p} µm: a run sets the field to {} mm",
+                        p * f64::from(width) * 1e-3
+                    )
+                },
+            ),
+        ));
+        let detectors = match s.call(&Request::DtEnumDetectors, Flags::NONE, wait).await? {
+            Response::Detectors(d) => d,
+            other => return Err(s.unexpected(&Request::DtEnumDetectors, &other).into()),
+        };
+        lines.push((
+            "DtEnumDetectors".to_owned(),
+            detectors
+                .iter()
+                .map(|d| format!("{} (id {})", d.name, d.id))
+                .collect::<Vec<_>>()
+                .join(", "),
+        ));
+        let selected = s
+            .call(
+                &Request::DtGetSelected { channel: CHANNEL },
+                Flags::NONE,
+                wait,
+            )
+            .await?;
+        lines.push((format!("DtGetSelected({CHANNEL})"), selected.to_string()));
+        lines.push((
+            "imaging.detector".to_owned(),
+            match pick_detector(&detectors, &self.detector) {
+                Ok(d) => format!("a run selects {} (id {})", d.name, d.id),
+                Err(e) => e.to_string(),
+            },
+        ));
+        Ok(lines)
+    }
+}
+
+/// Who the SEM says it is (`TcpGetModel`, `TcpGetSWVersion`, `TcpGetDevice`).
+fn shark_identity(info: &crate::sharksem::InstrumentInfo) -> SourceIdentity {
+    SourceIdentity {
+        vendor: "TESCAN".into(),
+        model: info.model.clone().unwrap_or_default(),
+        version: info
+            .sw_version
+            .clone()
+            .unwrap_or_else(|| info.protocol.clone()),
+        serial: info.device.clone().unwrap_or_default(),
+    }
+}
+
 fn check_tilt_axis(tilt_axis_deg: Option<f64>) -> Result<f64, ImagingError> {
     match tilt_axis_deg {
         Some(t) if t.is_finite() => Ok(t),
@@ -391,6 +465,14 @@ impl FrameSource for SharkSemSource {
     fn identify(&mut self) -> IdentifyFuture<'_> {
         // The inherent `identify` (`TcpGetVersion`).
         Box::pin(Self::identify(self))
+    }
+
+    fn identity(&self) -> SourceIdentity {
+        self.identity.clone()
+    }
+
+    fn probe(&mut self) -> ProbeFuture<'_> {
+        Box::pin(self.probe_lines())
     }
 }
 

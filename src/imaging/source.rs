@@ -5,6 +5,7 @@ use std::future::Future;
 use std::pin::Pin;
 
 pub use sdsem_protocol::sem::GrabRequest;
+use serde::{Deserialize, Serialize};
 
 use super::{Frame, ImagingError};
 use crate::stage::StagePosition;
@@ -15,6 +16,48 @@ pub type GrabFuture<'a> = Pin<Box<dyn Future<Output = Result<Frame, ImagingError
 /// The future of one [`FrameSource::identify`].
 pub type IdentifyFuture<'a> =
     Pin<Box<dyn Future<Output = Result<String, ImagingError>> + Send + 'a>>;
+
+/// The future of one [`FrameSource::probe`]: (name, value) lines for `sdsem probe`.
+pub type ProbeFuture<'a> =
+    Pin<Box<dyn Future<Output = Result<Vec<(String, String)>, ImagingError>> + Send + 'a>>;
+
+/// Who makes the frames, as far as the source knows (for the record and `sdsem probe`);
+/// fields it does not know are empty.
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct SourceIdentity {
+    /// Manufacturer.
+    pub vendor: String,
+    /// Instrument or server model.
+    pub model: String,
+    /// Software version.
+    pub version: String,
+    /// Serial number.
+    pub serial: String,
+}
+
+impl SourceIdentity {
+    /// "vendor, model, serial, version" answers (`*IDN?` of the SEM link); other answers
+    /// give nothing.
+    #[must_use]
+    pub fn from_idn(idn: &str) -> Self {
+        let parts: Vec<&str> = idn.split(',').map(str::trim).collect();
+        match parts.as_slice() {
+            [vendor, model, serial, version, ..] => Self {
+                vendor: (*vendor).to_owned(),
+                model: (*model).to_owned(),
+                version: (*version).to_owned(),
+                serial: (*serial).to_owned(),
+            },
+            _ => Self::default(),
+        }
+    }
+
+    /// Whether nothing is known.
+    #[must_use]
+    pub fn is_empty(&self) -> bool {
+        self == &Self::default()
+    }
+}
 
 /// Why a trigger could not be sent (the stage link's own error).
 pub type TriggerError = Box<dyn std::error::Error + Send + Sync>;
@@ -60,6 +103,19 @@ pub trait FrameSource: Send {
     /// Checks that the source answers and says what it is (an instrument's identity, a
     /// folder and its state); the daemon's link check between jobs.
     fn identify(&mut self) -> IdentifyFuture<'_>;
+
+    /// Who makes the frames as far as known now: the identification answer parsed, or what
+    /// the last file read recorded. Sources that learn nothing keep this default (empty).
+    fn identity(&self) -> SourceIdentity {
+        SourceIdentity::default()
+    }
+
+    /// What `sdsem probe` shows besides the identity, read without scanning anything
+    /// (pixel size or field width, detectors, a folder's state), as (name, value) lines.
+    /// Sources with nothing more to say keep this default (no lines).
+    fn probe(&mut self) -> ProbeFuture<'_> {
+        Box::pin(async { Ok(Vec::new()) })
+    }
 }
 
 impl<S: FrameSource + ?Sized> FrameSource for Box<S> {
@@ -77,5 +133,13 @@ impl<S: FrameSource + ?Sized> FrameSource for Box<S> {
 
     fn identify(&mut self) -> IdentifyFuture<'_> {
         (**self).identify()
+    }
+
+    fn identity(&self) -> SourceIdentity {
+        (**self).identity()
+    }
+
+    fn probe(&mut self) -> ProbeFuture<'_> {
+        (**self).probe()
     }
 }

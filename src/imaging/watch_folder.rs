@@ -17,12 +17,12 @@ use sdsem_protocol::sem::{FrameMeta, GrabRequest, Role};
 use tracing::{debug, info, warn};
 
 use super::arrival::{
-    ArrivalRules, Arrivals, Candidate, EntryKind, ListedEntry, Notice, Pattern, Poll,
+    ArrivalRules, Arrivals, Candidate, EntryKind, FileKey, ListedEntry, Notice, Pattern, Poll,
 };
 use super::file::{Micrograph, micrograph_from_bytes};
 use super::file_tiff::check_whole;
 use super::metadata::{SemMetadata, parse_sidecar};
-use super::source::{GrabContext, IdentifyFuture};
+use super::source::{GrabContext, IdentifyFuture, ProbeFuture, SourceIdentity};
 use super::{
     Frame, FrameFile, FrameSource, GrabFuture, ImagingConfig, ImagingError, ImagingProtocol, Pixels,
 };
@@ -37,6 +37,8 @@ pub struct WatchFolderSource {
     frames: u64,
     tilt_axis_deg: f64,
     origin: tokio::time::Instant,
+    /// Who stored the last file read, as its metadata says.
+    stored_by: SourceIdentity,
 }
 
 /// What a file gave, before it becomes a frame.
@@ -75,6 +77,7 @@ impl WatchFolderSource {
             frames: 0,
             tilt_axis_deg: tilt_axis_deg.unwrap_or(0.0),
             origin: tokio::time::Instant::now(),
+            stored_by: SourceIdentity::default(),
         })
     }
 
@@ -118,6 +121,80 @@ impl WatchFolderSource {
         ))
     }
 
+    /// `sdsem probe`'s lines: the folder's state, the newest micrograph in it and what its
+    /// metadata says (read as a grab reads it: no links followed, within the size cap), the
+    /// triggers and the stability rule. Nothing is triggered.
+    async fn probe_lines(&mut self) -> Result<Vec<(String, String)>, ImagingError> {
+        let listing = self.list().await?;
+        let rules = self.arrivals.rules().clone();
+        let images: Vec<&ListedEntry> = listing
+            .iter()
+            .filter(|e| e.kind == EntryKind::File && rules.is_image(&e.name))
+            .collect();
+        let mut lines = vec![(
+            "folder".to_owned(),
+            format!(
+                "{}: {} entries, {} micrographs ({})",
+                self.dir().display(),
+                listing.len(),
+                images.len(),
+                self.cfg.watch_patterns.join(", ")
+            ),
+        )];
+        if let Some(newest) = images.iter().max_by_key(|e| (e.mtime_ns, e.name.clone())) {
+            let age_s = (unix_ns() as i128 - newest.mtime_ns) as f64 * 1e-9;
+            lines.push((
+                "newest micrograph".to_owned(),
+                format!(
+                    "{} ({} bytes, written {age_s:.0} s ago)",
+                    newest.name, newest.len
+                ),
+            ));
+            let candidate = Candidate {
+                image: FileKey::of(newest),
+                sidecar: rules.sidecar_name(&newest.name).and_then(|side| {
+                    listing
+                        .iter()
+                        .find(|e| e.kind == EntryKind::File && e.name.to_lowercase() == side)
+                        .map(FileKey::of)
+                }),
+            };
+            let (dir, max) = (self.dir().to_owned(), rules.max_bytes);
+            let read = tokio::task::spawn_blocking(move || read_and_decode(&dir, &candidate, max))
+                .await
+                .map_err(|e| std::io::Error::other(e.to_string()));
+            if let Ok(Ok(stored)) = &read {
+                // Until a run reads its own files, the newest one says who stores them.
+                self.stored_by = stored.micrograph.metadata.instrument();
+            }
+            lines.push(("its metadata".to_owned(), describe_stored(read)));
+        }
+        let trigger = |t: &str| {
+            if t.is_empty() {
+                "none: the SEM stores on its own".to_owned()
+            } else {
+                format!("{t:?} over the stage link")
+            }
+        };
+        lines.push((
+            "trigger, micrograph".to_owned(),
+            trigger(self.cfg.trigger_for(Role::Left)),
+        ));
+        lines.push((
+            "trigger, tracking frame".to_owned(),
+            trigger(self.cfg.trigger_for(Role::Tracking)),
+        ));
+        lines.push((
+            "stability".to_owned(),
+            format!(
+                "read once unchanged for {} ms over ≥ {} listings, one every {} ms \
+                 (imaging.watch_stable_ms: longer than the mount's attribute cache)",
+                self.cfg.watch_stable_ms, self.cfg.watch_stable_polls, self.cfg.watch_poll_ms
+            ),
+        ));
+        Ok(lines)
+    }
+
     async fn list(&self) -> Result<Vec<ListedEntry>, ImagingError> {
         let dir = self.dir().to_owned();
         let listed = tokio::task::spawn_blocking(move || list_dir(&dir))
@@ -137,7 +214,7 @@ impl WatchFolderSource {
     ) -> Result<Frame, ImagingError> {
         let listing = self.list().await?;
         self.arrivals.begin(self.now(), &listing);
-        let command = self.cfg.trigger.trim().to_owned();
+        let command = self.cfg.trigger_for(request.role).to_owned();
         if !command.is_empty() {
             let trigger = context.trigger.ok_or_else(|| ImagingError::NoTriggerLink {
                 command: command.clone(),
@@ -325,6 +402,8 @@ impl WatchFolderSource {
             .path
             .file_name()
             .map_or_else(String::new, |n| n.to_string_lossy().into_owned());
+        let instrument = meta.instrument();
+        instrument.clone_into(&mut self.stored_by);
         info!(
             file = %name,
             recorded_tilt_deg = meta.tilt_deg,
@@ -350,6 +429,7 @@ impl WatchFolderSource {
                 stored_width: u32::try_from(m.stored_size.0).unwrap_or(u32::MAX),
                 stored_height: u32::try_from(m.stored_size.1).unwrap_or(u32::MAX),
                 downsampled: factor,
+                instrument,
             }),
         })
     }
@@ -370,6 +450,14 @@ impl FrameSource for WatchFolderSource {
 
     fn identify(&mut self) -> IdentifyFuture<'_> {
         Box::pin(self.describe())
+    }
+
+    fn identity(&self) -> SourceIdentity {
+        self.stored_by.clone()
+    }
+
+    fn probe(&mut self) -> ProbeFuture<'_> {
+        Box::pin(self.probe_lines())
     }
 }
 
@@ -511,6 +599,54 @@ fn read_and_decode(dir: &Path, c: &Candidate, max: u64) -> Result<Stored, Unread
         sidecar: side_name,
         mtime_ns: c.image.mtime_ns,
     })
+}
+
+/// What a probe says of the newest stored micrograph.
+fn describe_stored(read: std::io::Result<Result<Stored, Unready>>) -> String {
+    match read {
+        Err(e) => format!("cannot read it: {e}"),
+        Ok(Err(Unready::NotWhole(why))) => format!("not whole (still being written?): {why}"),
+        Ok(Err(Unready::Refused(e))) => e.to_string(),
+        Ok(Ok(stored)) => {
+            let m = &stored.micrograph;
+            let meta = &m.metadata;
+            let id = meta.instrument();
+            let mut parts = vec![
+                meta.vendor.map_or_else(
+                    || "no vendor metadata".to_owned(),
+                    |v| v.as_str().to_owned(),
+                ),
+                format!(
+                    "stored {}×{}, image {}×{}, {} bit",
+                    m.stored_size.0,
+                    m.stored_size.1,
+                    m.image.width(),
+                    m.image.height(),
+                    m.bits_per_sample
+                ),
+            ];
+            parts.push(meta.pixel_size_um.map_or_else(
+                || "NO pixel size: such a file would be refused".to_owned(),
+                |p| format!("pixel {p} µm (field {:.3} µm)", p * m.image.width() as f64),
+            ));
+            if let Some(t) = meta.tilt_deg {
+                parts.push(format!("stage tilt {t}°"));
+            }
+            if let Some(d) = meta.dwell_us {
+                parts.push(format!("dwell {d} µs"));
+            }
+            for (name, value) in [
+                ("model", &id.model),
+                ("version", &id.version),
+                ("serial", &id.serial),
+            ] {
+                if !value.is_empty() {
+                    parts.push(format!("{name} {value}"));
+                }
+            }
+            parts.join(", ")
+        }
+    }
 }
 
 /// The smallest whole factor that brings `stored` within `wanted` (1: it already fits).

@@ -144,7 +144,11 @@ pub const FRAME_INFO_SCHEMA: JsonSchema = JsonSchema {
                "stored_width": {"type": "integer", "minimum": 0},
                "stored_height": {"type": "integer", "minimum": 0},
                "downsampled": {"type": "integer", "minimum": 1,
-                               "description": "stored pixels averaged per frame pixel and side"}
+                               "description": "stored pixels averaged per frame pixel and side"},
+               "instrument": {"type": "object", "description": "who stored it, as its metadata says",
+                              "properties": {"vendor": {"type": "string"}, "model": {"type": "string"},
+                                             "version": {"type": "string"}, "serial": {"type": "string"}},
+                              "required": ["vendor", "model", "version", "serial"]}
              },
              "required": ["name", "stored_width", "stored_height", "downsampled"]}
   },
@@ -307,6 +311,12 @@ mod tests {
                 stored_width: 2048,
                 stored_height: 1536,
                 downsampled: 1,
+                instrument: crate::imaging::SourceIdentity {
+                    vendor: "Zeiss".into(),
+                    version: "V06.03".into(),
+                    serial: "4711".into(),
+                    ..Default::default()
+                },
             }),
         };
         let full = info.clone();

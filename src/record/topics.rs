@@ -52,6 +52,14 @@ pub const ALL_TOPICS: [&str; 8] = [
 /// Name of the MCAP metadata record with the job, the full effective configuration,
 /// the version and the host (DESIGN §5).
 pub const METADATA_RUN: &str = "sdsem.run";
+/// Name of the MCAP metadata record of the instruments, written once they are connected:
+/// `stage` and `sem` (their identification answers), `stage_protocol`, `sem_protocol` and,
+/// where known, `stage_`/`sem_` `vendor`, `model`, `version`, `serial`.
+pub const METADATA_INSTRUMENTS: &str = "sdsem.instruments";
+/// Name of the MCAP metadata record of who made the frames as the frames themselves say
+/// (a watched folder's vendor tags: `sem_vendor`, `sem_model`, `sem_version`, `sem_serial`),
+/// written after the series when it adds to [`METADATA_INSTRUMENTS`].
+pub const METADATA_INSTRUMENTS_FROM_FRAMES: &str = "sdsem.instruments.frames";
 /// Name of the MCAP metadata record written last, with the run's outcome
 /// (keys `status` and, on failure, `cause`). See [`super::RunOutcome`].
 pub const METADATA_OUTCOME: &str = "sdsem.outcome";

@@ -109,6 +109,14 @@ pub trait StageBackend: Send {
         line: &'a str,
         timeout: Duration,
     ) -> BoxFuture<'a, Result<String, StageError>>;
+
+    /// What `sdsem probe` shows besides identity, position and limits: the instrument's own
+    /// state read by queries that move nothing (servo and reference states, pixel size,
+    /// magnification, detector), as (name, value) lines; a query the instrument does not
+    /// answer is a line saying so. Protocols with nothing more to say keep this default.
+    fn probe_facts(&mut self) -> BoxFuture<'_, Result<Vec<(String, String)>, StageError>> {
+        Box::pin(async { Ok(Vec::new()) })
+    }
 }
 
 impl<B: StageBackend + ?Sized> StageBackend for Box<B> {
@@ -151,5 +159,8 @@ impl<B: StageBackend + ?Sized> StageBackend for Box<B> {
         timeout: Duration,
     ) -> BoxFuture<'a, Result<String, StageError>> {
         (**self).send_raw(line, timeout)
+    }
+    fn probe_facts(&mut self) -> BoxFuture<'_, Result<Vec<(String, String)>, StageError>> {
+        (**self).probe_facts()
     }
 }

@@ -79,6 +79,8 @@ pub struct StageDriver<B: StageBackend = Box<dyn StageBackend>> {
     backend: B,
     config: StageConfig,
     limits: [(f64, f64); 3],
+    /// The limits the instrument reported at connect, per axis.
+    instrument_limits: [Option<(f64, f64)>; 3],
     observer: Arc<dyn StageObserver>,
     identity: StageIdentity,
 }
@@ -177,6 +179,7 @@ impl<B: StageBackend> StageDriver<B> {
             backend,
             config,
             limits,
+            instrument_limits: instrument,
             observer,
             identity,
         };
@@ -213,6 +216,12 @@ impl<B: StageBackend> StageDriver<B> {
     /// controller's soft limits when read.
     pub fn limits(&self, axis: StageAxis) -> (f64, f64) {
         self.limits[slot(axis)]
+    }
+
+    /// The limits the instrument itself reported for an axis at connect (PI GCS `TMN?`/`TMX?`
+    /// when read), if any; [`Self::limits`] are the configured ones narrowed to them.
+    pub fn instrument_limits(&self, axis: StageAxis) -> Option<(f64, f64)> {
+        self.instrument_limits[slot(axis)]
     }
 
     /// Reads the three positions.

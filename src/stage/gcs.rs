@@ -434,6 +434,32 @@ impl<T: AsyncRead + AsyncWrite + Unpin + Send> StageBackend for GcsBackend<T> {
             })
         })
     }
+
+    fn probe_facts(&mut self) -> BoxFuture<'_, Result<Vec<(String, String)>, StageError>> {
+        Box::pin(async move {
+            let ids = self.ids(&StageAxis::ALL);
+            let on = |flags: Vec<(AxisId, bool)>| {
+                flags
+                    .iter()
+                    .map(|(a, f)| format!("{a}={}", u8::from(*f)))
+                    .collect::<Vec<_>>()
+                    .join(" ")
+            };
+            let servo = on(self.query(&ServoQuery(ids.clone())).await?);
+            let referenced = on(self.query(&ReferencedQuery(ids.clone())).await?);
+            let on_target = on(self.query(&OnTargetQuery(ids)).await?);
+            let ready = self.query(&ReadyQuery).await?;
+            Ok(vec![
+                ("SVO? servo on".to_owned(), servo),
+                ("FRF? referenced".to_owned(), referenced),
+                ("ONT? on target".to_owned(), on_target),
+                (
+                    "#7 controller ready".to_owned(),
+                    if ready { "yes" } else { "no (referencing?)" }.to_owned(),
+                ),
+            ])
+        })
+    }
 }
 
 #[cfg(test)]

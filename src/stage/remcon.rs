@@ -325,6 +325,53 @@ impl<T: AsyncRead + AsyncWrite + Unpin + Send> RemconBackend<T> {
         Ok(())
     }
 
+    /// `sdsem probe`'s lines: the axes sdsem does not drive, then the SEM's state by
+    /// queries that change nothing; one the SEM refuses (`*600`, `#`) is a line saying so.
+    async fn probe_lines(&mut self) -> Result<Vec<(String, String)>, StageError> {
+        let r = self.read_stage().await?;
+        let mut lines = vec![(
+            "C95? (all axes)".to_owned(),
+            format!(
+                "x {} mm, y {} mm, z {} mm, tilt {}°, rotation {}°, m {} mm, {}",
+                r.x_mm,
+                r.y_mm,
+                r.z_mm,
+                r.t_deg,
+                r.r_deg,
+                r.m_mm,
+                if r.moving { "moving" } else { "not moving" }
+            ),
+        )];
+        let queries = [
+            (
+                Command::InitialisedQuery,
+                "IST? stage type, initialised (0)",
+                "",
+            ),
+            (
+                Command::PixelSizeQuery,
+                "PIX? pixel size",
+                " nm (field width / 1024)",
+            ),
+            (Command::MagnificationQuery, "MAG? magnification", " ×"),
+            (Command::DetectorQuery, "DET? detector", ""),
+            (Command::EhtQuery, "EHT? accelerating voltage", " kV"),
+            (Command::PhotoNumberQuery, "PHN? photo number", ""),
+        ];
+        for (command, name, unit) in queries {
+            let value = match self.query(&command, |d| Ok(d.to_owned())).await {
+                Ok(data) => format!("{data}{unit}"),
+                Err(StageError::Remcon { error, .. }) => format!("not answered: {error}"),
+                Err(StageError::InvalidCommand { .. }) => {
+                    "not answered: invalid command (#)".into()
+                }
+                Err(e) => return Err(e),
+            };
+            lines.push((name.to_owned(), value));
+        }
+        Ok(lines)
+    }
+
     async fn raw(&mut self, line: &str, timeout: Duration) -> Result<String, StageError> {
         let bytes = encode_line(line).map_err(|e| StageError::Config {
             field: "imaging.trigger",
@@ -394,5 +441,9 @@ impl<T: AsyncRead + AsyncWrite + Unpin + Send> StageBackend for RemconBackend<T>
         timeout: Duration,
     ) -> BoxFuture<'a, Result<String, StageError>> {
         Box::pin(self.raw(line, timeout))
+    }
+
+    fn probe_facts(&mut self) -> BoxFuture<'_, Result<Vec<(String, String)>, StageError>> {
+        Box::pin(self.probe_lines())
     }
 }

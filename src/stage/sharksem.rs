@@ -133,6 +133,40 @@ impl SharkSemBackend {
         })
     }
 
+    /// `sdsem probe`'s lines: all axes as the SEM reports them, busy and calibrated.
+    async fn probe_inner(&mut self) -> Result<Vec<(String, String)>, StageError> {
+        let mut s = self.link.lock().await;
+        let wait = s.config().reply_timeout;
+        let p = position(&mut s).await?;
+        let busy = int(&mut s, &Request::StgIsBusy, wait).await?;
+        let calibrated = int(&mut s, &Request::StgIsCalibrated, wait).await?;
+        let mut all = format!(
+            "x {} mm, y {} mm, z {} mm, rotation {}°, tilt {}°",
+            p.x_mm, p.y_mm, p.z_mm, p.rotation_deg, p.tilt_deg
+        );
+        if let Some(t) = p.tilt_y_deg {
+            all.push_str(&format!(", tilt-Y {t}°"));
+        }
+        Ok(vec![
+            ("StgGetPosition (all axes)".to_owned(), all),
+            (
+                "StgIsBusy".to_owned(),
+                format!("{busy} ({})", if busy == 0 { "idle" } else { "moving" }),
+            ),
+            (
+                "StgIsCalibrated".to_owned(),
+                format!(
+                    "{calibrated} ({})",
+                    if calibrated == 1 {
+                        "yes"
+                    } else {
+                        "NO: moves are ignored"
+                    }
+                ),
+            ),
+        ])
+    }
+
     async fn stop_inner(&mut self) -> Result<(), StageError> {
         let mut s = self.link.lock().await;
         let wait = s.config().reply_timeout;
@@ -221,6 +255,10 @@ impl StageBackend for SharkSemBackend {
 
     fn stop(&mut self) -> BoxFuture<'_, Result<(), StageError>> {
         Box::pin(self.stop_inner())
+    }
+
+    fn probe_facts(&mut self) -> BoxFuture<'_, Result<Vec<(String, String)>, StageError>> {
+        Box::pin(self.probe_inner())
     }
 
     fn send_raw<'a>(

@@ -87,6 +87,10 @@ pub enum Command {
     Macro(u32),
     /// `PHN?`: the photo counter [ML].
     PhotoNumberQuery,
+    /// `DET?`: the detector in use, e.g. `SE2`, `InLens` [SF, ML].
+    DetectorQuery,
+    /// `EHT?`: the accelerating voltage, kV [OD-Z, SF].
+    EhtQuery,
 }
 
 /// A number as sent: fixed six decimals (`%f`, accepted [VENDORS §1.2]); no `-0`.
@@ -123,6 +127,8 @@ impl fmt::Display for Command {
             Self::Record => f.write_str("FREC"),
             Self::Macro(n) => write!(f, "MAC {n}"),
             Self::PhotoNumberQuery => f.write_str("PHN?"),
+            Self::DetectorQuery => f.write_str("DET?"),
+            Self::EhtQuery => f.write_str("EHT?"),
         }
     }
 }
@@ -194,6 +200,8 @@ impl Command {
             "MAG?" => bare(Self::MagnificationQuery),
             "FREC" => bare(Self::Record),
             "PHN?" => bare(Self::PhotoNumberQuery),
+            "DET?" => bare(Self::DetectorQuery),
+            "EHT?" => bare(Self::EhtQuery),
             "MAC" => match args.as_slice() {
                 [n] => n
                     .parse::<u32>()
@@ -316,6 +324,8 @@ mod tests {
             Command::Record,
             Command::Macro(7),
             Command::PhotoNumberQuery,
+            Command::DetectorQuery,
+            Command::EhtQuery,
         ] {
             let bytes = c.to_bytes();
             assert_eq!(Command::parse(&bytes[..bytes.len() - 1]), Ok(c));

@@ -5,6 +5,7 @@ use crate::clock::{ManualClock, ScaledClock};
 use crate::config::SemSimConfig;
 use crate::pose::{FixedPose, PoseSource, StagePose};
 use crate::scene::{Scene, SceneKind, SceneParams};
+use crate::store::StoreCommand;
 
 fn sem(pose: Arc<FixedPose>, clock: Arc<dyn Clock>) -> Arc<SimSem> {
     let scene = Arc::new(
@@ -195,6 +196,12 @@ fn remcon_frec_over_the_stage_link_stores_a_micrograph() {
     c.sem.optics.height = 96;
     c.folder = Some(FolderSimConfig {
         vendor: Vendor::Fei,
+        macros: vec![FolderMacro {
+            number: 1,
+            width: 32,
+            height: 24,
+            dwell_us: 1.0,
+        }],
         ..config(dir.path())
     });
     let sim = crate::Simulator::spawn(c).unwrap();
@@ -230,4 +237,73 @@ fn remcon_frec_over_the_stage_link_stores_a_micrograph() {
         sim.frame(stored[0].frame).is_some(),
         "the same SEM's frame: ground truth known"
     );
+    assert_eq!(sim.frame(stored[0].frame).unwrap().view.width, 64);
+
+    // MAC 1 stores at its macro's size; a macro that is not set up cannot execute.
+    let mut ask = |line: &str| {
+        (&stream).write_all(format!("{line}\r").as_bytes()).unwrap();
+        let mut lines = [String::new(), String::new()];
+        for line in &mut lines {
+            reader.read_line(line).unwrap();
+        }
+        lines
+    };
+    assert_eq!(ask("MAC 1"), ["@\r\n", ">\r\n"]);
+    assert_eq!(ask("MAC 2"), ["@\r\n", "*616\r\n"]);
+    while folder.stored().len() < 2 && start.elapsed() < Duration::from_secs(10) {
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    let stored = folder.stored();
+    assert_eq!(stored.len(), 2, "MAC 2 stored nothing");
+    assert_eq!(sim.frame(stored[1].frame).unwrap().view.width, 32);
+}
+
+#[test]
+fn frec_stores_at_the_folder_settings_and_a_macro_at_its_own() {
+    let mut cfg = config(Path::new("/unused"));
+    cfg.macros = vec![FolderMacro {
+        number: 1,
+        width: 32,
+        height: 24,
+        dwell_us: 0.5,
+    }];
+    cfg.validate().unwrap();
+    assert_eq!(cfg.settings_for(StoreCommand::Record), Some(cfg.settings()));
+    assert_eq!(
+        cfg.settings_for(StoreCommand::Macro(1)),
+        Some(StoreSettings {
+            width: 32,
+            height: 24,
+            dwell_us: 0.5
+        })
+    );
+    assert_eq!(cfg.settings_for(StoreCommand::Macro(2)), None);
+    cfg.macros.push(cfg.macros[0]);
+    assert!(cfg.validate().unwrap_err().to_string().contains("twice"));
+    cfg.macros.pop();
+    cfg.macros[0].dwell_us = 0.0;
+    let e = cfg.validate().unwrap_err().to_string();
+    assert!(e.contains("folder.macros.dwell_us"), "{e}");
+
+    // A macro's store: its size, its scan time on the clock.
+    let dir = tempfile::tempdir().unwrap();
+    let clock = Arc::new(ManualClock::new());
+    let writer = FolderWriter::new(
+        &config(dir.path()),
+        1,
+        sem(Arc::default(), clock.clone()),
+        clock.clone(),
+    )
+    .unwrap();
+    let t0 = clock.now_s();
+    let small = StoreSettings {
+        width: 32,
+        height: 24,
+        dwell_us: 0.5,
+    };
+    let stored = writer.store_at(&small, &AtomicBool::new(false)).unwrap();
+    assert!((clock.now_s() - t0 - 32.0 * 24.0 * 0.5e-6).abs() < 1e-9);
+    let bytes = std::fs::read(&stored.path).unwrap();
+    let key = b"Store resolution = 32 * 24";
+    assert!(bytes.windows(key.len()).any(|w| w == key));
 }
