@@ -14,8 +14,8 @@ use crate::vision::dense::sift_flow::{Flow, FlowParams, sift_flow};
 /// When an image cannot be read, the flow fails (e.g. an image too small for
 /// the pyramid) or the file cannot be written; the message names the file.
 pub fn run(a: &Path, b: &Path, out: &Path, params: &FlowParams) -> anyhow::Result<Flow> {
-    let ia = super::rectify::load_gray(a)?;
-    let ib = super::rectify::load_gray(b)?;
+    let ia = crate::imaging::file::load_luma(a)?;
+    let ib = crate::imaging::file::load_luma(b)?;
     let flow = sift_flow(&ia, &ib, params)
         .with_context(|| format!("SIFT flow from {} to {}", a.display(), b.display()))?;
     let file =
