@@ -139,6 +139,21 @@ fn read_bounded(path: &Path) -> Result<Vec<u8>, ImageFileError> {
     Ok(bytes)
 }
 
+/// Whether a micrograph file is whole (a file the SEM may still be writing): a TIFF's
+/// directories and strips all inside it, a JPEG's data up to its end marker, a BMP as long as
+/// its header says. `Err` says what is missing.
+pub(crate) fn check_whole(bytes: &[u8]) -> Result<(), String> {
+    match Raster::sniff(bytes) {
+        Some(Raster::Jpeg) => jpeg_truncation(bytes).map_or(Ok(()), Err),
+        Some(Raster::Bmp) => bmp_truncation(bytes).map_or(Ok(()), Err),
+        Some(Raster::Png) => bytes
+            .ends_with(b"IEND\xAE\x42\x60\x82")
+            .then_some(())
+            .ok_or_else(|| "no PNG end chunk yet".to_owned()),
+        None => super::file_tiff::check_whole(bytes),
+    }
+}
+
 /// Refuses dimensions beyond [`MAX_SIDE`] or [`MAX_PIXELS`], before decoding.
 fn check_dimensions(path: &Path, w: u32, h: u32) -> Result<(), ImageFileError> {
     if w == 0 || h == 0 {
@@ -854,7 +869,8 @@ mod tests {
     fn float_tiff_is_refused() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("height.tif");
-        crate::export::height_tiff::write_height_tiff(&path, &Image::zeros(2, 2), None).unwrap();
+        crate::export::height_tiff::write_height_tiff(&path, &Image::zeros(2, 2), None, None)
+            .unwrap();
         let err = load_image(&path).unwrap_err().to_string();
         assert!(err.contains("floating-point"), "{err}");
     }
@@ -1037,7 +1053,9 @@ mod tests {
             ("cut.bmp", image::ImageFormat::Bmp),
         ] {
             let whole = encoded(&grey.clone().into(), format);
+            assert_eq!(check_whole(&whole), Ok(()), "{name}");
             for end in [whole.len() / 3, whole.len() - 2] {
+                assert!(check_whole(&whole[..end]).is_err(), "{name} cut at {end}");
                 let path = dir.path().join(name);
                 std::fs::write(&path, &whole[..end]).unwrap();
                 let err = load_micrograph(&path).unwrap_err().to_string();
@@ -1047,6 +1065,13 @@ mod tests {
                 );
             }
         }
+    }
+
+    #[test]
+    fn a_png_still_being_written_is_not_whole() {
+        let png = encoded(&textured_grey(8, 8).into(), image::ImageFormat::Png);
+        assert_eq!(check_whole(&png), Ok(()));
+        assert!(check_whole(&png[..png.len() - 5]).is_err());
     }
 
     /// Hostile files: garbage, flipped bytes and headers claiming huge images end in an
