@@ -12,7 +12,7 @@ use crate::vision::geometry::Figures;
 
 #[derive(Debug, Args)]
 pub struct ReconstructArgs {
-    /// Micrograph at the lower stage tilt (TIFF or PNG).
+    /// Micrograph at the lower stage tilt (TIFF, PNG, JPEG or BMP; grey).
     pub left: PathBuf,
     /// Micrograph at the higher stage tilt.
     pub right: PathBuf,

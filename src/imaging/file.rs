@@ -114,13 +114,14 @@ fn read_bounded(path: &Path) -> Result<Vec<u8>, ImageFileError> {
         path: path.to_path_buf(),
         source,
     };
-    let file = std::fs::File::open(path).map_err(read_error)?;
-    let meta = file.metadata().map_err(read_error)?;
-    if !meta.is_file() {
+    // Checked before opening: opening a FIFO would block until a writer comes.
+    if !std::fs::metadata(path).map_err(read_error)?.is_file() {
         return Err(ImageFileError::NotAFile {
             path: path.to_path_buf(),
         });
     }
+    let file = std::fs::File::open(path).map_err(read_error)?;
+    let meta = file.metadata().map_err(read_error)?;
     let too_large = |len: u64| ImageFileError::TooLarge {
         path: path.to_path_buf(),
         what: format!("{len} bytes"),
@@ -1122,11 +1123,18 @@ mod tests {
     }
 
     #[test]
-    fn a_directory_is_not_read_as_a_micrograph() {
+    fn a_directory_or_fifo_is_not_read_as_a_micrograph() {
         let dir = tempfile::tempdir().unwrap();
         let err = load_micrograph(dir.path()).unwrap_err().to_string();
+        assert!(err.contains("not a regular file"), "{err}");
+        // A FIFO is refused without opening it (which would wait for a writer).
+        let fifo = dir.path().join("pipe.tif");
+        let c = std::ffi::CString::new(fifo.as_os_str().as_encoded_bytes()).unwrap();
+        // SAFETY: mkfifo reads the NUL-terminated path and creates a node; nothing else.
+        assert_eq!(unsafe { libc::mkfifo(c.as_ptr(), 0o600) }, 0);
+        let err = load_micrograph(&fifo).unwrap_err().to_string();
         assert!(
-            err.contains("not a regular file") || err.contains("cannot read"),
+            err.contains("pipe.tif") && err.contains("not a regular file"),
             "{err}"
         );
     }
