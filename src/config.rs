@@ -14,6 +14,7 @@ use crate::daemon::DaemonConfig;
 use crate::export::MeshParams;
 use crate::imaging::{ImagingConfig, ImagingError};
 use crate::stage::{StageConfig, StageError};
+use crate::vision::datum::DatumKind;
 use crate::vision::dense::DenseParams;
 use crate::vision::sparse::SparseParams;
 use crate::vision::{Preset, ReconstructionParams};
@@ -55,6 +56,8 @@ pub struct ReconstructionConfig {
     /// it. It decides the sign of the relief.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub tilt_axis_deg: Option<f64>,
+    /// What zero height means: `support` (default), `mean-plane` or `none`.
+    pub datum: DatumKind,
     pub sparse: SparseParams,
     pub dense: DenseParams,
     pub mesh: MeshParams,
@@ -70,10 +73,15 @@ impl ReconstructionConfig {
     /// Every key at the value of `preset`.
     #[must_use]
     pub fn preset(preset: Preset) -> Self {
-        let ReconstructionParams { sparse, dense } = ReconstructionParams::preset(preset);
+        let ReconstructionParams {
+            sparse,
+            dense,
+            datum,
+        } = ReconstructionParams::preset(preset);
         Self {
             mode: preset,
             tilt_axis_deg: None,
+            datum,
             sparse,
             dense,
             mesh: MeshParams::default(),
@@ -86,6 +94,7 @@ impl ReconstructionConfig {
         ReconstructionParams {
             sparse: self.sparse.clone(),
             dense: self.dense,
+            datum: self.datum,
         }
     }
 }

@@ -21,8 +21,8 @@ pub fn run(
     (out, name): (&OutputDir, &str),
     params: &FlowParams,
 ) -> anyhow::Result<Flow> {
-    let ia = super::rectify::load_gray(a)?;
-    let ib = super::rectify::load_gray(b)?;
+    let ia = crate::imaging::file::load_luma(a)?;
+    let ib = crate::imaging::file::load_luma(b)?;
     let flow = sift_flow(&ia, &ib, params)
         .with_context(|| format!("SIFT flow from {} to {}", a.display(), b.display()))?;
     out.write(name, |w| {

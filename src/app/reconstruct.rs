@@ -298,6 +298,7 @@ pub fn write_outputs(
 ) -> Result<(), OutputError> {
     progress(Stage::Export);
     let p = recon.report.geometry.pixel_size_um;
+    let gsf_title = format!("sdsem height, zero = {}", recon.report.datum.zero);
     let cloud = ply::cloud_from_height(&recon.height_um, p, Some(intensity));
     let mesh = ply::build_mesh(&recon.height_um, p, Some(intensity), mesh_params);
     report.point_count = cloud.len();
@@ -329,6 +330,7 @@ pub fn write_outputs(
                                         tiff,
                                         &recon.height_um,
                                         Some(p),
+                                        Some(&recon.report.datum),
                                     ),
                                     export::height_tiff::write_confidence_tiff(
                                         confidence_path,
@@ -337,7 +339,7 @@ pub fn write_outputs(
                                     ),
                                 )
                             },
-                            || export::gsf::write_gsf(gsf, &recon.height_um, p, "sdsem height map"),
+                            || export::gsf::write_gsf(gsf, &recon.height_um, p, &gsf_title),
                         )
                     },
                 )
@@ -590,6 +592,28 @@ mod tests {
             f64::from(centre - rim) > 0.5 * 6.0 * params_um_per_px(),
             "centre {centre}, rim {rim}"
         );
+        // Zero is the support around the dome (DESIGN §3 heights, levelled on it), in every
+        // output: the GSF above, height.tif and the report.
+        let peak = 6.0 * params_um_per_px();
+        assert!(
+            f64::from(rim).abs() < 0.05 * peak,
+            "support at {rim} µm, not 0"
+        );
+        assert!(
+            (f64::from(centre) / peak - 1.0).abs() < 0.1,
+            "dome top {centre} µm, expected {peak}"
+        );
+        let tiff =
+            crate::export::height_tiff::read_height_tiff(&out.join(files::HEIGHT_TIFF)).unwrap();
+        assert_eq!(tiff.datum.as_deref(), Some("support"));
+        assert_eq!(tiff.height_um.get(w / 2, h / 2 + 55), rim);
+        assert!(
+            field
+                .title
+                .as_deref()
+                .unwrap()
+                .contains("zero = the specimen support")
+        );
 
         let json: serde_json::Value =
             serde_json::from_slice(&std::fs::read(out.join(files::REPORT)).unwrap()).unwrap();
@@ -628,6 +652,12 @@ mod tests {
             "{precision:?}"
         );
         assert_eq!(json["schema_version"], 1);
+        let datum = &json["reconstruction"]["datum"];
+        assert_eq!(
+            (&datum["requested"], &datum["kind"]),
+            (&"support".into(), &"support".into())
+        );
+        assert!(datum["support_fraction"].as_f64().unwrap() > 0.4, "{datum}");
         assert_eq!(report.outputs.len(), 6);
     }
 

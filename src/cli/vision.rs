@@ -14,7 +14,7 @@ use crate::vision::geometry::Figures;
 
 #[derive(Debug, Args)]
 pub struct ReconstructArgs {
-    /// Micrograph at the lower stage tilt (TIFF or PNG).
+    /// Micrograph at the lower stage tilt (TIFF, PNG, JPEG or BMP; grey).
     pub left: PathBuf,
     /// Micrograph at the higher stage tilt.
     pub right: PathBuf,
@@ -127,6 +127,7 @@ fn summarise(report: &reconstruct::ReportFile, out: &Path) {
         r.depth.height_p01_um,
         r.depth.height_p99_um
     );
+    eprintln!("{}", datum_line(&r.datum));
     if let Some(line) = precision_line(r) {
         eprintln!("{line}");
     }
@@ -168,6 +169,21 @@ fn written(dir: &Path, files: &[PathBuf]) -> String {
 /// Share of the relief (1st–99th percentile) above which the summary
 /// advises a longer dwell or a larger tilt.
 const NOISY_SHARE: f64 = 0.05;
+
+/// What zero height is (`reconstruction.datum`), with the support's share and RMS.
+fn datum_line(d: &crate::vision::datum::Datum) -> String {
+    let mut line = format!("zero: {}", d.zero);
+    if let (Some(share), Some(rms)) = (d.support_fraction, d.support_rms_um) {
+        line += &format!(
+            "; {:.1} % of the heights on it, RMS {rms:.2} µm",
+            100.0 * share
+        );
+    }
+    if let Some(why) = &d.fallback {
+        line += &format!(" (no support: {why})");
+    }
+    line
+}
 
 /// The predicted precision in one line, with advice when the noise floor
 /// is a noticeable share of the relief.

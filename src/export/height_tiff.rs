@@ -1,8 +1,9 @@
 //! `height.tif`: the height map as a single-channel float32 TIFF, µm, NaN unknown.
 //!
 //! The ImageDescription holds a small JSON object (`{"sdsem":"height","schema_version":1,"unit":"um",...}`)
-//! with the pixel size, and the standard resolution tags carry it too (pixels per cm),
-//! so GIS tools, ImageJ/Fiji and Gwyddion read a calibrated field.
+//! with the pixel size and what zero height means (`datum`, `zero`), and the standard
+//! resolution tags carry the pixel size too (pixels per cm), so GIS tools, ImageJ/Fiji and
+//! Gwyddion read a calibrated field.
 
 use std::io::{BufReader, Seek, Write};
 use std::path::Path;
@@ -14,6 +15,7 @@ use tiff::tags::{ResolutionUnit, Tag};
 use super::ExportError;
 use super::atomic::Target;
 use crate::vision::Image;
+use crate::vision::datum::Datum;
 
 /// A height map read back from `height.tif`.
 #[derive(Debug, Clone, PartialEq)]
@@ -22,6 +24,8 @@ pub struct HeightTiff {
     pub height_um: Image,
     /// Pixel size from the ImageDescription, µm.
     pub pixel_size_um: Option<f64>,
+    /// The datum's name from the ImageDescription (`support`, `mean-plane`, `none`).
+    pub datum: Option<String>,
 }
 
 /// `value` as a TIFF rational with the largest power-of-ten denominator that fits.
@@ -43,7 +47,7 @@ pub(crate) fn rational(value: f64) -> Rational {
 /// micrograph files, key `schema_version`): raised when a key changes meaning or goes away.
 pub const DESCRIPTION_SCHEMA_VERSION: u32 = 1;
 
-fn description(kind: Field, pixel_size_um: Option<f64>) -> String {
+fn description(kind: Field, pixel_size_um: Option<f64>, datum: Option<&Datum>) -> String {
     let mut json = match kind {
         Field::Height => serde_json::json!({
             "sdsem": "height",
@@ -64,6 +68,10 @@ fn description(kind: Field, pixel_size_um: Option<f64>) -> String {
     if let Some(p) = pixel_size_um {
         json["pixel_size_um"] = serde_json::json!(p);
     }
+    if let Some(d) = datum {
+        json["datum"] = d.kind.name().into();
+        json["zero"] = d.zero.into();
+    }
     json.to_string()
 }
 
@@ -79,13 +87,14 @@ fn encode_field<W: Write + Seek>(
     height_um: &Image,
     pixel_size_um: Option<f64>,
     kind: Field,
+    datum: Option<&Datum>,
 ) -> tiff::TiffResult<()> {
     let (w, h) = dims_u32(height_um)?;
     let mut encoder = TiffEncoder::new(out)?;
     let mut image = encoder.new_image::<Gray32Float>(w, h)?;
     image.encoder().write_tag(
         Tag::ImageDescription,
-        description(kind, pixel_size_um).as_str(),
+        description(kind, pixel_size_um, datum).as_str(),
     )?;
     image
         .encoder()
@@ -102,7 +111,7 @@ pub(crate) fn dims_u32(image: &Image) -> tiff::TiffResult<(u32, u32)> {
     Ok((w, h))
 }
 
-/// Writes `height.tif` atomically: float32, µm, NaN unknown.
+/// Writes `height.tif` atomically: float32, µm, NaN unknown, zero at `datum` when given.
 ///
 /// # Errors
 /// [`ExportError::Invalid`] for an empty map, [`ExportError::Write`] on I/O failure.
@@ -110,8 +119,9 @@ pub fn write_height_tiff<'a>(
     target: impl Into<Target<'a>>,
     height_um: &Image,
     pixel_size_um: Option<f64>,
+    datum: Option<&Datum>,
 ) -> Result<(), ExportError> {
-    write_field(target.into(), height_um, pixel_size_um, Field::Height)
+    write_field(target.into(), height_um, pixel_size_um, Field::Height, datum)
 }
 
 /// Writes `confidence.tif` atomically: float32 on the height map's grid,
@@ -125,7 +135,7 @@ pub fn write_confidence_tiff<'a>(
     confidence: &Image,
     pixel_size_um: Option<f64>,
 ) -> Result<(), ExportError> {
-    write_field(target.into(), confidence, pixel_size_um, Field::Confidence)
+    write_field(target.into(), confidence, pixel_size_um, Field::Confidence, None)
 }
 
 fn write_field(
@@ -133,6 +143,7 @@ fn write_field(
     map: &Image,
     pixel_size_um: Option<f64>,
     kind: Field,
+    datum: Option<&Datum>,
 ) -> Result<(), ExportError> {
     if map.is_empty() {
         let what = match kind {
@@ -144,7 +155,9 @@ fn write_field(
             reason: format!("the {what} map is empty"),
         });
     }
-    target.write(|w| encode_field(&mut *w, map, pixel_size_um, kind).map_err(std::io::Error::other))
+    target.write(|w| {
+        encode_field(&mut *w, map, pixel_size_um, kind, datum).map_err(std::io::Error::other)
+    })
 }
 
 /// Reads a float32 height TIFF back (any single-channel float32 TIFF).
@@ -166,11 +179,16 @@ pub fn read_height_tiff(path: &Path) -> Result<HeightTiff, ExportError> {
         .map_err(|e| format(e.to_string()))?
         .with_limits(Limits::unlimited());
     let (w, h) = decoder.dimensions().map_err(|e| format(e.to_string()))?;
-    let pixel_size_um = decoder
+    let description = decoder
         .get_tag_ascii_string(Tag::ImageDescription)
         .ok()
-        .and_then(|d| serde_json::from_str::<serde_json::Value>(&d).ok())
+        .and_then(|d| serde_json::from_str::<serde_json::Value>(&d).ok());
+    let pixel_size_um = description
+        .as_ref()
         .and_then(|v| v["pixel_size_um"].as_f64());
+    let datum = description
+        .as_ref()
+        .and_then(|v| v["datum"].as_str().map(str::to_owned));
     let data = match decoder.read_image().map_err(|e| format(e.to_string()))? {
         DecodingResult::F32(data) => data,
         _ => return Err(format("samples are not float32".to_owned())),
@@ -180,6 +198,7 @@ pub fn read_height_tiff(path: &Path) -> Result<HeightTiff, ExportError> {
     Ok(HeightTiff {
         height_um,
         pixel_size_um,
+        datum,
     })
 }
 
@@ -193,9 +212,16 @@ mod tests {
         let path = dir.path().join("height.tif");
         let mut img = Image::from_fn(5, 3, |x, y| x as f32 * 0.25 - y as f32 * 1.5);
         img.set(2, 1, f32::NAN);
-        write_height_tiff(&path, &img, Some(0.05582)).unwrap();
+        let mut datum_map = img.clone();
+        let datum = crate::vision::datum::apply_datum(
+            &mut datum_map,
+            crate::vision::datum::DatumKind::None,
+            0.05582,
+        );
+        write_height_tiff(&path, &img, Some(0.05582), Some(&datum)).unwrap();
         let back = read_height_tiff(&path).unwrap();
         assert_eq!(back.pixel_size_um, Some(0.05582));
+        assert_eq!(back.datum.as_deref(), Some("none"));
         assert_eq!(back.height_um.dimensions(), (5, 3));
         for (a, b) in img.data().iter().zip(back.height_um.data()) {
             assert!(a == b || (a.is_nan() && b.is_nan()), "{a} vs {b}");
@@ -220,8 +246,8 @@ mod tests {
     #[test]
     fn empty_map_is_refused() {
         let dir = tempfile::tempdir().unwrap();
-        let err =
-            write_height_tiff(&dir.path().join("h.tif"), &Image::zeros(0, 0), None).unwrap_err();
+        let err = write_height_tiff(&dir.path().join("h.tif"), &Image::zeros(0, 0), None, None)
+            .unwrap_err();
         assert!(err.to_string().contains("empty"));
     }
 }

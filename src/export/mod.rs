@@ -47,7 +47,7 @@ mod tests {
             }
         });
         let intensity = Image::from_fn(w, h, |x, y| ((x ^ y) % 32) as f32 / 31.0);
-        height_tiff::write_height_tiff(&dir.join("height.tif"), &height, Some(p)).unwrap();
+        height_tiff::write_height_tiff(&dir.join("height.tif"), &height, Some(p), None).unwrap();
         gsf::write_gsf(&dir.join("height.gsf"), &height, p, "Height").unwrap();
         let cloud = cloud_from_height(&height, p, Some(&intensity));
         ply::write_point_cloud_ply(&dir.join("pointcloud.ply"), &cloud).unwrap();

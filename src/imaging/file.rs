@@ -1,13 +1,18 @@
-//! Micrograph files: loading TIFF/PNG into an [`Image`] in `[0, 1]` with its SEM metadata,
-//! and writing `left.tif`/`right.tif` with tilt and pixel size embedded.
+//! Micrograph files: loading TIFF, PNG, JPEG or BMP into an [`Image`] in `[0, 1]` with its
+//! SEM metadata, and writing `left.tif`/`right.tif` with tilt and pixel size embedded.
 //!
 //! Accepted: grey TIFF of 8 or 16 bits (any compression the `tiff` crate decodes), 8-bit
 //! palette TIFF with a grey palette (Zeiss SmartSEM writes these), grey PNG of 8 or 16
-//! bits, and RGB(A) files whose channels are all equal (grey saved as colour; alpha must
-//! be opaque). The format is recognised by content, not by extension. Only the first image
-//! of a multi-page TIFF is read. An info bar the vendor stored below the scan (FEI/Thermo,
+//! bits, baseline and progressive JPEG, BMP, and RGB(A) files whose channels are all equal
+//! (grey saved as colour; alpha must be opaque; a JPEG's may differ by its rounding, 2 of
+//! 255). The format is recognised by content, not by extension. Only the first image of a
+//! multi-page TIFF is read. An info bar the vendor stored below the scan (FEI/Thermo,
 //! TESCAN; see [`super::metadata`]) is cut off, and a JEOL sidecar's field width gives the
-//! pixel size of what remains.
+//! pixel size of what remains. Metadata come from the TIFF tags (a JPEG's Exif block holds
+//! the same structure) and from a Hitachi or JEOL `.txt` sidecar, whatever the format.
+//!
+//! A file is untrusted: its size is checked before it is read ([`MAX_FILE_BYTES`]) and its
+//! dimensions before it is decoded ([`MAX_PIXELS`]); a cut file is named as such.
 
 use std::io::Cursor;
 use std::path::{Path, PathBuf};
@@ -17,6 +22,7 @@ use tiff::encoder::TiffEncoder;
 use tiff::encoder::colortype::{Gray8, Gray16};
 use tiff::tags::{ResolutionUnit, Tag, Type};
 
+use super::file_raster::{Raster, bmp_truncation, jpeg_exif, jpeg_truncation};
 use super::file_tiff::{RawTiff, is_tiff, patch_u16, truncation};
 use super::metadata::{
     SemMetadata, TAG_FEI, TAG_FEI_OLD, TAG_TESCAN, TAG_ZEISS, parse_fei, parse_sdsem_description,
@@ -35,8 +41,16 @@ pub enum ImageFileError {
         #[source]
         source: std::io::Error,
     },
-    #[error("{path} is not an image: expected a TIFF or PNG file")]
+    #[error("{path} is not an image: expected a TIFF, PNG, JPEG or BMP file")]
     NotAnImage { path: PathBuf },
+    #[error("{path} is {what}, more than sdsem reads ({limit}) — bin or crop the micrograph")]
+    TooLarge {
+        path: PathBuf,
+        what: String,
+        limit: String,
+    },
+    #[error("{path} is not a regular file")]
+    NotAFile { path: PathBuf },
     #[error("{path}: unsupported: {what} — expected a grey 8- or 16-bit micrograph")]
     Unsupported { path: PathBuf, what: String },
     #[error("{path}: cannot decode the image: {cause}")]
@@ -45,6 +59,25 @@ pub enum ImageFileError {
     Truncated { path: PathBuf, how: String },
     #[error(transparent)]
     Write(#[from] ExportError),
+}
+
+/// Largest micrograph file read, bytes: the size is checked before anything is read.
+pub const MAX_FILE_BYTES: u64 = 2 << 30;
+
+/// Most pixels of a micrograph decoded (16384 × 16384): checked from the header before the
+/// pixels are decoded, so a hostile header cannot make the reader allocate gigabytes.
+pub const MAX_PIXELS: u64 = 1 << 28;
+
+/// Largest side of a micrograph decoded, pixels.
+pub const MAX_SIDE: u32 = 65_535;
+
+/// What to do with a colour image whose channels differ.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Colour {
+    /// A micrograph is grey: refuse it.
+    Refuse,
+    /// An arbitrary image (`sdsem flow`): its Rec. 601 luma.
+    Luma,
 }
 
 /// A micrograph loaded from a file.
@@ -68,12 +101,73 @@ pub struct Micrograph {
 /// [`ImageFileError`] naming the file and the cause.
 pub fn load_micrograph(path: impl AsRef<Path>) -> Result<Micrograph, ImageFileError> {
     let path = path.as_ref();
-    let bytes = std::fs::read(path).map_err(|source| ImageFileError::Read {
-        path: path.to_path_buf(),
-        source,
-    })?;
+    let bytes = read_bounded(path)?;
     let sidecar = sidecar_beside(path);
     micrograph_from_bytes(path, bytes, sidecar)
+}
+
+/// The bytes of a regular file of at most [`MAX_FILE_BYTES`] (checked before reading, and
+/// while reading, should the file grow).
+fn read_bounded(path: &Path) -> Result<Vec<u8>, ImageFileError> {
+    use std::io::Read;
+    let read_error = |source| ImageFileError::Read {
+        path: path.to_path_buf(),
+        source,
+    };
+    // Checked before opening: opening a FIFO would block until a writer comes.
+    if !std::fs::metadata(path).map_err(read_error)?.is_file() {
+        return Err(ImageFileError::NotAFile {
+            path: path.to_path_buf(),
+        });
+    }
+    let file = std::fs::File::open(path).map_err(read_error)?;
+    let meta = file.metadata().map_err(read_error)?;
+    let too_large = |len: u64| ImageFileError::TooLarge {
+        path: path.to_path_buf(),
+        what: format!("{len} bytes"),
+        limit: format!("{} MiB", MAX_FILE_BYTES >> 20),
+    };
+    if meta.len() > MAX_FILE_BYTES {
+        return Err(too_large(meta.len()));
+    }
+    let mut bytes = Vec::with_capacity(usize::try_from(meta.len()).unwrap_or(0));
+    file.take(MAX_FILE_BYTES + 1)
+        .read_to_end(&mut bytes)
+        .map_err(read_error)?;
+    if bytes.len() as u64 > MAX_FILE_BYTES {
+        return Err(too_large(bytes.len() as u64));
+    }
+    Ok(bytes)
+}
+
+/// Whether a micrograph file is whole (a file the SEM may still be writing): a TIFF's
+/// directories and strips all inside it, a JPEG's data up to its end marker, a BMP as long as
+/// its header says. `Err` says what is missing.
+pub(crate) fn check_whole(bytes: &[u8]) -> Result<(), String> {
+    match Raster::sniff(bytes) {
+        Some(Raster::Jpeg) => jpeg_truncation(bytes).map_or(Ok(()), Err),
+        Some(Raster::Bmp) => bmp_truncation(bytes).map_or(Ok(()), Err),
+        Some(Raster::Png) => bytes
+            .ends_with(b"IEND\xAE\x42\x60\x82")
+            .then_some(())
+            .ok_or_else(|| "no PNG end chunk yet".to_owned()),
+        None => super::file_tiff::check_whole(bytes),
+    }
+}
+
+/// Refuses dimensions beyond [`MAX_SIDE`] or [`MAX_PIXELS`], before decoding.
+fn check_dimensions(path: &Path, w: u32, h: u32) -> Result<(), ImageFileError> {
+    if w == 0 || h == 0 {
+        return Err(decode_error(path, format!("the image is {w} × {h} pixels")));
+    }
+    if w > MAX_SIDE || h > MAX_SIDE || u64::from(w) * u64::from(h) > MAX_PIXELS {
+        return Err(ImageFileError::TooLarge {
+            path: path.to_path_buf(),
+            what: format!("{w} × {h} pixels"),
+            limit: format!("{MAX_PIXELS} pixels, {MAX_SIDE} a side"),
+        });
+    }
+    Ok(())
 }
 
 /// A micrograph from the bytes of its file (named `path` in errors) and, if any, the
@@ -86,15 +180,20 @@ pub fn micrograph_from_bytes(
     bytes: Vec<u8>,
     sidecar: Option<SemMetadata>,
 ) -> Result<Micrograph, ImageFileError> {
-    let (image, bits_per_sample, mut metadata) = if is_tiff(&bytes) {
-        let meta = RawTiff::parse(&bytes)
-            .map(|t| tiff_metadata(&t))
-            .unwrap_or_default();
-        let (image, bits) = decode_tiff(path, bytes)?;
-        (image, bits, meta)
-    } else if bytes.starts_with(b"\x89PNG\r\n\x1a\n") {
-        let (image, bits) = decode_png(path, &bytes)?;
-        (image, bits, SemMetadata::default())
+    decode_file(path, bytes, sidecar, Colour::Refuse)
+}
+
+fn decode_file(
+    path: &Path,
+    bytes: Vec<u8>,
+    sidecar: Option<SemMetadata>,
+    colour: Colour,
+) -> Result<Micrograph, ImageFileError> {
+    let mut metadata = embedded_metadata(&bytes);
+    let (image, bits_per_sample) = if is_tiff(&bytes) {
+        decode_tiff(path, bytes, colour)?
+    } else if let Some(format) = Raster::sniff(&bytes) {
+        decode_raster(path, &bytes, format, colour)?
     } else {
         return Err(ImageFileError::NotAnImage {
             path: path.to_path_buf(),
@@ -136,17 +235,26 @@ fn crop(image: &Image, width: usize, height: usize) -> Image {
 /// [`ImageFileError::Read`] when the file cannot be read.
 pub fn read_sem_metadata(path: impl AsRef<Path>) -> Result<SemMetadata, ImageFileError> {
     let path = path.as_ref();
-    let bytes = std::fs::read(path).map_err(|source| ImageFileError::Read {
-        path: path.to_path_buf(),
-        source,
-    })?;
-    let mut metadata = RawTiff::parse(&bytes)
-        .map(|t| tiff_metadata(&t))
-        .unwrap_or_default();
+    let bytes = read_bounded(path)?;
+    let mut metadata = embedded_metadata(&bytes);
     if let Some(sidecar) = sidecar_beside(path) {
         metadata.merge(sidecar);
     }
     Ok(metadata)
+}
+
+/// Metadata inside the file: a TIFF's tags, or those of a JPEG's Exif block.
+fn embedded_metadata(bytes: &[u8]) -> SemMetadata {
+    let tiff = if is_tiff(bytes) {
+        Some(bytes)
+    } else if Raster::sniff(bytes) == Some(Raster::Jpeg) {
+        jpeg_exif(bytes)
+    } else {
+        None
+    };
+    tiff.and_then(RawTiff::parse)
+        .map(|t| tiff_metadata(&t))
+        .unwrap_or_default()
 }
 
 /// Metadata from the TIFF tags, in order of precedence: sdsem's description, Zeiss,
@@ -212,7 +320,11 @@ fn grey_palette(colormap: &[u64], entries: usize) -> Option<Vec<f32>> {
         .collect()
 }
 
-fn decode_tiff(path: &Path, mut bytes: Vec<u8>) -> Result<(Image, u8), ImageFileError> {
+fn decode_tiff(
+    path: &Path,
+    mut bytes: Vec<u8>,
+    colour: Colour,
+) -> Result<(Image, u8), ImageFileError> {
     if let Some(how) = truncation(&bytes) {
         return Err(ImageFileError::Truncated {
             path: path.to_path_buf(),
@@ -246,6 +358,7 @@ fn decode_tiff(path: &Path, mut bytes: Vec<u8>) -> Result<(Image, u8), ImageFile
         .map_err(|e| decode_error(path, e))?
         .with_limits(Limits::unlimited());
     let (w, h) = decoder.dimensions().map_err(|e| decode_error(path, e))?;
+    check_dimensions(path, w, h)?;
     let (w, h) = (w as usize, h as usize);
     let colortype = decoder.colortype().map_err(|e| match e {
         tiff::TiffError::UnsupportedError(u) => unsupported(path, u.to_string()),
@@ -286,18 +399,21 @@ fn decode_tiff(path: &Path, mut bytes: Vec<u8>) -> Result<(Image, u8), ImageFile
             ));
         }
     };
-    let image = grey_from_channels(path, w, h, &samples, channels)?;
+    let image = grey_from_channels(path, w, h, &samples, channels, colour, 0.0)?;
     Ok((image, bits))
 }
 
 /// One grey image from interleaved samples: grey as is, grey+alpha and RGB(A) only when
-/// the colour channels agree and alpha is opaque.
+/// the colour channels agree within `tolerance` (or, for [`Colour::Luma`], as their luma) and
+/// alpha is opaque.
 fn grey_from_channels(
     path: &Path,
     w: usize,
     h: usize,
     samples: &[f32],
     channels: usize,
+    colour: Colour,
+    tolerance: f32,
 ) -> Result<Image, ImageFileError> {
     if samples.len() != w * h * channels {
         return Err(decode_error(
@@ -308,28 +424,74 @@ fn grey_from_channels(
     if channels == 1 {
         return Image::from_vec(w, h, samples.to_vec()).map_err(|e| decode_error(path, e));
     }
-    let colour = channels >= 3;
+    let rgb = channels >= 3;
     let has_alpha = channels == 2 || channels == 4;
     let mut grey = Vec::with_capacity(w * h);
-    for px in samples.chunks_exact(channels) {
-        if colour && (px[0] != px[1] || px[1] != px[2]) {
-            return Err(unsupported(
-                path,
-                format!("{channels} channels with colour"),
-            ));
-        }
+    for (i, px) in samples.chunks_exact(channels).enumerate() {
         if has_alpha && px[channels - 1] < 1.0 {
             return Err(unsupported(path, "transparent pixels (alpha channel)"));
         }
-        grey.push(px[0]);
+        if !rgb || (px[0] == px[1] && px[1] == px[2]) {
+            grey.push(px[0]);
+            continue;
+        }
+        let (r, g, b) = (px[0], px[1], px[2]);
+        if colour == Colour::Luma {
+            grey.push(0.299 * r + 0.587 * g + 0.114 * b);
+        } else if (r - g).abs() <= tolerance
+            && (g - b).abs() <= tolerance
+            && (r - b).abs() <= tolerance
+        {
+            grey.push((r + g + b) / 3.0);
+        } else {
+            return Err(unsupported(
+                path,
+                format!(
+                    "colour: red, green and blue differ at pixel ({}, {}); save the micrograph as grey",
+                    i % w,
+                    i / w
+                ),
+            ));
+        }
     }
     Image::from_vec(w, h, grey).map_err(|e| decode_error(path, e))
 }
 
-fn decode_png(path: &Path, bytes: &[u8]) -> Result<(Image, u8), ImageFileError> {
+/// A PNG, JPEG or BMP: truncation and dimensions checked, then decoded within limits that
+/// match the checked size.
+fn decode_raster(
+    path: &Path,
+    bytes: &[u8],
+    format: Raster,
+    colour: Colour,
+) -> Result<(Image, u8), ImageFileError> {
     use image::DynamicImage as D;
-    let decoded = image::load_from_memory_with_format(bytes, image::ImageFormat::Png)
-        .map_err(|e| decode_error(path, e))?;
+    if format == Raster::Jpeg
+        && let Some(how) = jpeg_truncation(bytes)
+    {
+        return Err(ImageFileError::Truncated {
+            path: path.to_path_buf(),
+            how,
+        });
+    }
+    let failed = |e: image::ImageError| match (format, bmp_truncation(bytes)) {
+        (Raster::Bmp, Some(how)) => ImageFileError::Truncated {
+            path: path.to_path_buf(),
+            how,
+        },
+        _ => decode_error(path, format!("{} decoder: {e}", format.name())),
+    };
+    let reader = || image::ImageReader::with_format(Cursor::new(bytes), format.image_format());
+    let (w, h) = reader().into_dimensions().map_err(failed)?;
+    check_dimensions(path, w, h)?;
+    let mut limits = image::Limits::default();
+    limits.max_image_width = Some(w);
+    limits.max_image_height = Some(h);
+    // The largest layout a decoder produces (16-bit RGBA) and its working buffers.
+    limits.max_alloc = Some(u64::from(w) * u64::from(h) * 16 + (64 << 20));
+    let mut reader = reader();
+    reader.limits(limits);
+    let decoded = reader.decode().map_err(failed)?;
     let (w, h) = (decoded.width() as usize, decoded.height() as usize);
     let to8 = |v: &[u8]| v.iter().map(|&s| f32::from(s) / 255.0).collect::<Vec<_>>();
     let to16 = |v: &[u16]| {
@@ -349,11 +511,20 @@ fn decode_png(path: &Path, bytes: &[u8]) -> Result<(Image, u8), ImageFileError> 
         other => {
             return Err(unsupported(
                 path,
-                format!("PNG colour type {:?}", other.color()),
+                format!("{} colour type {:?}", format.name(), other.color()),
             ));
         }
     };
-    Ok((grey_from_channels(path, w, h, &samples, channels)?, bits))
+    // A JPEG of a grey image saved as colour can round its channels apart.
+    let tolerance = if format == Raster::Jpeg {
+        2.0 / 255.0 + 1e-6
+    } else {
+        0.0
+    };
+    Ok((
+        grey_from_channels(path, w, h, &samples, channels, colour, tolerance)?,
+        bits,
+    ))
 }
 
 /// Loads only the pixels of a micrograph, in `[0, 1]`.
@@ -362,6 +533,17 @@ fn decode_png(path: &Path, bytes: &[u8]) -> Result<(Image, u8), ImageFileError> 
 /// As [`load_micrograph`].
 pub fn load_image(path: impl AsRef<Path>) -> Result<Image, ImageFileError> {
     load_micrograph(path).map(|m| m.image)
+}
+
+/// Loads the pixels of any image in a format [`load_micrograph`] reads, in `[0, 1]`, a colour
+/// one as its Rec. 601 luma (`sdsem flow` compares arbitrary images, e.g. Middlebury's).
+///
+/// # Errors
+/// As [`load_micrograph`], except for colour.
+pub fn load_luma(path: impl AsRef<Path>) -> Result<Image, ImageFileError> {
+    let path = path.as_ref();
+    let bytes = read_bounded(path)?;
+    decode_file(path, bytes, None, Colour::Luma).map(|m| m.image)
 }
 
 /// Sample depth of a written micrograph.
@@ -662,7 +844,8 @@ mod tests {
             .unwrap();
         let err = load_image(&colour).unwrap_err().to_string();
         assert!(
-            err.contains("colour.png") && err.contains("unsupported: 3 channels with colour"),
+            err.contains("colour.png")
+                && err.contains("unsupported: colour: red, green and blue differ at pixel (0, 0)"),
             "{err}"
         );
     }
@@ -687,7 +870,8 @@ mod tests {
     fn float_tiff_is_refused() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("height.tif");
-        crate::export::height_tiff::write_height_tiff(&path, &Image::zeros(2, 2), None).unwrap();
+        crate::export::height_tiff::write_height_tiff(&path, &Image::zeros(2, 2), None, None)
+            .unwrap();
         let err = load_image(&path).unwrap_err().to_string();
         assert!(err.contains("floating-point"), "{err}");
     }
@@ -752,6 +936,207 @@ mod tests {
         assert_eq!(m.metadata.vendor, Some(SemVendor::Jeol));
         assert_eq!(m.image.dimensions(), (10, 6));
         assert!((m.metadata.pixel_size_um.unwrap() - 100.0).abs() < 1e-9);
+    }
+
+    fn encoded(img: &image::DynamicImage, format: image::ImageFormat) -> Vec<u8> {
+        let mut out = Cursor::new(Vec::new());
+        img.write_to(&mut out, format).unwrap();
+        out.into_inner()
+    }
+
+    fn textured_grey(w: u32, h: u32) -> image::GrayImage {
+        image::GrayImage::from_fn(w, h, |x, y| {
+            image::Luma([((x * 37 + y * 91 + x * y) % 256) as u8])
+        })
+    }
+
+    #[test]
+    fn jpeg_and_bmp_round_trip_with_sidecar_metadata() {
+        let dir = tempfile::tempdir().unwrap();
+        let grey = textured_grey(40, 30);
+        // BMP is lossless: the grey levels come back exactly.
+        let bmp = dir.path().join("scan.bmp");
+        std::fs::write(&bmp, encoded(&grey.clone().into(), image::ImageFormat::Bmp)).unwrap();
+        let m = load_micrograph(&bmp).unwrap();
+        assert_eq!((m.image.dimensions(), m.bits_per_sample), ((40, 30), 8));
+        assert_eq!(m.image.to_u8(), grey.as_raw().clone());
+        // JPEG, grey and grey saved as colour: within the compression's error.
+        let rgb = image::DynamicImage::ImageLuma8(grey.clone()).into_rgb8();
+        for (name, img) in [
+            ("grey.jpg", image::DynamicImage::ImageLuma8(grey.clone())),
+            ("rgb.jpeg", image::DynamicImage::ImageRgb8(rgb)),
+        ] {
+            let path = dir.path().join(name);
+            std::fs::write(&path, encoded(&img, image::ImageFormat::Jpeg)).unwrap();
+            std::fs::write(
+                path.with_extension("txt"),
+                "[SemImageFile]\r\nPixelSize=99.2\r\nStagePositionT=10\r\n",
+            )
+            .unwrap();
+            let m = load_micrograph(&path).unwrap();
+            assert_eq!(m.image.dimensions(), (40, 30), "{name}");
+            let mean_error = m
+                .image
+                .to_u8()
+                .iter()
+                .zip(grey.as_raw())
+                .map(|(a, b)| f64::from(a.abs_diff(*b)))
+                .sum::<f64>()
+                / 1200.0;
+            assert!(
+                mean_error < 12.0,
+                "{name}: mean error {mean_error} grey levels"
+            );
+            assert_eq!(m.metadata.vendor, Some(SemVendor::Hitachi), "{name}");
+            assert_eq!(m.metadata.tilt_deg, Some(10.0), "{name}");
+            assert!((m.metadata.pixel_size_um.unwrap() - 0.0992).abs() < 1e-12);
+            assert_eq!(read_sem_metadata(&path).unwrap().tilt_deg, Some(10.0));
+        }
+    }
+
+    #[test]
+    fn a_jpeg_exif_block_gives_tilt_and_pixel_size() {
+        let dir = tempfile::tempdir().unwrap();
+        // A TIFF directory with sdsem's description, as the Exif block of a JPEG.
+        let tags = MicrographTags {
+            pixel_size_um: Some(0.25),
+            tilt_deg: Some(7.5),
+            ..MicrographTags::default()
+        };
+        let mut tiff = Cursor::new(Vec::new());
+        encode_micrograph_tiff(&mut tiff, &Image::zeros(1, 1), &tags, SampleDepth::Bits8).unwrap();
+        let tiff = tiff.into_inner();
+        let jpeg = encoded(&textured_grey(16, 16).into(), image::ImageFormat::Jpeg);
+        let mut with_exif = jpeg[..2].to_vec();
+        with_exif.extend([0xFF, 0xE1]);
+        with_exif.extend(u16::try_from(2 + 6 + tiff.len()).unwrap().to_be_bytes());
+        with_exif.extend(b"Exif\0\0");
+        with_exif.extend(&tiff);
+        with_exif.extend(&jpeg[2..]);
+        let path = dir.path().join("exif.jpg");
+        std::fs::write(&path, &with_exif).unwrap();
+        let m = load_micrograph(&path).unwrap();
+        assert_eq!(m.image.dimensions(), (16, 16));
+        assert_eq!(m.metadata.tilt_deg, Some(7.5));
+        assert_eq!(m.metadata.pixel_size_um, Some(0.25));
+    }
+
+    #[test]
+    fn colour_jpeg_and_bmp_are_refused_as_micrographs_but_read_as_luma() {
+        let dir = tempfile::tempdir().unwrap();
+        let colour = image::RgbImage::from_fn(32, 24, |x, y| {
+            image::Rgb([(x * 8) as u8, (y * 10) as u8, 200])
+        });
+        for (name, format) in [
+            ("colour.jpg", image::ImageFormat::Jpeg),
+            ("colour.bmp", image::ImageFormat::Bmp),
+        ] {
+            let path = dir.path().join(name);
+            std::fs::write(&path, encoded(&colour.clone().into(), format)).unwrap();
+            let err = load_micrograph(&path).unwrap_err().to_string();
+            assert!(
+                err.contains(name)
+                    && err.contains("colour: red, green and blue differ")
+                    && err.contains("save the micrograph as grey"),
+                "{err}"
+            );
+            let luma = load_luma(&path).unwrap();
+            assert_eq!(luma.dimensions(), (32, 24));
+        }
+    }
+
+    #[test]
+    fn cut_jpeg_and_bmp_files_are_named_incomplete() {
+        let dir = tempfile::tempdir().unwrap();
+        let grey = textured_grey(40, 30);
+        for (name, format) in [
+            ("cut.jpg", image::ImageFormat::Jpeg),
+            ("cut.bmp", image::ImageFormat::Bmp),
+        ] {
+            let whole = encoded(&grey.clone().into(), format);
+            assert_eq!(check_whole(&whole), Ok(()), "{name}");
+            for end in [whole.len() / 3, whole.len() - 2] {
+                assert!(check_whole(&whole[..end]).is_err(), "{name} cut at {end}");
+                let path = dir.path().join(name);
+                std::fs::write(&path, &whole[..end]).unwrap();
+                let err = load_micrograph(&path).unwrap_err().to_string();
+                assert!(
+                    err.contains(name) && err.contains("is incomplete"),
+                    "{name} cut at {end}: {err}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn a_png_still_being_written_is_not_whole() {
+        let png = encoded(&textured_grey(8, 8).into(), image::ImageFormat::Png);
+        assert_eq!(check_whole(&png), Ok(()));
+        assert!(check_whole(&png[..png.len() - 5]).is_err());
+    }
+
+    /// Hostile files: garbage, flipped bytes and headers claiming huge images end in an
+    /// error naming the file, never in a panic or a giant allocation.
+    #[test]
+    fn hostile_jpeg_and_bmp_files_are_errors() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("hostile.img");
+        let load = |bytes: &[u8]| {
+            std::fs::write(&path, bytes).unwrap();
+            load_micrograph(&path).map(|_| ())
+        };
+        for start in [
+            &[0xFF, 0xD8, 0xFF][..],
+            b"BM\0\0\0\0\0\0\0\0\0\0\0\0\x28\0\0\0",
+        ] {
+            let mut garbage = start.to_vec();
+            garbage.extend((0..4000u32).map(|i| (i.wrapping_mul(2_654_435_761) >> 13) as u8));
+            let err = load(&garbage).unwrap_err().to_string();
+            assert!(err.contains("hostile.img"), "{err}");
+        }
+        let grey = textured_grey(24, 16);
+        for format in [image::ImageFormat::Jpeg, image::ImageFormat::Bmp] {
+            let whole = encoded(&grey.clone().into(), format);
+            let mut seed = 0x9E37_79B9_7F4A_7C15_u64;
+            for _ in 0..300 {
+                let mut bytes = whole.clone();
+                for _ in 0..4 {
+                    seed ^= seed << 13;
+                    seed ^= seed >> 7;
+                    seed ^= seed << 17;
+                    let at = (seed % bytes.len() as u64) as usize;
+                    bytes[at] = (seed >> 32) as u8;
+                }
+                // Any outcome but a panic: a flipped pixel byte still decodes.
+                let _ = load(&bytes);
+            }
+        }
+        // A BMP header claiming 60000 × 60000 pixels: refused from the header.
+        let mut huge = encoded(&grey.into(), image::ImageFormat::Bmp);
+        huge[18..22].copy_from_slice(&60_000i32.to_le_bytes());
+        huge[22..26].copy_from_slice(&60_000i32.to_le_bytes());
+        let err = load(&huge).unwrap_err().to_string();
+        assert!(
+            err.contains("60000 × 60000 pixels") && err.contains("bin or crop"),
+            "{err}"
+        );
+    }
+
+    #[test]
+    fn a_directory_or_fifo_is_not_read_as_a_micrograph() {
+        let dir = tempfile::tempdir().unwrap();
+        let err = load_micrograph(dir.path()).unwrap_err().to_string();
+        assert!(err.contains("not a regular file"), "{err}");
+        // A FIFO is refused without opening it (which would wait for a writer).
+        let fifo = dir.path().join("pipe.tif");
+        let c = std::ffi::CString::new(fifo.as_os_str().as_encoded_bytes()).unwrap();
+        // SAFETY: mkfifo reads the NUL-terminated path and creates a node; nothing else.
+        assert_eq!(unsafe { libc::mkfifo(c.as_ptr(), 0o600) }, 0);
+        let err = load_micrograph(&fifo).unwrap_err().to_string();
+        assert!(
+            err.contains("pipe.tif") && err.contains("not a regular file"),
+            "{err}"
+        );
     }
 
     fn data_dir() -> PathBuf {

@@ -16,6 +16,7 @@ pub mod arrival;
 mod config;
 mod error;
 pub mod file;
+mod file_raster;
 mod file_tiff;
 mod frame;
 mod link_client;

@@ -19,8 +19,7 @@ use tracing::{debug, info, warn};
 use super::arrival::{
     ArrivalRules, Arrivals, Candidate, EntryKind, FileKey, ListedEntry, Notice, Pattern, Poll,
 };
-use super::file::{Micrograph, micrograph_from_bytes};
-use super::file_tiff::check_whole;
+use super::file::{Micrograph, check_whole, micrograph_from_bytes};
 use super::metadata::{SemMetadata, parse_sidecar};
 use super::source::{GrabContext, IdentifyFuture, ProbeFuture, SourceIdentity};
 use super::{

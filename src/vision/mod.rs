@@ -2,6 +2,7 @@
 //!
 //! Nothing here does I/O, knows about tokio, MCAP or configuration files.
 
+pub mod datum;
 pub mod dense;
 pub mod depth;
 pub mod filter;

@@ -5,6 +5,7 @@
 
 use serde::{Deserialize, Serialize};
 
+use super::datum::DatumKind;
 use super::dense::DenseParams;
 use super::sparse::SparseParams;
 
@@ -29,6 +30,8 @@ pub enum Preset {
 pub struct ReconstructionParams {
     pub sparse: SparseParams,
     pub dense: DenseParams,
+    /// What zero height means (`reconstruction.datum`).
+    pub datum: DatumKind,
 }
 
 impl ReconstructionParams {
@@ -38,6 +41,7 @@ impl ReconstructionParams {
         Self {
             sparse: SparseParams::preset(preset),
             dense: DenseParams::preset(preset),
+            datum: DatumKind::default(),
         }
     }
 }

@@ -17,6 +17,7 @@ use rayon::prelude::*;
 use serde::Serialize;
 
 use super::Image;
+use super::datum::{Datum, apply_datum};
 use super::dense::{DenseError, DenseParams, DenseStats, dense_disparity_in_range};
 use super::depth::{DepthError, StereoGeometry, height_on_left_grid};
 use super::geometry::{MAX_TILT_DEG, PairGeometry};
@@ -124,6 +125,8 @@ pub struct ReconReport {
     /// Table 4 of the paper.
     pub rectification: RectificationFigures,
     pub depth: DepthReport,
+    /// What zero height means and the plane levelled away ([`super::datum`]).
+    pub datum: Datum,
     /// The precision the micrographs' noise and texture allow at the
     /// matcher's window ([`precision`]); `None` when it cannot be measured.
     pub precision: Option<Precision>,
@@ -199,7 +202,8 @@ pub fn reconstruct_observed(
         tilt_axis_deg: geometry.tilt_axis_deg,
     };
     let (w, h) = left.dimensions();
-    let height_um = height_on_left_grid(&disp.disparity, &r.h_left, &r.h_right, &stereo, w, h)?;
+    let mut height_um = height_on_left_grid(&disp.disparity, &r.h_left, &r.h_right, &stereo, w, h)?;
+    let datum = apply_datum(&mut height_um, params.datum, geometry.pixel_size_um);
     let confidence = left_grid_confidence(&disp.confidence, &disp.filled, &height_um, &r.h_left);
     let depth = depth_report(&height_um, &stereo);
     if depth.valid_fraction == 0.0 {
@@ -256,6 +260,7 @@ pub fn reconstruct_observed(
         dense: disp.stats,
         rectification,
         depth,
+        datum,
         precision,
         timings: StageTimings {
             sparse_ms,
