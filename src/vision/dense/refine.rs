@@ -301,8 +301,13 @@ fn refine_level(
     };
     let mut clamped = vec![false; w * h];
     let mut products = vec![[0f32; 6]; w * h];
-    let mut scratch = vec![[0f32; 6]; w * h];
-    let (mut grid_a, mut grid_b) = (Vec::new(), Vec::new());
+    // The Gaussian window's second buffer; the cross grid brings its own.
+    let mut scratch = if xb.is_some() {
+        Vec::new()
+    } else {
+        vec![[0f32; 6]; w * h]
+    };
+    let mut grid = Vec::new();
     for _ in 0..iterations {
         // Per pixel: the Gauss–Newton products with its own warp.
         products.par_iter_mut().enumerate().for_each(|(p, out)| {
@@ -323,7 +328,7 @@ fn refine_level(
         });
         match &xb {
             // The steps below read the sums of usable pixels only.
-            Some(g) => g.aggregate(&mut products, &mut grid_a, &mut grid_b, Some(&usable)),
+            Some(g) => g.aggregate(&mut products, &mut grid, Some(&usable)),
             None => blur_in_place(&mut products, &mut scratch, w, h, params.window_sigma),
         }
         let sums = &products;
@@ -366,7 +371,7 @@ fn refine_level(
     // Quality of the final match: NCC of the normalised images over the window,
     // from the sums of [aa, bb, ab, 1] (the iterations' buffers are freed
     // first, so these take their memory).
-    drop((products, scratch, grid_a, grid_b));
+    drop((products, scratch, grid));
     let mut sums: Vec<[f32; 4]> = (0..w * h)
         .into_par_iter()
         .map(|p| match warped(&u, &v, p) {
