@@ -44,7 +44,6 @@ pub mod daemon;
 pub mod eval;
 pub mod export;
 pub mod imaging;
-pub mod memory;
 pub mod numbers;
 pub mod record;
 pub mod stage;
