@@ -246,7 +246,7 @@ impl CrossGrid {
 /// time; each keeps the two original rows before its current one, and the two rows
 /// past its end are copied before any run starts, so the result does not depend on `chunks`.
 fn blur_y_in_place<const C: usize>(grid: &mut [[f32; C]], slab: usize, chunks: usize) {
-    let ny = if slab == 0 { 0 } else { grid.len() / slab };
+    let ny = grid.len().checked_div(slab).unwrap_or(0);
     if ny < 2 * XB_PAD + 1 {
         return;
     }
