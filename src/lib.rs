@@ -44,7 +44,6 @@ pub mod config;
 pub mod daemon;
 pub mod export;
 pub mod imaging;
-pub mod memory;
 pub mod numbers;
 pub mod progress;
 pub mod record;

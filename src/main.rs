@@ -5,11 +5,7 @@ use std::process::ExitCode;
 
 use clap::Parser;
 
-#[global_allocator]
-static ALLOCATOR: sdsem::memory::PrefaultZeroed = sdsem::memory::PrefaultZeroed;
-
 fn main() -> ExitCode {
-    sdsem::memory::keep_large_buffers();
     let cli = sdsem::cli::Cli::parse();
     if !cli.command.outlives_its_reader() {
         end_quietly_on_broken_pipe();

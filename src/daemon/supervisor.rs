@@ -607,9 +607,6 @@ impl<R: JobRunner> Supervisor<R> {
             }
         };
         drop(run);
-        // The reconstruction's buffers are free now: an idle daemon gives
-        // their pages back rather than keep the peak of its last job.
-        crate::memory::release_free_memory();
 
         let now = SystemTime::now();
         let (state, reason) = final_state(outcome.as_ref(), cancelled.as_ref(), stop_timeout);

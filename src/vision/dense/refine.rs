@@ -11,6 +11,8 @@
 //! integer shifts. Per pixel, rows in parallel, no reduction in a
 //! thread-dependent order: the result does not depend on the thread count.
 
+use std::borrow::Cow;
+
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
@@ -195,13 +197,13 @@ fn refine_level(
     b: &Image,
     valid_a: Option<&[bool]>,
     valid_b: Option<&[bool]>,
-    u0: &[f32],
-    v0: &[f32],
+    (u_start, v_start): (Vec<f32>, Vec<f32>),
     params: &RefineParams,
     iterations: usize,
     max_step: f32,
 ) -> RefinedFlow {
     let (w, h) = a.dimensions();
+    let (u0, v0) = (&u_start[..], &v_start[..]);
     let prepared = |img: &Image| {
         let n = normalise_contrast(img, params.presmooth_sigma, params.normalise_sigma);
         let g = gradients(&n);
@@ -289,6 +291,8 @@ fn refine_level(
             (0..w * h).into_par_iter().map(|p| mean(p, v0, 1)).collect(),
         )
     };
+    // The smoothed start replaces the given one.
+    drop((u_start, v_start));
     let (u0, v0) = (&u0, &v0);
     let mut u = u0.clone();
     let mut v = v0.clone();
@@ -301,8 +305,13 @@ fn refine_level(
     };
     let mut clamped = vec![false; w * h];
     let mut products = vec![[0f32; 6]; w * h];
-    let mut scratch = vec![[0f32; 6]; w * h];
-    let (mut grid_a, mut grid_b) = (Vec::new(), Vec::new());
+    // The Gaussian window's second buffer; the cross grid brings its own.
+    let mut scratch = if xb.is_some() {
+        Vec::new()
+    } else {
+        vec![[0f32; 6]; w * h]
+    };
+    let mut grid = Vec::new();
     for _ in 0..iterations {
         // Per pixel: the Gauss–Newton products with its own warp.
         products.par_iter_mut().enumerate().for_each(|(p, out)| {
@@ -323,7 +332,7 @@ fn refine_level(
         });
         match &xb {
             // The steps below read the sums of usable pixels only.
-            Some(g) => g.aggregate(&mut products, &mut grid_a, &mut grid_b, Some(&usable)),
+            Some(g) => g.aggregate(&mut products, &mut grid, Some(&usable)),
             None => blur_in_place(&mut products, &mut scratch, w, h, params.window_sigma),
         }
         let sums = &products;
@@ -366,7 +375,7 @@ fn refine_level(
     // Quality of the final match: NCC of the normalised images over the window,
     // from the sums of [aa, bb, ab, 1] (the iterations' buffers are freed
     // first, so these take their memory).
-    drop((products, scratch, grid_a, grid_b));
+    drop((products, scratch, grid));
     let mut sums: Vec<[f32; 4]> = (0..w * h)
         .into_par_iter()
         .map(|p| match warped(&u, &v, p) {
@@ -485,17 +494,19 @@ pub fn refine_flow_down_to(
 ) -> RefinedFlow {
     use super::sift_flow::pyramid::{halve_image, halve_mask};
     let stop = stop.min(level);
-    // Pyramids of both images and masks, finest first.
-    let mut imgs = vec![(a.clone(), b.clone())];
-    let mut masks = vec![(valid_a.map(<[bool]>::to_vec), valid_b.map(<[bool]>::to_vec))];
+    // Pyramids of both images and masks, finest first (the full resolution borrowed).
+    let mut imgs = vec![(Cow::Borrowed(a), Cow::Borrowed(b))];
+    let mut masks = vec![(valid_a.map(Cow::Borrowed), valid_b.map(Cow::Borrowed))];
     for l in 1..=level {
         let (ia, ib) = &imgs[l - 1];
         let (ma, mb) = &masks[l - 1];
         let next_m = (
-            ma.as_ref().map(|m| halve_mask(m, ia.width(), ia.height())),
-            mb.as_ref().map(|m| halve_mask(m, ib.width(), ib.height())),
+            ma.as_ref()
+                .map(|m| Cow::Owned(halve_mask(m, ia.width(), ia.height()))),
+            mb.as_ref()
+                .map(|m| Cow::Owned(halve_mask(m, ib.width(), ib.height()))),
         );
-        let next = (halve_image(ia), halve_image(ib));
+        let next = (Cow::Owned(halve_image(ia)), Cow::Owned(halve_image(ib)));
         imgs.push(next);
         masks.push(next_m);
     }
@@ -518,8 +529,7 @@ pub fn refine_flow_down_to(
             ib,
             ma.as_deref(),
             mb.as_deref(),
-            &u,
-            &v,
+            (std::mem::take(&mut u), std::mem::take(&mut v)),
             params,
             if l == 0 {
                 params

@@ -93,23 +93,22 @@ impl CrossGrid {
             fz,
             norm: Vec::new(),
         };
-        let (mut ga, mut gb) = (Vec::new(), Vec::new());
-        g.sums(values, &mut ga, &mut gb, None);
+        let mut ga = Vec::new();
+        g.sums(values, &mut ga, None);
         g.norm = values.iter().map(|v| v[C - 1]).collect();
         g
     }
 
     /// Replaces every pixel of `buf` by its normalised weighted sum (only
-    /// those `wanted` marks, the others by zeros; `None`: all); `grid` and
-    /// `scratch` are reused buffers (resized as needed).
+    /// those `wanted` marks, the others by zeros; `None`: all); `grid` is a
+    /// reused buffer (resized as needed).
     pub(crate) fn aggregate<const C: usize>(
         &self,
         buf: &mut [[f32; C]],
         grid: &mut Vec<[f32; C]>,
-        scratch: &mut Vec<[f32; C]>,
         wanted: Option<&[bool]>,
     ) {
-        self.sums(buf, grid, scratch, wanted);
+        self.sums(buf, grid, wanted);
         buf.par_iter_mut().zip(&self.norm).for_each(|(v, &n)| {
             let inv = if n > 1e-12 { 1.0 / n } else { 0.0 };
             for c in v.iter_mut() {
@@ -119,20 +118,18 @@ impl CrossGrid {
     }
 
     /// Un-normalised sums: splat, blur, slice (at the pixels `wanted` marks,
-    /// zeros elsewhere; `None`: all).
+    /// zeros elsewhere; `None`: all). One grid-sized buffer: the x and z passes
+    /// run inside each grid row, the y pass in place ([`blur_y_in_place`]).
     fn sums<const C: usize>(
         &self,
         buf: &mut [[f32; C]],
         grid: &mut Vec<[f32; C]>,
-        scratch: &mut Vec<[f32; C]>,
         wanted: Option<&[bool]>,
     ) {
         let (w, h, nx, ny, nz) = (self.w, self.h, self.nx, self.ny, self.nz);
         let slab = nx * nz;
         grid.clear();
         grid.resize(slab * ny, [0f32; C]);
-        scratch.clear();
-        scratch.resize(slab * ny, [0f32; C]);
         let cell = self.cell;
         let pad = XB_PAD as f32;
         // Splat: every grid row gathers the pixel rows within one cell of it.
@@ -175,10 +172,9 @@ impl CrossGrid {
         // only those interior cells: each pass computes the interior of its
         // axis, where every tap is inside the grid (no bounds tests).
         let (px, pz) = (XB_PAD..nx - XB_PAD, XB_PAD..nz - XB_PAD);
-        scratch
-            .par_chunks_mut(slab)
-            .zip(grid.par_chunks_mut(slab))
-            .for_each(|(out, s)| {
+        grid.par_chunks_mut(slab).for_each_init(
+            || vec![[0f32; C]; slab],
+            |out, s| {
                 // x: s → out
                 for z in 0..nz {
                     let (si, oi) = (&s[z * nx..(z + 1) * nx], &mut out[z * nx..(z + 1) * nx]);
@@ -206,28 +202,11 @@ impl CrossGrid {
                         }
                     }
                 }
-            });
-        // y: grid → scratch.
-        let g: &[[f32; C]] = grid;
-        scratch
-            .par_chunks_mut(slab)
-            .enumerate()
-            .for_each(|(gy, out)| {
-                if gy < XB_PAD || gy + XB_PAD >= ny {
-                    return;
-                }
-                out.fill([0f32; C]);
-                for (t, &k) in XB_KERNEL.iter().enumerate() {
-                    let j = gy + t - 2;
-                    for (o, v) in out.iter_mut().zip(&g[j * slab..(j + 1) * slab]) {
-                        for (a, &b) in o.iter_mut().zip(v) {
-                            *a += k * b;
-                        }
-                    }
-                }
-            });
+            },
+        );
+        blur_y_in_place(grid, slab, rayon::current_num_threads());
         // Slice: trilinear at (x, y, key).
-        let s: &[[f32; C]] = scratch;
+        let s: &[[f32; C]] = grid;
         buf.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
             let fy = y as f32 / cell + pad;
             let y0 = fy.floor() as usize;
@@ -258,6 +237,73 @@ impl CrossGrid {
             }
         });
     }
+}
+
+/// The binomial blur along y of the grid rows (`slab` cells each) at least
+/// `XB_PAD` rows from either end, in place: row `gy` becomes `Σ_t k_t · g[gy + t − 2]`
+/// of the rows before the pass, summed in the order of `t` (the same bits as a pass
+/// into a second grid). The rows are cut into `chunks` runs that blur at the same
+/// time; each keeps the two original rows before its current one, and the two rows
+/// past its end are copied before any run starts, so the result does not depend on `chunks`.
+fn blur_y_in_place<const C: usize>(grid: &mut [[f32; C]], slab: usize, chunks: usize) {
+    let ny = grid.len().checked_div(slab).unwrap_or(0);
+    if ny < 2 * XB_PAD + 1 {
+        return;
+    }
+    let (first, end) = (XB_PAD, ny - XB_PAD);
+    let rows = end - first;
+    let chunks = chunks.clamp(1, rows);
+    let bounds: Vec<(usize, usize)> = (0..chunks)
+        .map(|i| (first + i * rows / chunks, first + (i + 1) * rows / chunks))
+        .filter(|(a, b)| b > a)
+        .collect();
+    let row = |g: &[[f32; C]], j: usize| g[j * slab..(j + 1) * slab].to_vec();
+    // Per run: the original rows a − 2, a − 1 (before it) and b, b + 1 (after it).
+    let halos: Vec<[Vec<[f32; C]>; 4]> = bounds
+        .iter()
+        .map(|&(a, b)| {
+            [
+                row(grid, a - 2),
+                row(grid, a - 1),
+                row(grid, b),
+                row(grid, b + 1),
+            ]
+        })
+        .collect();
+    let mut runs = Vec::with_capacity(bounds.len());
+    let mut rest = &mut grid[first * slab..end * slab];
+    for &(a, b) in &bounds {
+        let (run, tail) = std::mem::take(&mut rest).split_at_mut((b - a) * slab);
+        runs.push(run);
+        rest = tail;
+    }
+    runs.into_par_iter().zip(halos).zip(&bounds).for_each(
+        |((run, [mut before2, mut before1, after0, after1]), &(a, b))| {
+            let mut acc = vec![[0f32; C]; slab];
+            for gy in a..b {
+                acc.fill([0f32; C]);
+                for (t, &k) in XB_KERNEL.iter().enumerate() {
+                    let j = gy + t - 2;
+                    let src: &[[f32; C]] = match j {
+                        _ if j + 2 == gy => &before2,
+                        _ if j + 1 == gy => &before1,
+                        _ if j < b => &run[(j - a) * slab..(j - a + 1) * slab],
+                        _ if j == b => &after0,
+                        _ => &after1,
+                    };
+                    for (o, v) in acc.iter_mut().zip(src) {
+                        for (x, &y) in o.iter_mut().zip(v) {
+                            *x += k * y;
+                        }
+                    }
+                }
+                // Row gy takes its sum; its original moves into the two kept rows.
+                run[(gy - a) * slab..(gy - a + 1) * slab].swap_with_slice(&mut acc);
+                std::mem::swap(&mut before2, &mut before1);
+                std::mem::swap(&mut before1, &mut acc);
+            }
+        },
+    );
 }
 
 /// The key of the cross-bilateral aggregation: the first image lightly
@@ -364,8 +410,8 @@ mod tests {
         for (sigma_s, sigma_r) in [(2.0f32, 0.7f32), (3.5, 2.5)] {
             let g = CrossGrid::new(&key, w, h, sigma_s, sigma_r);
             let mut fast = values.clone();
-            let (mut ga, mut gb) = (Vec::new(), Vec::new());
-            g.aggregate(&mut fast, &mut ga, &mut gb, None);
+            let mut ga = Vec::new();
+            g.aggregate(&mut fast, &mut ga, None);
             let slow = naive_cross(&values, &key, w, &g);
             for (a, b) in fast.iter().zip(&slow) {
                 for c in 0..2 {
@@ -378,7 +424,7 @@ mod tests {
             // Only the wanted pixels: the same sums there, zeros elsewhere.
             let wanted: Vec<bool> = (0..w * h).map(|p| p % 3 != 0).collect();
             let mut some = values.clone();
-            g.aggregate(&mut some, &mut ga, &mut gb, Some(&wanted));
+            g.aggregate(&mut some, &mut ga, Some(&wanted));
             for ((a, b), &keep) in some.iter().zip(&fast).zip(&wanted) {
                 if keep {
                     assert_eq!(a, b);
@@ -398,8 +444,8 @@ mod tests {
         let vals: Vec<f32> = (0..w * h).map(|p| ((p * 37) % 17) as f32 - 8.0).collect();
         let g = CrossGrid::new(&key, w, h, 3.0, 0.5);
         let mut separate: Vec<[f32; 1]> = vals.iter().map(|&v| [v]).collect();
-        let (mut ga, mut gb) = (Vec::new(), Vec::new());
-        g.sums(&mut separate, &mut ga, &mut gb, None);
+        let mut ga = Vec::new();
+        g.sums(&mut separate, &mut ga, None);
         let mut joint: Vec<[f32; 2]> = vals.iter().map(|&v| [v, 1.0]).collect();
         let gj = CrossGrid::with_sums(&key, w, h, 3.0, 0.5, &mut joint);
         assert_eq!(gj.norm, g.norm);
@@ -411,5 +457,46 @@ mod tests {
             .zip(&vals)
             .filter(|(j, v)| (j[0] / j[1] - **v).abs() > 0.1);
         assert!(moved.count() > w * h / 2, "the sums smooth");
+    }
+
+    /// The in-place y blur equals a pass into a second grid, to the bit, however
+    /// the rows are cut into runs (the parallel kernel against its serial reference).
+    #[test]
+    fn in_place_y_blur_equals_the_two_buffer_pass() {
+        let mut s = 0x2545_f491_4f6c_dd1du64;
+        let mut rnd = move || {
+            s ^= s << 13;
+            s ^= s >> 7;
+            s ^= s << 17;
+            (s >> 40) as f32 / (1u64 << 24) as f32 - 0.5
+        };
+        for (slab, ny) in [(7usize, 5usize), (12, 9), (30, 23), (4, 40)] {
+            let grid: Vec<[f32; 3]> = (0..slab * ny).map(|_| [rnd(), rnd(), rnd()]).collect();
+            let mut reference = grid.clone();
+            for gy in XB_PAD..ny - XB_PAD {
+                let out = &mut reference[gy * slab..(gy + 1) * slab];
+                out.fill([0f32; 3]);
+                for (t, &k) in XB_KERNEL.iter().enumerate() {
+                    let j = gy + t - 2;
+                    for (o, v) in out.iter_mut().zip(&grid[j * slab..(j + 1) * slab]) {
+                        for (a, &b) in o.iter_mut().zip(v) {
+                            *a += k * b;
+                        }
+                    }
+                }
+            }
+            for chunks in [1, 2, 3, 5, 64] {
+                let mut fast = grid.clone();
+                blur_y_in_place(&mut fast, slab, chunks);
+                let bits = |g: &[[f32; 3]]| -> Vec<u32> {
+                    g.iter().flatten().map(|v| v.to_bits()).collect()
+                };
+                assert_eq!(
+                    bits(&fast),
+                    bits(&reference),
+                    "slab {slab}, {ny} rows, {chunks} runs"
+                );
+            }
+        }
     }
 }
