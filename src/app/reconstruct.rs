@@ -287,7 +287,16 @@ pub fn write_outputs(
     let [tiff, gsf, cloud_path, mesh_path, confidence_path] = &paths;
     let (mesh_written, (cloud_written, ((tiff_written, confidence_written), gsf_written))) =
         rayon::join(
-            || ply::write_mesh_from_height(mesh_path, height, p, Some(intensity), mesh_params, true),
+            || {
+                ply::write_mesh_from_height(
+                    mesh_path,
+                    height,
+                    p,
+                    Some(intensity),
+                    mesh_params,
+                    true,
+                )
+            },
             || {
                 rayon::join(
                     || ply::write_point_cloud_from_height(cloud_path, height, p, Some(intensity)),

@@ -323,7 +323,9 @@ fn row_triangles(
             continue;
         }
         for tri in [[a, e, d], [a, d, b]] {
-            if continuous(tri[0], tri[1]) && continuous(tri[1], tri[2]) && continuous(tri[2], tri[0])
+            if continuous(tri[0], tri[1])
+                && continuous(tri[1], tri[2])
+                && continuous(tri[2], tri[0])
             {
                 emit(tri);
             } else {
@@ -385,7 +387,11 @@ pub fn write_point_cloud_from_height(
     if let Some(i) = intensity {
         assert_eq!(i.dimensions(), height_um.dimensions(), "intensity grid");
     }
-    let n = height_um.data().par_iter().filter(|h| h.is_finite()).count();
+    let n = height_um
+        .data()
+        .par_iter()
+        .filter(|h| h.is_finite())
+        .count();
     write_atomic(path, |w| {
         write!(
             w,
@@ -661,7 +667,11 @@ mod tests {
                     .unwrap();
             assert_eq!(
                 (counts.vertices, counts.triangles, counts.cut_triangles),
-                (mesh.vertices.len(), mesh.triangles.len(), mesh.cut_triangles)
+                (
+                    mesh.vertices.len(),
+                    mesh.triangles.len(),
+                    mesh.cut_triangles
+                )
             );
             assert_eq!(bytes("c.ply"), bytes("e.ply"), "intensity {with_intensity}");
         }

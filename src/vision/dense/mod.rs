@@ -164,7 +164,7 @@ pub fn dense_disparity(
 
 /// Extra search margin around a disparity range known beforehand: a
 /// quarter of the range plus this many pixels on each side.
-const RANGE_MARGIN_PX: f64 = 8.0;
+pub(crate) const RANGE_MARGIN_PX: f64 = 8.0;
 
 /// [`dense_disparity`] knowing roughly where the disparities lie (the
 /// rectified sparse matches: `(min, max)`, canvas pixels). In the improved
