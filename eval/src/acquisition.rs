@@ -629,7 +629,7 @@ async fn dialect_figures(work: &Path, path: &Path, quick: bool) -> anyhow::Resul
         std::iter::empty(),
     )?;
     // Waits that a faster simulator shortened are a real instrument's again.
-    let defaults = crate::stage::StageConfig::default();
+    let defaults = sdsem::stage::StageConfig::default();
     config.stage.poll_interval_s = defaults.poll_interval_s * time_scale;
     config.stage.moving_flag_delay_s = defaults.moving_flag_delay_s * time_scale;
     let sim = config
@@ -650,7 +650,7 @@ async fn dialect_figures(work: &Path, path: &Path, quick: bool) -> anyhow::Resul
     let (load_before, cpu_before) = (load_average(), process_cpu_s());
     let started = Instant::now();
     let hooks = RunHooks {
-        logs: crate::cli::logging::record_logs(),
+        logs: sdsem::cli::logging::record_logs(),
         ..RunHooks::detached()
     };
     let report = run_job(&config, None, &run_dir, hooks).await?;

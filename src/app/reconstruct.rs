@@ -299,11 +299,7 @@ pub fn write_outputs(
     progress(Stage::Export);
     let p = recon.report.geometry.pixel_size_um;
     let gsf_title = format!("sdsem height, zero = {}", recon.report.datum.zero);
-    let cloud = ply::cloud_from_height(&recon.height_um, p, Some(intensity));
-    let mesh = ply::build_mesh(&recon.height_um, p, Some(intensity), mesh_params);
-    report.point_count = cloud.len();
-    report.triangle_count = mesh.triangles.len();
-    report.triangles_cut_at_discontinuities = mesh.cut_triangles;
+    let height = &recon.height_um;
 
     // The files are independent: written at the same time (the mesh, the
     // largest, beside the rest). The report goes last: its presence says
@@ -318,10 +314,19 @@ pub fn write_outputs(
     let [tiff, gsf, cloud_path, mesh_path, confidence_path] = names.map(|name| out.file(name));
     let (mesh_written, (cloud_written, ((tiff_written, confidence_written), gsf_written))) =
         rayon::join(
-            || ply::write_mesh_ply(mesh_path, &mesh, true),
+            || {
+                ply::write_mesh_from_height(
+                    mesh_path,
+                    height,
+                    p,
+                    Some(intensity),
+                    mesh_params,
+                    true,
+                )
+            },
             || {
                 rayon::join(
-                    || ply::write_point_cloud_ply(cloud_path, &cloud),
+                    || ply::write_point_cloud_from_height(cloud_path, height, p, Some(intensity)),
                     || {
                         rayon::join(
                             || {
@@ -345,11 +350,16 @@ pub fn write_outputs(
                 )
             },
         );
+    if let (Ok(points), Ok(mesh)) = (&cloud_written, &mesh_written) {
+        report.point_count = *points;
+        report.triangle_count = mesh.triangles;
+        report.triangles_cut_at_discontinuities = mesh.cut_triangles;
+    }
     let results = [
         tiff_written,
         gsf_written,
-        cloud_written,
-        mesh_written,
+        cloud_written.map(drop),
+        mesh_written.map(drop),
         confidence_written,
     ];
     let written: Vec<&str> = names

@@ -290,6 +290,225 @@ pub fn write_mesh_ply<'a>(
     })
 }
 
+/// Rows of the height map encoded at a time by the streaming writers: a few MB of output.
+const ROWS_PER_BLOCK: usize = 64;
+
+/// What [`write_mesh_from_height`] wrote.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct MeshCounts {
+    pub vertices: usize,
+    pub triangles: usize,
+    /// Triangles left out because an edge crossed a depth discontinuity.
+    pub cut_triangles: usize,
+}
+
+/// The cells of the row pair `r, r + 1` of a height map as [`build_mesh`] triangulates them: each
+/// kept triangle as `(corner, corner, corner)` pixel positions, and the count of cut ones.
+fn row_triangles(
+    height_um: &Image,
+    r: usize,
+    max_step: f64,
+    mut emit: impl FnMut([(usize, usize); 3]),
+) -> usize {
+    let w = height_um.width();
+    let continuous = |a: (usize, usize), b: (usize, usize)| {
+        let dist = if a.0 != b.0 && a.1 != b.1 {
+            std::f64::consts::SQRT_2
+        } else {
+            1.0
+        };
+        let dz = f64::from(height_um.get(a.0, a.1) - height_um.get(b.0, b.1)).abs();
+        dz <= max_step * dist
+    };
+    let mut cut = 0;
+    for c in 0..w.saturating_sub(1) {
+        let (a, b, d, e) = ((c, r), (c + 1, r), (c + 1, r + 1), (c, r + 1));
+        if [a, b, d, e]
+            .iter()
+            .any(|&(x, y)| !height_um.get(x, y).is_finite())
+        {
+            continue;
+        }
+        for tri in [[a, e, d], [a, d, b]] {
+            if continuous(tri[0], tri[1])
+                && continuous(tri[1], tri[2])
+                && continuous(tri[2], tri[0])
+            {
+                emit(tri);
+            } else {
+                cut += 1;
+            }
+        }
+    }
+    cut
+}
+
+/// Writes the vertices of `height_um`'s finite pixels, row-major, a block of rows at a time.
+fn write_height_vertices(
+    w: &mut impl Write,
+    height_um: &Image,
+    pixel_size_um: f64,
+    intensity: Option<&Image>,
+    with_intensity: bool,
+) -> std::io::Result<()> {
+    let size = if with_intensity { 16 } else { 12 };
+    let rows: Vec<usize> = (0..height_um.height()).collect();
+    for block in rows.chunks(ROWS_PER_BLOCK) {
+        let encoded: Vec<Vec<u8>> = block
+            .par_iter()
+            .map(|&r| {
+                let mut out = Vec::new();
+                for (c, &h) in height_um.row(r).iter().enumerate() {
+                    if h.is_finite() {
+                        let at = out.len();
+                        out.resize(at + size, 0);
+                        let p = point(c, r, h, pixel_size_um, intensity);
+                        encode_vertex(&p, with_intensity, &mut out[at..]);
+                    }
+                }
+                out
+            })
+            .collect();
+        for bytes in encoded {
+            w.write_all(&bytes)?;
+        }
+    }
+    Ok(())
+}
+
+/// Writes `pointcloud.ply` atomically from a height map, a block of rows at a time: the bytes
+/// of [`write_point_cloud_ply`] of [`cloud_from_height`] without holding the cloud. The number of
+/// points written.
+///
+/// # Errors
+/// [`ExportError::Write`] on I/O failure.
+///
+/// # Panics
+/// When `intensity` is given with other dimensions than `height_um`.
+pub fn write_point_cloud_from_height<'a>(
+    target: impl Into<Target<'a>>,
+    height_um: &Image,
+    pixel_size_um: f64,
+    intensity: Option<&Image>,
+) -> Result<usize, ExportError> {
+    if let Some(i) = intensity {
+        assert_eq!(i.dimensions(), height_um.dimensions(), "intensity grid");
+    }
+    let n = height_um
+        .data()
+        .par_iter()
+        .filter(|h| h.is_finite())
+        .count();
+    target.into().write(|w| {
+        write!(
+            w,
+            "ply\nformat binary_little_endian 1.0\ncomment sdsem dense point cloud, units: micrometre\n\
+             element vertex {n}\nproperty float x\nproperty float y\nproperty float z\n\
+             property float intensity\nend_header\n",
+        )?;
+        write_height_vertices(w, height_um, pixel_size_um, intensity, true)
+    })?;
+    Ok(n)
+}
+
+/// Writes a mesh as PLY atomically straight from a height map, a block of rows at a time: the
+/// bytes of [`write_mesh_ply`] of [`build_mesh`] without holding the mesh (on a 50-megapixel map
+/// that is GiBs).
+///
+/// # Errors
+/// [`ExportError::Write`] on I/O failure.
+///
+/// # Panics
+/// When `intensity` is given with other dimensions than `height_um`.
+pub fn write_mesh_from_height<'a>(
+    target: impl Into<Target<'a>>,
+    height_um: &Image,
+    pixel_size_um: f64,
+    intensity: Option<&Image>,
+    params: &MeshParams,
+    with_intensity: bool,
+) -> Result<MeshCounts, ExportError> {
+    if let Some(i) = intensity {
+        assert_eq!(i.dimensions(), height_um.dimensions(), "intensity grid");
+    }
+    let h = height_um.height();
+    let max_step = params.max_step_px * pixel_size_um;
+    // First pass: the index of each row's first vertex and the triangles of each row pair.
+    let per_row: Vec<(usize, usize, usize)> = (0..h)
+        .into_par_iter()
+        .map(|r| {
+            let vertices = height_um.row(r).iter().filter(|v| v.is_finite()).count();
+            let (mut kept, mut cut) = (0, 0);
+            if r + 1 < h {
+                cut = row_triangles(height_um, r, max_step, |_| kept += 1);
+            }
+            (vertices, kept, cut)
+        })
+        .collect();
+    let mut first = Vec::with_capacity(h + 1);
+    first.push(0usize);
+    for &(v, _, _) in &per_row {
+        first.push(first.last().copied().unwrap_or(0) + v);
+    }
+    let counts = MeshCounts {
+        vertices: first[h],
+        triangles: per_row.iter().map(|r| r.1).sum(),
+        cut_triangles: per_row.iter().map(|r| r.2).sum(),
+    };
+    target.into().write(|out| {
+        write!(
+            out,
+            "ply\nformat binary_little_endian 1.0\ncomment sdsem surface mesh, units: micrometre\n\
+             element vertex {}\nproperty float x\nproperty float y\nproperty float z\n{}\
+             element face {}\nproperty list uchar int vertex_indices\nend_header\n",
+            counts.vertices,
+            if with_intensity {
+                "property float intensity\n"
+            } else {
+                ""
+            },
+            counts.triangles
+        )?;
+        write_height_vertices(out, height_um, pixel_size_um, intensity, with_intensity)?;
+        // A vertex's index: its row's first index and the finite pixels before it in the row.
+        let row_index = |r: usize| -> Vec<u32> {
+            let mut next = first[r];
+            height_um
+                .row(r)
+                .iter()
+                .map(|v| {
+                    // More than 4 billion vertices would not fit a PLY int index anyway.
+                    let i = next as u32;
+                    next += usize::from(v.is_finite());
+                    i
+                })
+                .collect()
+        };
+        let rows: Vec<usize> = (0..h.saturating_sub(1)).collect();
+        for block in rows.chunks(ROWS_PER_BLOCK) {
+            let encoded: Vec<Vec<u8>> = block
+                .par_iter()
+                .map(|&r| {
+                    let (top, bottom) = (row_index(r), row_index(r + 1));
+                    let id = |(x, y): (usize, usize)| if y == r { top[x] } else { bottom[x] };
+                    let mut bytes = Vec::with_capacity(13 * per_row[r].1);
+                    row_triangles(height_um, r, max_step, |tri| {
+                        let at = bytes.len();
+                        bytes.resize(at + 13, 0);
+                        encode_face(&[id(tri[0]), id(tri[1]), id(tri[2])], &mut bytes[at..]);
+                    });
+                    bytes
+                })
+                .collect();
+            for bytes in encoded {
+                out.write_all(&bytes)?;
+            }
+        }
+        Ok(())
+    })?;
+    Ok(counts)
+}
+
 /// A binary little-endian PLY file read back (float vertex properties, triangle faces) —
 /// enough to verify what this module writes.
 #[derive(Debug, Clone, PartialEq)]
@@ -421,6 +640,49 @@ fn parse_ply(bytes: &[u8]) -> Result<PlyData, String> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The streaming writers give the very bytes of building the cloud and mesh first.
+    #[test]
+    fn streamed_cloud_and_mesh_are_the_bytes_of_the_built_ones() {
+        let (w, h) = (37, 29);
+        let height = Image::from_fn(w, h, |x, y| {
+            if (x * 7 + y * 3) % 11 == 0 {
+                f32::NAN
+            } else if x > 20 {
+                2.0 + 0.01 * y as f32
+            } else {
+                0.05 * (x as f32 - y as f32)
+            }
+        });
+        let intensity = Image::from_fn(w, h, |x, y| ((x + 2 * y) % 9) as f32 / 9.0);
+        let dir = tempfile::tempdir().unwrap();
+        let d = dir.path();
+        let params = MeshParams { max_step_px: 1.0 };
+        let (p, i) = (0.25, Some(&intensity));
+        let cloud = cloud_from_height(&height, p, i);
+        write_point_cloud_ply(&d.join("a.ply"), &cloud).unwrap();
+        let n = write_point_cloud_from_height(&d.join("b.ply"), &height, p, i).unwrap();
+        assert_eq!(n, cloud.len());
+        let bytes = |name: &str| std::fs::read(d.join(name)).unwrap();
+        assert_eq!(bytes("a.ply"), bytes("b.ply"));
+        let mesh = build_mesh(&height, p, i, &params);
+        assert!(mesh.cut_triangles > 0 && !mesh.triangles.is_empty());
+        for with_intensity in [true, false] {
+            write_mesh_ply(&d.join("c.ply"), &mesh, with_intensity).unwrap();
+            let counts =
+                write_mesh_from_height(&d.join("e.ply"), &height, p, i, &params, with_intensity)
+                    .unwrap();
+            assert_eq!(
+                (counts.vertices, counts.triangles, counts.cut_triangles),
+                (
+                    mesh.vertices.len(),
+                    mesh.triangles.len(),
+                    mesh.cut_triangles
+                )
+            );
+            assert_eq!(bytes("c.ply"), bytes("e.ply"), "intensity {with_intensity}");
+        }
+    }
 
     /// The decimated mesh keeps the bound, the coordinates of the full one and its cuts.
     #[test]

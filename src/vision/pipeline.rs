@@ -18,12 +18,18 @@ use serde::Serialize;
 
 use super::Image;
 use super::datum::{Datum, apply_datum};
-use super::dense::{DenseError, DenseParams, DenseStats, dense_disparity_in_range};
+use super::dense::tile::{Rect, fits_budget};
+use super::dense::{
+    CanvasDisparity, DenseError, DenseParams, DenseStats, dense_disparity_in_range,
+    dense_disparity_tiled,
+};
 use super::depth::{DepthError, StereoGeometry, height_on_left_grid};
 use super::geometry::{MAX_TILT_DEG, PairGeometry};
 use super::params::ReconstructionParams;
 use super::precision::{self, Precision};
-use super::sparse::{SparseError, rectify_pair};
+use super::rectify::RectifyError;
+use super::rectify::warp::warp_rect;
+use super::sparse::{SparseError, sparse_stage, warp_onto_canvas};
 use crate::progress::{Observer, Stage, unobserved};
 
 /// Why a pair cannot be reconstructed.
@@ -177,25 +183,50 @@ pub fn reconstruct_observed(
 
     let t = Instant::now();
     progress(Stage::Sparse);
-    let rect = rectify_pair(left, right, Some(geometry.tilt_axis_deg), &params.sparse)?;
-    let sparse_ms = ms(t);
-
-    let t = Instant::now();
-    progress(Stage::Dense);
-    let range = inlier_disparity_range(&rect.sparse.inliers, &rect.sparse.rectification);
-    let disp = dense_disparity_in_range(
-        &rect.left.image,
-        &rect.right.image,
-        Some(&rect.left.valid),
-        Some(&rect.right.valid),
-        &params.dense,
-        range,
-    )?;
-    let dense_ms = ms(t);
+    let sparse = sparse_stage(left, right, Some(geometry.tilt_axis_deg), &params.sparse)?;
+    let range = inlier_disparity_range(&sparse.inliers, &sparse.rectification);
+    let canvas = sparse.rectification.canvas;
+    let (sparse, disp, sparse_ms, dense_ms) = if fits_budget(&params.dense, canvas) {
+        let rect = warp_onto_canvas(left, right, sparse)?;
+        let sparse_ms = ms(t);
+        let t = Instant::now();
+        progress(Stage::Dense);
+        let disp = dense_disparity_in_range(
+            &rect.left.image,
+            &rect.right.image,
+            Some(&rect.left.valid),
+            Some(&rect.right.valid),
+            &params.dense,
+            range,
+        )?;
+        (rect.sparse, CanvasDisparity::from(disp), sparse_ms, ms(t))
+    } else {
+        // Each tile warps its own rectangle: the rectified pair is never whole in memory.
+        let sparse_ms = ms(t);
+        let t = Instant::now();
+        progress(Stage::Dense);
+        let r = &sparse.rectification;
+        if r.h_left.try_inverse().is_none() || r.h_right.try_inverse().is_none() {
+            return Err(SparseError::Rectify(RectifyError::Degenerate).into());
+        }
+        let source = |rect: Rect| {
+            let at = ((rect.x, rect.y), (rect.width, rect.height));
+            let (l, r) = rayon::join(
+                || warp_rect(left, &r.h_left, at.0, at.1),
+                || warp_rect(right, &r.h_right, at.0, at.1),
+            );
+            (
+                l.expect("H_left is invertible (checked above)"),
+                r.expect("H_right is invertible (checked above)"),
+            )
+        };
+        let disp = dense_disparity_tiled(canvas, source, &params.dense, range)?;
+        (sparse, disp, sparse_ms, ms(t))
+    };
 
     let t = Instant::now();
     progress(Stage::Depth);
-    let r = &rect.sparse.rectification;
+    let r = &sparse.rectification;
     let stereo = StereoGeometry {
         tilt_deg: geometry.tilt_deg,
         pixel_size_um: geometry.pixel_size_um,
@@ -218,7 +249,7 @@ pub fn reconstruct_observed(
         depth.um_per_disparity_px,
     );
 
-    let s = &rect.sparse;
+    let s = &sparse;
     let map = |hm: &Matrix3<f64>, p: [f64; 2]| {
         let q = hm * Vector3::new(p[0], p[1], 1.0);
         (q.x / q.z, q.y / q.z)

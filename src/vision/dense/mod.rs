@@ -21,9 +21,11 @@ mod params;
 pub mod reassign;
 pub mod refine;
 pub mod sift_flow;
+pub mod tile;
 
 pub use self::error::DenseError;
 pub use self::params::DenseParams;
+pub use self::tile::{CanvasDisparity, dense_disparity_tiled};
 
 use std::time::Instant;
 
@@ -90,6 +92,8 @@ pub struct DenseStats {
     pub refine_mean_ncc: f64,
     pub grid: GridInfo,
     pub timings: DenseTimings,
+    /// Tiles the canvas was matched in (1: whole; see `memory_budget_mib`).
+    pub tiles: usize,
 }
 
 /// The dense stage's result, on the rectified left image's grid.
@@ -160,7 +164,7 @@ pub fn dense_disparity(
 
 /// Extra search margin around a disparity range known beforehand: a
 /// quarter of the range plus this many pixels on each side.
-const RANGE_MARGIN_PX: f64 = 8.0;
+pub(crate) const RANGE_MARGIN_PX: f64 = 8.0;
 
 /// [`dense_disparity`] knowing roughly where the disparities lie (the
 /// rectified sparse matches: `(min, max)`, canvas pixels). In the improved
@@ -241,6 +245,7 @@ pub fn dense_disparity_in_range(
             filter_ms,
             total_ms: ms(t0),
         },
+        tiles: 1,
     };
     Ok(Disparity {
         disparity: filtered.disparity,

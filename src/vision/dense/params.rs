@@ -37,6 +37,8 @@ pub struct DenseParams {
     pub reassign: ReassignParams,
     /// The bilateral grid filter of the disparity (Paris & Durand 2009).
     pub bilateral: BilateralParams,
+    /// Peak memory of the stage, MiB: a larger rectified canvas is matched in overlapping tiles; 0 = never tile.
+    pub memory_budget_mib: usize,
 }
 
 impl Default for DenseParams {
@@ -61,6 +63,7 @@ impl DenseParams {
             weighted_filter: true,
             reassign: ReassignParams::default(),
             bilateral: BilateralParams::default(),
+            memory_budget_mib: 1024,
         };
         match preset {
             Preset::Improved => improved,

@@ -26,6 +26,18 @@ impl Warped {
 /// pixel takes the bilinear sample of `src` at `h⁻¹ · pixel`. `None` when `h` is singular.
 #[must_use]
 pub fn warp(src: &Image, h: &Matrix3<f64>, width: usize, height: usize) -> Option<Warped> {
+    warp_rect(src, h, (0, 0), (width, height))
+}
+
+/// The `width × height` rectangle of the canvas of [`warp`] whose top-left pixel is `origin`:
+/// the same samples, computed for that rectangle alone (a tile of the dense stage).
+#[must_use]
+pub fn warp_rect(
+    src: &Image,
+    h: &Matrix3<f64>,
+    (x0, y0): (usize, usize),
+    (width, height): (usize, usize),
+) -> Option<Warped> {
     let inv = h.try_inverse()?;
     let mut image = Image::filled(width, height, f32::NAN);
     image
@@ -34,7 +46,7 @@ pub fn warp(src: &Image, h: &Matrix3<f64>, width: usize, height: usize) -> Optio
         .enumerate()
         .for_each(|(y, row)| {
             for (x, v) in row.iter_mut().enumerate() {
-                let p = inv * Vector3::new(x as f64, y as f64, 1.0);
+                let p = inv * Vector3::new((x0 + x) as f64, (y0 + y) as f64, 1.0);
                 if p.z > 0.0 {
                     // Tolerate rounding just outside the pixel-centre hull.
                     let (sx, sy) = (p.x / p.z, p.y / p.z);

@@ -32,6 +32,7 @@
 use std::time::Instant;
 
 use nalgebra::{Matrix3, Vector2};
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::vision::Image;
@@ -42,7 +43,7 @@ use crate::vision::rectify::{
 use crate::vision::sparse::fundamental::FundamentalModel;
 use crate::vision::sparse::matching::{MatchParams, match_keypoints};
 use crate::vision::sparse::orsa::{ModelFilter, OrsaError, OrsaParams, orsa_filtered};
-use crate::vision::sparse::sift::{SiftParams, SiftParamsError, sift};
+use crate::vision::sparse::sift::{Keypoint, SiftParams, SiftParamsError, sift};
 
 pub mod fundamental;
 pub mod matching;
@@ -68,6 +69,10 @@ pub struct SparseParams {
     /// When the projective model (the paper's) is refused, try the affine one before giving up
     /// (default true). The result names the model used and why the first was refused.
     pub fallback_to_affine: bool,
+    /// SIFT runs on a copy of each micrograph halved until it has at most this many megapixels,
+    /// the keypoints scaled back (bounds its memory, ~120 bytes a pixel, on large micrographs);
+    /// 0 = full resolution always.
+    pub sift_max_megapixels: f64,
 }
 
 impl Default for SparseParams {
@@ -92,6 +97,7 @@ impl Default for SparseParams {
             refine: RefineParams::default(),
             min_inliers: 8,
             fallback_to_affine: true,
+            sift_max_megapixels: 4.0,
         }
     }
 }
@@ -275,17 +281,25 @@ pub fn sparse_stage(
         }
     }
     params.sift.validate()?;
+    if !(params.sift_max_megapixels >= 0.0 && params.sift_max_megapixels.is_finite()) {
+        return Err(SiftParamsError::OutOfRange {
+            name: "sift_max_megapixels",
+            value: params.sift_max_megapixels,
+            expected: "finite and non-negative",
+        }
+        .into());
+    }
     let need = params.min_inliers.max(params.orsa.model.sample_size() + 1);
 
     let t = Instant::now();
     let ((kl, tl), (kr, tr)) = rayon::join(
         || {
             let t = Instant::now();
-            (sift(left, &params.sift), ms(t))
+            (sift_bounded(left, params), ms(t))
         },
         || {
             let t = Instant::now();
-            (sift(right, &params.sift), ms(t))
+            (sift_bounded(right, params), ms(t))
         },
     );
     let (kl, kr) = (kl?, kr?);
@@ -572,6 +586,51 @@ fn distinct_positions(
     (pl, pr, sigmas)
 }
 
+/// SIFT of `image` on a copy halved (2×2 means) until it has at most `sift_max_megapixels`: the
+/// keypoints' positions and scales in `image`'s pixels. The sub-pixel refinement of the inliers
+/// and the rectification then work on the full-resolution positions.
+fn sift_bounded(image: &Image, params: &SparseParams) -> Result<Vec<Keypoint>, SiftParamsError> {
+    // A count of pixels: a few million.
+    #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
+    let limit = (params.sift_max_megapixels * 1e6) as usize;
+    if limit == 0 || image.len() <= limit {
+        return sift(image, &params.sift);
+    }
+    let mut small = halve(image);
+    let mut k = 2.0;
+    while small.len() > limit && small.width().min(small.height()) >= 4 * MIN_SIDE {
+        small = halve(&small);
+        k *= 2.0;
+    }
+    let mut keypoints = sift(&small, &params.sift)?;
+    // Pixel i of the copy averages pixels k·i … k·i + k − 1: its centre is k·i + (k − 1)/2.
+    let offset = (k - 1.0) / 2.0;
+    for kp in &mut keypoints {
+        kp.x = kp.x * k + offset;
+        kp.y = kp.y * k + offset;
+        kp.sigma *= k;
+    }
+    Ok(keypoints)
+}
+
+/// The image at half the resolution: means of 2×2 blocks (the last row or column alone when odd).
+fn halve(img: &Image) -> Image {
+    let (w, h) = img.dimensions();
+    let (hw, hh) = (w.div_ceil(2), h.div_ceil(2));
+    let mut out = Image::zeros(hw, hh);
+    out.data_mut()
+        .par_chunks_mut(hw)
+        .enumerate()
+        .for_each(|(y, row)| {
+            let (y0, y1) = (2 * y, (2 * y + 1).min(h - 1));
+            for (x, o) in row.iter_mut().enumerate() {
+                let (x0, x1) = (2 * x, (2 * x + 1).min(w - 1));
+                *o = 0.25 * (img.get(x0, y0) + img.get(x1, y0) + img.get(x0, y1) + img.get(x1, y1));
+            }
+        });
+    out
+}
+
 /// [`sparse_stage`], then both images warped (bilinear) onto the rectified canvas.
 ///
 /// # Errors
@@ -582,7 +641,19 @@ pub fn rectify_pair(
     tilt_axis_deg: Option<f64>,
     params: &SparseParams,
 ) -> Result<RectifiedPair, SparseError> {
-    let mut sparse = sparse_stage(left, right, tilt_axis_deg, params)?;
+    let sparse = sparse_stage(left, right, tilt_axis_deg, params)?;
+    warp_onto_canvas(left, right, sparse)
+}
+
+/// Both micrographs warped onto the canvas of the sparse stage's rectification.
+///
+/// # Errors
+/// [`RectifyError::Degenerate`] for a singular homography.
+pub fn warp_onto_canvas(
+    left: &Image,
+    right: &Image,
+    mut sparse: SparseResult,
+) -> Result<RectifiedPair, SparseError> {
     let t = Instant::now();
     let r = &sparse.rectification;
     let (w, h) = r.canvas;

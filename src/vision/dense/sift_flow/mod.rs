@@ -12,9 +12,9 @@ mod params;
 pub mod pyramid;
 pub mod subpixel;
 
-pub(crate) use self::params::check_size;
 pub use self::params::{DescriptorPyramid, FlowParams, WarmStartGrids, level_cell_size};
 use self::params::{LevelPlan, MIN_STRIP_ROWS};
+pub(crate) use self::params::{check_size, min_side};
 
 use std::time::Instant;
 

@@ -314,6 +314,11 @@ pub fn level_cell_size(cell_size: usize, l: usize, finest: usize, keep_cell_exte
 }
 
 /// Checks that the top level of `levels` still has a usable size.
+/// The smallest image side `levels` pyramid levels accept.
+pub(crate) fn min_side(levels: usize) -> usize {
+    MIN_TOP_SIDE << levels.saturating_sub(1).min(16)
+}
+
 pub(crate) fn check_size(w: usize, h: usize, levels: usize) -> Result<(), DenseError> {
     let (mut tw, mut th) = (w, h);
     for _ in 1..levels {

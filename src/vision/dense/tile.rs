@@ -1,0 +1,579 @@
+//! The dense stage on a canvas larger than its memory budget (`memory_budget_mib`): the canvas is
+//! cut into overlapping tiles, each matched by [`dense_disparity_in_range`] on its own, and the
+//! tiles are blended across the seams. Peak memory is then one tile's, time stays linear in pixels.
+//!
+//! Why the tiles agree: coarse to fine, SIFT flow's top level searches ±`top_window` labels at
+//! 1/2^(levels−1) of the resolution. Every tile runs with the pyramid depth and search centre of
+//! the whole canvas (from the sparse matches' disparity range when `search_from_sparse`), so each
+//! searches the same disparity range the untiled run does, and no tile depends on a neighbour's
+//! coarse solution. What a tile cannot see is context beyond its border: the overlap
+//! ([`margins`]) covers the search window (vertical, and horizontal for the right image), the
+//! descriptor's extent, a few top-level pixels of BP context, the refinement window, the
+//! re-assignment band and the bilateral filter's support; the seam is a linear cross-fade over the
+//! inner half of the overlap.
+
+use rayon::prelude::*;
+
+use super::{DenseError, DenseParams, DenseStats, Disparity, dense_disparity_in_range};
+use crate::vision::Image;
+use crate::vision::rectify::warp::Warped;
+
+/// Bytes the dense stage holds per canvas pixel at its peak, with the descriptors of each level
+/// recomputed (`per_level`) or halved from full resolution (`halved`, 256 bytes a pixel for the
+/// descriptor pair alone); measured on the simulated pairs of `eval dense`.
+const BYTES_PER_PIXEL_PER_LEVEL: usize = 200;
+const BYTES_PER_PIXEL_HALVED: usize = 450;
+
+/// Weight units of the cross-fade along one axis: a pixel's weights over the tiles covering it
+/// sum to exactly `WEIGHT_UNITS²` (integers, so the sum needs 2 bytes a pixel, not 4).
+const WEIGHT_UNITS: u32 = 255;
+
+/// A rectangle of the canvas.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Rect {
+    pub x: usize,
+    pub y: usize,
+    pub width: usize,
+    pub height: usize,
+}
+
+/// One tile: the part of the canvas it answers for (`core`, the tiles' cores partition the
+/// canvas) and the part it is matched on (`padded`, the core and the overlap).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Tile {
+    pub core: Rect,
+    pub padded: Rect,
+}
+
+/// The tiling of a canvas.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct TilePlan {
+    pub tiles: Vec<Tile>,
+    /// Overlap beyond each core, columns and rows.
+    pub margin: (usize, usize),
+    /// Width of the cross-fade centred on each inner core edge, columns and rows.
+    pub blend: (usize, usize),
+}
+
+/// The dense stage's estimate of its peak memory on a `width × height` canvas, bytes.
+#[must_use]
+pub fn estimated_bytes(params: &DenseParams, (width, height): (usize, usize)) -> usize {
+    let per_pixel = match params.flow.descriptors {
+        super::sift_flow::DescriptorPyramid::PerLevel => BYTES_PER_PIXEL_PER_LEVEL,
+        super::sift_flow::DescriptorPyramid::Halved => BYTES_PER_PIXEL_HALVED,
+    };
+    width.saturating_mul(height).saturating_mul(per_pixel)
+}
+
+/// Whether the canvas is matched in one piece: within the budget, or tiling turned off (0).
+#[must_use]
+pub fn fits_budget(params: &DenseParams, canvas: (usize, usize)) -> bool {
+    params.memory_budget_mib == 0
+        || estimated_bytes(params, canvas) <= params.memory_budget_mib.saturating_mul(1 << 20)
+}
+
+/// The overlap a tile needs beyond its core so that its core sees what the untiled run sees,
+/// columns and rows (full-resolution pixels), for parameters whose search is centred on
+/// `top_shift`. Across the rows, the right image's crop must hold the true matches: as far as
+/// the sparse `range` reaches (with the margin the search is centred with), or the whole search
+/// window without one. Then, both ways, the context that reaches a pixel's result: half a
+/// descriptor and two pixels of BP at the top level, the refinement window, the re-assignment's
+/// reach and the bilateral filter's support; along the columns also the vertical search below
+/// the top (the true vertical flow of a rectified pair is near 0, labels beyond the tile
+/// cannot match).
+#[must_use]
+pub fn margins(params: &DenseParams, top_shift: f32, range: Option<(f64, f64)>) -> (usize, usize) {
+    let f = &params.flow;
+    let levels = f.levels.max(1);
+    let finest = f.finest();
+    let scale = |l: usize| 1usize << l;
+    let top = scale(levels - 1);
+    let between: usize = (finest..levels - 1).map(scale).sum();
+    let u_reach = match range.filter(|(lo, hi)| lo.is_finite() && hi.is_finite() && hi >= lo) {
+        Some((lo, hi)) if params.search_from_sparse => {
+            (lo.abs().max(hi.abs()) + (hi - lo) * 0.25 + super::RANGE_MARGIN_PX).ceil() as usize
+        }
+        _ => {
+            // The search centre lies within the canvas: its size bounds it.
+            #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
+            let shift = top_shift.abs().ceil() as usize;
+            shift + f.top_window * top + f.middle_window.max(f.window) * between
+        }
+    };
+    let v_reach = params.vertical_window * between;
+    let cell = match (f.descriptors, f.keep_cell_extent) {
+        (super::sift_flow::DescriptorPyramid::PerLevel, false) => f.cell_size * top,
+        _ => (f.cell_size << finest).max(top),
+    };
+    let descriptor = 2 * cell;
+    let bp_context = 2 * top;
+    let refine = f.refinement().map_or(0, |r| {
+        (3.0 * r.window_sigma.max(r.normalise_sigma) + r.max_step).ceil() as usize
+    });
+    let reassign = if params.reassign.enabled {
+        (params.reassign.band_radius + params.reassign.reach) * scale(finest)
+    } else {
+        0
+    };
+    let filter = (3.0 * params.bilateral.sigma_s).ceil() as usize;
+    let context = descriptor + bp_context + refine + reassign + filter;
+    (u_reach + context, v_reach + context)
+}
+
+/// Splits `n` pixels into `parts` runs of nearly equal length: the run starts and the end.
+fn cuts(n: usize, parts: usize) -> Vec<usize> {
+    (0..=parts).map(|i| i * n / parts).collect()
+}
+
+/// The tiles of a `width × height` canvas for `params` (already centred on the whole canvas's
+/// search, see [`dense_disparity_tiled`]): as few padded pixels as the budget allows, the
+/// cores at least as long as the overlap, every padded tile tall and wide enough for the
+/// pyramid. A budget too small for that is exceeded (and logged) rather than refused.
+#[must_use]
+pub fn plan(
+    params: &DenseParams,
+    (width, height): (usize, usize),
+    top_shift: f32,
+    range: Option<(f64, f64)>,
+) -> TilePlan {
+    let (mx, my) = margins(params, top_shift, range);
+    let min_side = super::sift_flow::min_side(params.flow.levels);
+    let budget_px = (params.memory_budget_mib.saturating_mul(1 << 20)
+        / estimated_bytes(params, (1, 1)).max(1))
+    .max(1);
+    let padded = |core: usize, margin: usize, n: usize| (core + 2 * margin).min(n).max(min_side);
+    let mut best: Option<(usize, usize, usize)> = None;
+    for nx in 1..=width.div_ceil(mx.max(1)).max(1) {
+        let cw = width.div_ceil(nx);
+        if nx > 1 && cw < mx {
+            break;
+        }
+        let pw = padded(cw, mx, width);
+        // The tallest core whose padded tile fits the budget, at least the overlap.
+        let ph_max = budget_px / pw.max(1);
+        let ch = ph_max.saturating_sub(2 * my).max(my).max(1).min(height);
+        let ny = height.div_ceil(ch);
+        let ch = height.div_ceil(ny);
+        let ph = padded(ch, my, height);
+        let cost = nx * ny * pw * ph;
+        let over = pw * ph > budget_px;
+        if best.is_none_or(|(c, _, _)| cost < c) && (!over || best.is_none()) {
+            best = Some((cost, nx, ny));
+        }
+    }
+    let (_, nx, ny) = best.unwrap_or((0, 1, 1));
+    let (xs, ys) = (cuts(width, nx), cuts(height, ny));
+    let span = |a: usize, b: usize, margin: usize, n: usize| {
+        // Grown by the margin, then to the pyramid's smallest side, within the canvas.
+        let (mut lo, mut hi) = (a.saturating_sub(margin), (b + margin).min(n));
+        while hi - lo < min_side.min(n) {
+            lo = lo.saturating_sub(1);
+            hi = (hi + 1).min(n);
+        }
+        (lo, hi - lo)
+    };
+    let mut tiles = Vec::with_capacity(nx * ny);
+    for j in 0..ny {
+        for i in 0..nx {
+            let (px, pw) = span(xs[i], xs[i + 1], mx, width);
+            let (py, ph) = span(ys[j], ys[j + 1], my, height);
+            tiles.push(Tile {
+                core: Rect {
+                    x: xs[i],
+                    y: ys[j],
+                    width: xs[i + 1] - xs[i],
+                    height: ys[j + 1] - ys[j],
+                },
+                padded: Rect {
+                    x: px,
+                    y: py,
+                    width: pw,
+                    height: ph,
+                },
+            });
+        }
+    }
+    let largest = tiles
+        .iter()
+        .map(|t| t.padded.width * t.padded.height)
+        .max()
+        .unwrap_or(0);
+    if largest > budget_px {
+        tracing::warn!(
+            tile_mib = estimated_bytes(params, (largest, 1)) >> 20,
+            budget_mib = params.memory_budget_mib,
+            "dense stage: the smallest tile the overlap and pyramid allow exceeds the memory budget"
+        );
+    }
+    TilePlan {
+        tiles,
+        margin: (mx, my),
+        blend: (mx.max(2) / 2, my.max(2) / 2),
+    }
+}
+
+/// The dense stage's result the reconstruction needs, on the canvas: what [`Disparity`] holds
+/// without the diagnostics (raw and vertical flow, occlusion mask) that tiling does not keep.
+#[derive(Debug, Clone)]
+pub struct CanvasDisparity {
+    /// Filtered disparity `x_right − x_left`, rectified pixels, `NaN` unknown.
+    pub disparity: Image,
+    /// Per-pixel confidence in `[0, 1]` (0 where unknown).
+    pub confidence: Image,
+    /// Pixels whose disparity was interpolated, not measured (`fill_max_gap`).
+    pub filled: Vec<bool>,
+    pub stats: DenseStats,
+}
+
+impl From<Disparity> for CanvasDisparity {
+    fn from(d: Disparity) -> Self {
+        Self {
+            disparity: d.disparity,
+            confidence: d.confidence,
+            filled: d.filled,
+            stats: d.stats,
+        }
+    }
+}
+
+/// The weight, in [`WEIGHT_UNITS`], of the tile whose core is `[c0, c1)` at coordinate `x`
+/// along an axis of length `n`: full inside the core, fading linearly over `blend` pixels
+/// centred on an inner core edge; the weights of two neighbours sum to `WEIGHT_UNITS`.
+fn axis_weight(x: usize, (c0, c1): (usize, usize), n: usize, blend: usize) -> u32 {
+    let rising = |edge: usize| -> u32 {
+        // Fraction of the fade passed at pixel centre x + 0.5, the fade starting blend/2 before.
+        let t = ((x as f64 + 0.5) - (edge as f64 - blend as f64 / 2.0)) / blend.max(1) as f64;
+        (t.clamp(0.0, 1.0) * f64::from(WEIGHT_UNITS)).round() as u32
+    };
+    let up = if c0 == 0 { WEIGHT_UNITS } else { rising(c0) };
+    let down = if c1 == n {
+        WEIGHT_UNITS
+    } else {
+        WEIGHT_UNITS - rising(c1)
+    };
+    up.min(down)
+}
+
+/// The dense stage tile by tile on a `canvas`-sized rectified pair: `source` gives the left and
+/// right canvas samples of a rectangle (e.g. [`crate::vision::rectify::warp::warp_rect`]), so
+/// that the whole rectified pair is never held. A canvas within the budget is one tile, and
+/// then the result is [`dense_disparity_in_range`]'s.
+///
+/// # Errors
+/// As [`dense_disparity_in_range`]; [`DenseError::NoValidPixels`] when no tile has a valid pixel.
+pub fn dense_disparity_tiled(
+    canvas: (usize, usize),
+    source: impl Fn(Rect) -> (Warped, Warped),
+    params: &DenseParams,
+    range: Option<(f64, f64)>,
+) -> Result<CanvasDisparity, DenseError> {
+    let (width, height) = canvas;
+    if fits_budget(params, canvas) {
+        let (l, r) = source(Rect {
+            x: 0,
+            y: 0,
+            width,
+            height,
+        });
+        return dense_disparity_in_range(
+            &l.image,
+            &r.image,
+            Some(&l.valid),
+            Some(&r.valid),
+            params,
+            range,
+        )
+        .map(CanvasDisparity::from);
+    }
+    // The whole canvas's pyramid depth and search centre, for every tile.
+    let (centred, top_shift) = super::centre_search_on_sparse_range(params, range, canvas);
+    centred.validate()?;
+    let plan = plan(&centred, canvas, top_shift, range);
+    tracing::info!(
+        tiles = plan.tiles.len(),
+        margin = ?plan.margin,
+        "dense stage in tiles (memory_budget_mib = {})",
+        params.memory_budget_mib
+    );
+    let mut disparity = Image::zeros(width, height);
+    let mut confidence = Image::zeros(width, height);
+    let mut weight_sum = vec![0u16; width * height];
+    let mut filled = vec![false; width * height];
+    let mut merged = StatsMerge::default();
+    for tile in &plan.tiles {
+        let p = tile.padded;
+        let (l, r) = source(p);
+        let n_valid_core = count_in(&l.valid, p, tile.core);
+        let d = match dense_disparity_in_range(
+            &l.image,
+            &r.image,
+            Some(&l.valid),
+            Some(&r.valid),
+            &centred,
+            range,
+        ) {
+            Ok(d) => d,
+            // A tile wholly outside both micrographs (a corner of a rotated canvas).
+            Err(DenseError::NoValidPixels) => continue,
+            Err(e) => return Err(e),
+        };
+        drop((l, r));
+        let core = tile.core;
+        let wy: Vec<u32> = (p.y..p.y + p.height)
+            .map(|y| axis_weight(y, (core.y, core.y + core.height), height, plan.blend.1))
+            .collect();
+        let wx: Vec<u32> = (p.x..p.x + p.width)
+            .map(|x| axis_weight(x, (core.x, core.x + core.width), width, plan.blend.0))
+            .collect();
+        let rows = disparity.data_mut()[p.y * width..(p.y + p.height) * width]
+            .par_chunks_mut(width)
+            .zip(confidence.data_mut()[p.y * width..(p.y + p.height) * width].par_chunks_mut(width))
+            .zip(weight_sum[p.y * width..(p.y + p.height) * width].par_chunks_mut(width))
+            .zip(filled[p.y * width..(p.y + p.height) * width].par_chunks_mut(width));
+        rows.enumerate()
+            .for_each(|(ty, (((d_row, c_row), w_row), f_row))| {
+                if wy[ty] == 0 {
+                    return;
+                }
+                for (tx, &wxv) in wx.iter().enumerate() {
+                    let w = wy[ty] * wxv;
+                    if w == 0 {
+                        continue;
+                    }
+                    let (q, x) = (ty * p.width + tx, p.x + tx);
+                    let wf = w as f32;
+                    let v = d.disparity.data()[q];
+                    if v.is_finite() {
+                        d_row[x] += wf * v;
+                        // At most WEIGHT_UNITS² in all: fits.
+                        #[allow(clippy::cast_possible_truncation)]
+                        {
+                            w_row[x] += w as u16;
+                        }
+                    }
+                    c_row[x] += wf * d.confidence.data()[q];
+                    if 2 * w >= WEIGHT_UNITS * WEIGHT_UNITS {
+                        f_row[x] = d.filled[q];
+                    }
+                }
+            });
+        merged.add(&d.stats, n_valid_core);
+    }
+    let full = (WEIGHT_UNITS * WEIGHT_UNITS) as f32;
+    disparity
+        .data_mut()
+        .par_iter_mut()
+        .zip(confidence.data_mut().par_iter_mut())
+        .zip(&weight_sum)
+        .for_each(|((d, c), &w)| {
+            *d = if w > 0 { *d / f32::from(w) } else { f32::NAN };
+            *c /= full;
+        });
+    let stats = merged
+        .finish(plan.tiles.len())
+        .ok_or(DenseError::NoValidPixels)?;
+    Ok(CanvasDisparity {
+        disparity,
+        confidence,
+        filled,
+        stats,
+    })
+}
+
+/// Valid pixels of the padded tile `p` (mask `valid`) inside `core`.
+fn count_in(valid: &[bool], p: Rect, core: Rect) -> usize {
+    (core.y..core.y + core.height)
+        .map(|y| {
+            let row = (y - p.y) * p.width;
+            valid[row + core.x - p.x..row + core.x - p.x + core.width]
+                .iter()
+                .filter(|&&v| v)
+                .count()
+        })
+        .sum()
+}
+
+/// The tiles' figures as one: fractions and means weighted by the valid pixels of each core,
+/// times summed, per-level reports and the filter's grid of the tile with most valid pixels.
+#[derive(Default)]
+struct StatsMerge {
+    first: Option<(DenseStats, usize)>,
+    weight: f64,
+    sums: [f64; 10],
+    timings: super::DenseTimings,
+}
+
+impl StatsMerge {
+    fn figures(s: &DenseStats) -> [f64; 10] {
+        [
+            s.flow.v2_over_u2,
+            s.flow.rms_v.powi(2),
+            s.flow.rms_u.powi(2),
+            s.coverage,
+            s.filled_fraction,
+            s.rejected_fraction,
+            s.rejected_by_matching_fraction,
+            s.reassigned_fraction,
+            s.refine_clamped_fraction,
+            s.refine_mean_ncc,
+        ]
+    }
+
+    fn add(&mut self, s: &DenseStats, n_valid: usize) {
+        let w = n_valid as f64;
+        for (sum, v) in self.sums.iter_mut().zip(Self::figures(s)) {
+            if v.is_finite() {
+                *sum += w * v;
+            }
+        }
+        self.weight += w;
+        let t = &mut self.timings;
+        t.matching_ms += s.timings.matching_ms;
+        t.reassign_ms += s.timings.reassign_ms;
+        t.refine_ms += s.timings.refine_ms;
+        t.consistency_ms += s.timings.consistency_ms;
+        t.filter_ms += s.timings.filter_ms;
+        t.total_ms += s.timings.total_ms;
+        if self.first.as_ref().is_none_or(|(_, n)| n_valid > *n) {
+            self.first = Some((s.clone(), n_valid));
+        }
+    }
+
+    fn finish(self, tiles: usize) -> Option<DenseStats> {
+        let (mut s, _) = self.first?;
+        let m = self.sums.map(|v| v / self.weight.max(1.0));
+        s.flow.v2_over_u2 = m[0];
+        s.flow.rms_v = m[1].sqrt();
+        s.flow.rms_u = m[2].sqrt();
+        s.coverage = m[3];
+        s.filled_fraction = m[4];
+        s.rejected_fraction = m[5];
+        s.rejected_by_matching_fraction = m[6];
+        s.reassigned_fraction = m[7];
+        s.refine_clamped_fraction = m[8];
+        s.refine_mean_ncc = m[9];
+        s.timings = self.timings;
+        s.tiles = tiles;
+        Some(s)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::eval::synthetic::{Texture, dome, render};
+    use crate::vision::Preset;
+
+    fn params(budget_mib: usize) -> DenseParams {
+        let mut p = DenseParams::preset(Preset::Improved);
+        p.flow.levels = 3;
+        p.memory_budget_mib = budget_mib;
+        p
+    }
+
+    /// The cores partition the canvas, every padded tile holds its core and suits the pyramid,
+    /// and the cross-fade weights of every pixel sum to the full weight.
+    #[test]
+    fn tiles_partition_the_canvas_and_their_weights_sum_to_one() {
+        for (canvas, budget) in [((900, 700), 1), ((3000, 500), 2), ((640, 2000), 1)] {
+            let p = params(budget);
+            let plan = plan(&p, canvas, 3.0, Some((-4.0, 10.0)));
+            assert!(plan.tiles.len() > 1, "{canvas:?}");
+            let (w, h) = canvas;
+            let mut covered = vec![0u8; w * h];
+            let mut weight = vec![0u32; w * h];
+            for t in &plan.tiles {
+                let (c, pd) = (t.core, t.padded);
+                assert!(pd.x <= c.x && pd.y <= c.y);
+                assert!(pd.x + pd.width >= c.x + c.width && pd.y + pd.height >= c.y + c.height);
+                assert!(pd.x + pd.width <= w && pd.y + pd.height <= h);
+                assert!(super::super::sift_flow::check_size(pd.width, pd.height, 3).is_ok());
+                for y in c.y..c.y + c.height {
+                    for x in c.x..c.x + c.width {
+                        covered[y * w + x] += 1;
+                    }
+                }
+                for y in pd.y..pd.y + pd.height {
+                    let wy = axis_weight(y, (c.y, c.y + c.height), h, plan.blend.1);
+                    for x in pd.x..pd.x + pd.width {
+                        let wx = axis_weight(x, (c.x, c.x + c.width), w, plan.blend.0);
+                        weight[y * w + x] += wx * wy;
+                    }
+                }
+            }
+            assert!(covered.iter().all(|&c| c == 1), "{canvas:?}");
+            let full = WEIGHT_UNITS * WEIGHT_UNITS;
+            assert!(weight.iter().all(|&s| s == full), "{canvas:?}");
+        }
+        // Within the budget: one piece, the untiled run.
+        assert!(fits_budget(&params(1024), (1280, 960)));
+        assert!(fits_budget(&params(0), (100_000, 100_000)));
+        assert!(!fits_budget(&params(1), (1280, 960)));
+    }
+
+    /// Forced into tiles by a tiny budget, a dome's disparity across the seams agrees with the
+    /// untiled run's within that run's own error: the overlap gives each tile the context the
+    /// untiled run has, and the cross-fade leaves no step.
+    #[test]
+    fn heights_across_seams_agree_with_the_untiled_run() {
+        let (w, h) = (256, 640);
+        let pair = render(w, h, Texture::new(5), &dome(w, h, 3.0, 6.0, 0.9), 0.0, 0.0);
+        let crop = |img: &Image, r: Rect| {
+            Image::from_fn(r.width, r.height, |x, y| img.get(r.x + x, r.y + y))
+        };
+        let source = |r: Rect| {
+            let warped = |img: &Image| {
+                let image = crop(img, r);
+                let valid = vec![true; image.len()];
+                Warped { image, valid }
+            };
+            (warped(&pair.left), warped(&pair.right))
+        };
+        let range = Some((3.0, 9.0));
+        let whole = dense_disparity_tiled((w, h), source, &params(1024), range).unwrap();
+        let tiled_params = params(1);
+        let tiled = dense_disparity_tiled((w, h), source, &tiled_params, range).unwrap();
+        assert_eq!(whole.stats.tiles, 1);
+        let (_, shift) = super::super::centre_search_on_sparse_range(&tiled_params, range, (w, h));
+        let plan = plan(&tiled_params, (w, h), shift, range);
+        assert_eq!(tiled.stats.tiles, plan.tiles.len());
+        assert!(plan.tiles.len() >= 3, "{} tiles", plan.tiles.len());
+        // Pixels within the cross-fade of an inner seam, away from the canvas's own borders.
+        let near = |v: usize, edges: &[usize], band: usize| {
+            edges
+                .iter()
+                .any(|&e| e > 0 && v + band >= e && v < e + band)
+        };
+        let rows: Vec<usize> = plan.tiles.iter().map(|t| t.core.y).collect();
+        let cols: Vec<usize> = plan.tiles.iter().map(|t| t.core.x).collect();
+        let (mut diff, mut err) = (Vec::new(), Vec::new());
+        for y in 16..h - 16 {
+            for x in 24..w - 24 {
+                if !(near(y, &rows, plan.blend.1) || near(x, &cols, plan.blend.0)) {
+                    continue;
+                }
+                let p = y * w + x;
+                let (a, b) = (whole.disparity.data()[p], tiled.disparity.data()[p]);
+                assert!(
+                    b.is_finite() || !a.is_finite(),
+                    "seam pixel lost at ({x}, {y})"
+                );
+                if a.is_finite() && b.is_finite() {
+                    diff.push((a - b).abs());
+                    err.push((a - pair.disparity.data()[p]).abs());
+                }
+            }
+        }
+        assert!(diff.len() > 2000, "{} seam pixels", diff.len());
+        let pct = |v: &mut Vec<f32>, q: f64| {
+            v.sort_by(f32::total_cmp);
+            v[((v.len() - 1) as f64 * q) as usize]
+        };
+        let (d50, e50) = (pct(&mut diff, 0.5), pct(&mut err, 0.5));
+        let (d99, e99) = (pct(&mut diff, 0.99), pct(&mut err, 0.99));
+        assert!(
+            d50 <= e50 && d99 <= e99,
+            "tiled vs untiled median {d50} p99 {d99} px; untiled error median {e50} p99 {e99} px"
+        );
+    }
+}
