@@ -316,6 +316,7 @@ mod tests {
             outputs.file("height.tif"),
             &crate::vision::Image::zeros(2, 2),
             None,
+            None,
         )
         .unwrap_err();
         assert!(err.to_string().contains("exists"), "{err}");

@@ -251,6 +251,7 @@ fn draw_line(img: &mut image::RgbImage, a: [f64; 2], b: [f64; 2], colour: image:
 #[cfg(test)]
 mod tests {
     use super::*;
+    use anyhow::Context;
 
     fn save_png(img: &Image, path: &Path) -> anyhow::Result<()> {
         let (w, h) = img.dimensions();

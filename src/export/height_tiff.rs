@@ -121,7 +121,13 @@ pub fn write_height_tiff<'a>(
     pixel_size_um: Option<f64>,
     datum: Option<&Datum>,
 ) -> Result<(), ExportError> {
-    write_field(target.into(), height_um, pixel_size_um, Field::Height, datum)
+    write_field(
+        target.into(),
+        height_um,
+        pixel_size_um,
+        Field::Height,
+        datum,
+    )
 }
 
 /// Writes `confidence.tif` atomically: float32 on the height map's grid,
@@ -135,7 +141,13 @@ pub fn write_confidence_tiff<'a>(
     confidence: &Image,
     pixel_size_um: Option<f64>,
 ) -> Result<(), ExportError> {
-    write_field(target.into(), confidence, pixel_size_um, Field::Confidence, None)
+    write_field(
+        target.into(),
+        confidence,
+        pixel_size_um,
+        Field::Confidence,
+        None,
+    )
 }
 
 fn write_field(

@@ -461,7 +461,7 @@ impl StatsMerge {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::eval::synthetic::{Texture, dome, render};
+    use crate::testing::{Texture, dome, render};
     use crate::vision::Preset;
 
     fn params(budget_mib: usize) -> DenseParams {
