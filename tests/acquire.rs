@@ -468,7 +468,7 @@ fn bad_input_is_refused_before_anything_is_sent() {
             "unknown key",
             "end_tilt = 5.0\n",
             &[],
-            &["unknown field `end_tilt`"],
+            &["unknown key series.end_tilt"],
         ),
         (
             "zero step",

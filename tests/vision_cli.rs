@@ -479,8 +479,8 @@ fn vision_commands_exit_with_the_contracted_codes() {
     let dir = tempfile::tempdir().unwrap();
     let (left, _, _) = dome_pair(dir.path());
     let missing = dir.path().join("missing.tif");
-    let out = dir.path().join("out");
     for command in ["reconstruct", "rectify", "flow"] {
+        let out = dir.path().join(format!("out-{command}"));
         let run = sdsem(&[command, path(&left), path(&missing), "-o", path(&out)]);
         assert_eq!(run.status.code(), Some(1), "{command}");
         let stderr = String::from_utf8_lossy(&run.stderr);

@@ -599,7 +599,7 @@ async fn real_time_figures(work: &Path, quick: bool) -> anyhow::Result<RealTimeF
     })
 }
 
-/// Real time on the simulator of any configuration (`sdsem eval acquisition --config FILE`):
+/// Real time on the simulator of any configuration (`sdsem-eval acquisition --config FILE`):
 /// its dialects as configured, the simulator at time scale 1.
 #[derive(Debug, Clone, Serialize)]
 pub struct DialectFigures {
@@ -713,7 +713,7 @@ async fn dialect_figures(work: &Path, path: &Path, quick: bool) -> anyhow::Resul
     })
 }
 
-/// `sdsem eval acquisition --config FILE`: prints the real-time figures of that configuration's
+/// `sdsem-eval acquisition --config FILE`: prints the real-time figures of that configuration's
 /// dialects; `Ok(false)` when a target is missed (overhead ≤ 10 % at time scale 1, no move
 /// outside the limits, the run completed).
 ///
@@ -741,7 +741,7 @@ pub fn run_config(opts: &EvalOptions, path: &Path) -> anyhow::Result<bool> {
     let mut o = String::new();
     let _ = writeln!(
         o,
-        "sdsem eval acquisition --config {}: stage {}, imaging {}, time scale {} (tilt {}°/s, \
+        "sdsem-eval acquisition --config {}: stage {}, imaging {}, time scale {} (tilt {}°/s, \
          X/Y {} µm/s, settle {} s, poll every {:.3} s)",
         f.config.display(),
         f.stage_protocol,

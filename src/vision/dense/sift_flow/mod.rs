@@ -526,10 +526,10 @@ impl Engine {
 /// them; farther ones take the flow of the nearest swept pixel of their row
 /// ([`extend_rows`]). The fill has no data term: a wide ring of it only
 /// carries the smoothness along the image's border. Measured: on the most
-/// oblique simulated canvas (grid 1024×768, `sdsem eval dense`) RMSE 2.45 /
+/// oblique simulated canvas (grid 1024×768, `sdsem-eval dense`) RMSE 2.45 /
 /// 2.43 / 2.70 / 3.05 / 3.47 % of the relief at margins 2 / 4 / 6 / 12 / 24
 /// (3.48 % sweeping the whole canvas), the other 15 cases within 0.1 point;
-/// the Potamogeton pairs (`sdsem eval potamogeton`) lose 0.1–0.3 point of
+/// the Potamogeton pairs (`sdsem-eval potamogeton`) lose 0.1–0.3 point of
 /// common coverage at 2, up to 0.1 at 4, none from 6.
 const ACTIVE_MARGIN: usize = 4;
 
