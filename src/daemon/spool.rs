@@ -42,7 +42,7 @@ use rustix::fs::{FlockOperation, Mode, OFlags, RenameFlags, flock};
 use serde::{Deserialize, Serialize};
 
 use super::job::JobSpec;
-use super::untrusted::{Links, read_capped_at};
+use super::untrusted::{Links, UntrustedError, read_capped_at};
 use super::utc;
 use crate::acquisition::run_dir::printable;
 use crate::config::Config;
@@ -989,9 +989,11 @@ impl OwnedSpool {
             Err(e) => Some(format!("cannot be inspected ({e})")),
             Ok(s) if Some((s.st_dev, s.st_ino)) != expected => Some("was replaced".to_owned()),
             Ok(_) => {
-                let pid = read_capped_at(rustix::fs::CWD, &path, Links::Refuse, 64)
-                    .ok()
-                    .and_then(|c| String::from_utf8(c.bytes).ok());
+                // It may be moved between the lstat and the read: that is a move, not
+                // an unreadable file.
+                let read = read_capped_at(rustix::fs::CWD, &path, Links::Refuse, 64);
+                let moved = read.as_ref().is_err_and(UntrustedError::is_not_found);
+                let pid = read.ok().and_then(|c| String::from_utf8(c.bytes).ok());
                 let mine = std::process::id().to_string();
                 match pid {
                     Some(p) if p.trim() == mine => None,
@@ -999,6 +1001,7 @@ impl OwnedSpool {
                         "was rewritten (it said {:?})",
                         printable(p.trim(), 40)
                     )),
+                    None if moved => Some("was moved away or removed".to_owned()),
                     None => Some("was made unreadable".to_owned()),
                 }
             }
