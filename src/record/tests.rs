@@ -780,8 +780,9 @@ fn child_records_until_killed() {
             &frame_info(FrameRole::Tracking, i, 0.0),
         )
         .unwrap();
-        // Two entries per frame; the image is flushed before the counter moves.
-        while rec.status().entries_written < 2 * i + 1 {
+        // Two entries per frame (image, info); the chunk is flushed with the info, so the
+        // counter moves only once both are written.
+        while rec.status().entries_written < 2 * (i + 1) {
             std::thread::yield_now();
         }
         let tmp = path.with_extension("progress.tmp");
