@@ -178,7 +178,11 @@ fn reconstruct_refuses_in_one_line_without_outputs() {
     let lines: Vec<&str> = stderr.lines().filter(|l| !l.trim().is_empty()).collect();
     assert_eq!(lines.len(), 1, "{stderr}");
     assert!(lines[0].contains("missing.tif"), "{stderr}");
-    assert_eq!(std::fs::read_dir(&out).map_or(0, Iterator::count), 0);
+    assert!(
+        !out.exists(),
+        "the refused run left {} behind",
+        out.display()
+    );
 }
 
 /// `rectify`: the rectified pair, the matches and rectification.json with the keys of DESIGN
@@ -490,6 +494,7 @@ fn vision_commands_exit_with_the_contracted_codes() {
             "{command}: {stderr}"
         );
         assert!(stderr.contains("missing.tif"), "{command}: {stderr}");
+        assert!(!out.exists(), "{command} left {} behind", out.display());
         assert!(
             run.stdout.is_empty(),
             "{command} printed {:?}",

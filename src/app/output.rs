@@ -110,6 +110,37 @@ pub fn prepare_file(out: &Path, force: bool) -> Result<(OutputDir, String), Outp
     Ok((dir, name))
 }
 
+/// The directories that preparing `out` is about to create, deepest first: a command that
+/// then fails removes them again while they are empty, so a refused run leaves nothing behind.
+#[derive(Debug)]
+pub struct Created(Vec<PathBuf>);
+
+impl Created {
+    /// Notes which of `out` and its ancestors do not exist yet (call before preparing).
+    #[must_use]
+    pub fn before(out: &Path) -> Self {
+        Self(
+            out.ancestors()
+                .filter(|a| !a.as_os_str().is_empty())
+                .take_while(|a| std::fs::symlink_metadata(a).is_err())
+                .map(Path::to_owned)
+                .collect(),
+        )
+    }
+
+    /// Removes the noted directories when `outcome` is a failure; `rmdir` removes only
+    /// empty ones, so nothing written is ever lost.
+    pub fn undo_on_failure<T, E>(&self, outcome: &Result<T, E>) {
+        if outcome.is_err() {
+            for dir in &self.0 {
+                if std::fs::remove_dir(dir).is_err() {
+                    break;
+                }
+            }
+        }
+    }
+}
+
 /// The path itself or the nearest of its ancestors that exists, when that is not a directory.
 fn file_in_the_way(out: &Path) -> Option<PathBuf> {
     out.ancestors()
@@ -134,6 +165,30 @@ mod tests {
         );
         let err = prepare_dir(&file, &["a"], false).unwrap_err().to_string();
         assert!(err.contains("is a file, not a directory"), "{err}");
+    }
+
+    #[test]
+    fn a_failed_command_removes_only_the_empty_directories_it_created() {
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().join("a/b/out");
+        let created = Created::before(&out);
+        prepare_dir(&out, &["x"], false).unwrap();
+        created.undo_on_failure(&Ok::<(), ()>(()));
+        assert!(out.is_dir());
+        created.undo_on_failure(&Err::<(), ()>(()));
+        assert!(!dir.path().join("a").exists());
+        assert!(dir.path().is_dir());
+        // A directory holding a file stays, and so do its parents.
+        let created = Created::before(&out);
+        prepare_dir(&out, &["x"], false).unwrap();
+        std::fs::write(out.join("kept"), "x").unwrap();
+        created.undo_on_failure(&Err::<(), ()>(()));
+        assert!(out.join("kept").is_file());
+        // An existing directory is never removed.
+        std::fs::remove_file(out.join("kept")).unwrap();
+        let created = Created::before(&out);
+        created.undo_on_failure(&Err::<(), ()>(()));
+        assert!(out.is_dir());
     }
 
     #[test]

@@ -34,12 +34,14 @@ pub struct ReplayArgs {
 const EXIT_MISMATCH: u8 = 2;
 
 pub fn run(args: &ReplayArgs) -> anyhow::Result<ExitCode> {
+    let created = crate::app::output::Created::before(&args.out);
     let out = crate::app::output::prepare_dir(&args.out, &replay::FILES, args.force)?;
     let display = super::progress::StageDisplay::on_stderr();
     let report = replay::replay(&args.record, &out, &args.overrides, &|stage| {
         display.observe(stage);
     });
     display.finish(report.is_ok());
+    created.undo_on_failure(&report);
     let report = report?;
     if args.json {
         println!(

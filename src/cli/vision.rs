@@ -77,6 +77,7 @@ pub struct FlowArgs {
 
 pub fn run_reconstruct(args: &ReconstructArgs) -> anyhow::Result<ExitCode> {
     let config = args.config.load()?;
+    let created = output::Created::before(&args.out);
     let out = output::prepare_dir(&args.out, &reconstruct::files::ALL, args.force)?;
     let given = Figures {
         tilt_deg: args.tilt,
@@ -95,6 +96,7 @@ pub fn run_reconstruct(args: &ReconstructArgs) -> anyhow::Result<ExitCode> {
         &|stage| display.observe(stage),
     );
     display.finish(report.is_ok());
+    created.undo_on_failure(&report);
     summarise(&report?, &args.out);
     Ok(ExitCode::SUCCESS)
 }
@@ -213,6 +215,7 @@ fn describe_precision(p: &crate::vision::precision::Precision, relief: f64) -> S
 
 pub fn run_rectify(args: &RectifyArgs) -> anyhow::Result<ExitCode> {
     let config = args.config.load()?;
+    let created = output::Created::before(&args.out);
     let out = output::prepare_dir(&args.out, &crate::app::rectify::FILES, args.force)?;
     // The precedence of every command: the flag, the files' metadata, the configuration.
     let metadata = |path: &Path| {
@@ -241,7 +244,9 @@ pub fn run_rectify(args: &RectifyArgs) -> anyhow::Result<ExitCode> {
         &out,
         tilt_axis,
         &config.reconstruction.sparse,
-    )?;
+    );
+    created.undo_on_failure(&outputs);
+    let outputs = outputs?;
     eprintln!(
         "{} inlier matches, rectification error {} px → {} px",
         outputs.inliers,
@@ -255,9 +260,14 @@ pub fn run_rectify(args: &RectifyArgs) -> anyhow::Result<ExitCode> {
 
 pub fn run_flow(args: &FlowArgs) -> anyhow::Result<ExitCode> {
     let config = args.config.load()?;
+    let created = args.out.parent().map(output::Created::before);
     let (dir, name) = output::prepare_file(&args.out, args.force)?;
     let params = config.reconstruction.dense.flow;
-    let flow = crate::app::flow::run(&args.a, &args.b, (&dir, &name), &params)?;
+    let flow = crate::app::flow::run(&args.a, &args.b, (&dir, &name), &params);
+    if let Some(created) = &created {
+        created.undo_on_failure(&flow);
+    }
+    let flow = flow?;
     eprintln!(
         "wrote {} ({}×{} flow from {} to {})",
         args.out.display(),
