@@ -240,13 +240,13 @@ fn a_silent_server_is_one_line_with_cause_and_remedy() {
         (
             "pi-gcs",
             "`ERR?`",
-            "the stage controller's TCP port and that it speaks PI GCS",
+            "the stage controller's TCP port, that it speaks PI GCS",
         ),
         (
             "remcon32",
             "`VER?`",
-            "a serial-to-Ethernet server on the SEM PC's RemCon32 line, with RemCon32 running, \
-             and that it speaks Zeiss RemCon32",
+            "a serial-to-Ethernet server on the SEM PC's RemCon32 line, that it speaks Zeiss \
+             RemCon32",
         ),
     ] {
         let line = one_error_line(&probe(&["--config", &rig(dir.path(), protocol, &endpoint)]));

@@ -257,21 +257,26 @@ impl LinkRemedies {
         };
         match Endpoint::parse(&config.endpoint) {
             Ok(Endpoint::Tcp(addr)) => {
-                let server = match protocol {
+                let (server, alive) = match protocol {
+                    StageProtocol::PiGcs => (
+                        "the stage controller's TCP port",
+                        "the controller is powered and not busy",
+                    ),
                     // No TCP RemCon32 is known: a serial-to-Ethernet server forwards its line (VENDORS §1.1).
-                    StageProtocol::Remcon32 => {
-                        "a serial-to-Ethernet server on the SEM PC's RemCon32 line, with RemCon32 \
-                         running"
+                    StageProtocol::Remcon32 => (
+                        "a serial-to-Ethernet server on the SEM PC's RemCon32 line",
+                        "RemCon32 runs on the SEM PC",
+                    ),
+                    StageProtocol::Sharksem => {
+                        ("the SEM's SharkSEM control port", "the SEM software runs")
                     }
-                    StageProtocol::PiGcs => "the stage controller's TCP port",
-                    StageProtocol::Sharksem => "the SEM's SharkSEM control port",
                 };
                 let check = format!(
-                    "check that {addr} (stage.endpoint) is {server} and that it speaks {language} \
+                    "check that {addr} (stage.endpoint) is {server}, that it speaks {language} \
                      (stage.protocol = \"{protocol}\")"
                 );
                 Self {
-                    silent: format!("{check}, powered and not busy"),
+                    silent: format!("{check} and that {alive}"),
                     garbled: format!("{check}{axes}"),
                 }
             }

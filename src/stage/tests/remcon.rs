@@ -534,7 +534,9 @@ async fn a_silent_server_is_a_clear_error_naming_the_query() {
     let text = err.to_string();
     assert!(
         text.contains("check that 127.0.0.1:1 (stage.endpoint) is a serial-to-Ethernet server")
-            && text.contains("speaks Zeiss RemCon32 (stage.protocol = \"remcon32\")")
+            && text.contains(
+                "speaks Zeiss RemCon32 (stage.protocol = \"remcon32\") and that RemCon32 runs"
+            )
             && !text.contains("baud"),
         "{text}"
     );
