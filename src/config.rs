@@ -649,7 +649,7 @@ mod tests {
         assert!(e.contains("simulator.stage.protocol = \"remcon32\""), "{e}");
         let both = "[stage]\nprotocol = \"remcon32\"\n[simulator.stage]\nprotocol = \"remcon32\"\n";
         let c = load(both, &[], &[]).unwrap();
-        assert_eq!(c.stage.effective_baud(), 9600);
+        assert_eq!(c.stage.effective_baud(), Some(9600));
     }
 
     #[test]

@@ -233,11 +233,30 @@ fn a_silent_server_is_one_line_with_cause_and_remedy() {
             });
         }
     });
-    // PI GCS clears the error state first (`ERR?`); RemCon32 asks for the version.
-    for (protocol, query) in [("pi-gcs", "`ERR?`"), ("remcon32", "`VER?`")] {
+    // PI GCS clears the error state first (`ERR?`); RemCon32 asks for the version. Over TCP
+    // the remedy names the address and the language to speak there, never a baud rate.
+    let addr = endpoint.trim_start_matches("tcp://");
+    for (protocol, query, server) in [
+        (
+            "pi-gcs",
+            "`ERR?`",
+            "the stage controller's TCP port, that it speaks PI GCS",
+        ),
+        (
+            "remcon32",
+            "`VER?`",
+            "a serial-to-Ethernet server on the SEM PC's RemCon32 line, that it speaks Zeiss \
+             RemCon32",
+        ),
+    ] {
         let line = one_error_line(&probe(&["--config", &rig(dir.path(), protocol, &endpoint)]));
+        let remedy = format!(
+            "check that {addr} (stage.endpoint) is {server} (stage.protocol = \"{protocol}\")"
+        );
         assert!(
-            line.contains(&format!("no reply to {query}")) && line.contains("check"),
+            line.contains(&format!("no reply to {query}"))
+                && line.contains(&remedy)
+                && !line.contains("baud"),
             "{protocol}: {line}"
         );
     }

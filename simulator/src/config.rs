@@ -188,6 +188,10 @@ pub struct RemconSimConfig {
     pub detector: String,
     /// Answer to `EHT?`, kV. Default 5.
     pub eht_kv: f64,
+    /// After every move command the moving flag reads `0.0` this long although the stage
+    /// travels: SmartSEM sets it late, hence the ~1 s wait before trusting it [OD-Z].
+    /// Simulated seconds. Default 1.
+    pub moving_flag_delay_s: f64,
 }
 
 impl Default for RemconSimConfig {
@@ -203,6 +207,7 @@ impl Default for RemconSimConfig {
             m_mm: 0.0,
             detector: "SE2".to_owned(),
             eht_kv: 5.0,
+            moving_flag_delay_s: 1.0,
         }
     }
 }
@@ -607,6 +612,7 @@ impl StageSimConfig {
         finite("stage.remcon.z_mm", r.z_mm)?;
         finite("stage.remcon.rotation_deg", r.rotation_deg)?;
         finite("stage.remcon.m_mm", r.m_mm)?;
+        non_negative("stage.remcon.moving_flag_delay_s", r.moving_flag_delay_s)?;
         s.faults.validate()
     }
 }

@@ -38,7 +38,9 @@ STAGE LINK with --stage-protocol remcon32 (Zeiss SmartSEM RemCon32; ASCII,
   requests end in CR, LF or CR LF; replies are two lines ending in CR LF)
   @ (accepted) or # (invalid) at once, then >data (done) or *NNN (failed).
   C95? -> x y z t r m moving (mm, mm, mm, deg, deg, mm, 1.0 = moving)
-  C95 x y z t r m (all axes, absolute; returns before the move ends)
+  C95 x y z t r m (all axes, absolute; returns before the move ends; the
+  moving flag reads 0.0 for 1 s after it although the stage travels, as
+  SmartSEM's: [stage.remcon] moving_flag_delay_s)
   STG? STG x y z  IST? (type init, 0 = initialised)  ABO  VER?  PIX? (nm)
   MAG?  DET? (detector)  EHT? (kV)  FREC (store a photo)  PHN? (photo count)
   MAC n (run macro REMCONn: a [folder.macros] entry, else *616)

@@ -3,6 +3,9 @@
 //! command, `@` then `*600` for an unknown one, `#` alone for the wrong number
 //! of values to `C95`/`STG`, linear motion with a moving flag, `ABO`.
 //!
+//! The moving flag is set late, as SmartSEM's is [OD-Z]: for `moving_flag_delay_s`
+//! after every accepted move command it reads `0.0` although the stage travels.
+//!
 //! Faults, from [`crate::FaultConfig`] and counted as there: dropped, garbled
 //! and late replies and the disconnect by command number; by move, a silently
 //! ignored `C95`, a move that starts late (`stale_on_target`: the stage stands
@@ -34,6 +37,8 @@ struct Extra {
     r_deg: f64,
     m_mm: f64,
     photos: u64,
+    /// Simulated time from which the moving flag is honest again (set late after a move).
+    flag_honest_at: f64,
 }
 
 /// A RemCon32 server over the shared simulated stage.
@@ -46,6 +51,7 @@ pub struct RemconStage {
     magnification: f64,
     detector: String,
     eht_kv: f64,
+    moving_flag_delay_s: f64,
     extra: Mutex<Extra>,
     store: Arc<StoreTrigger>,
 }
@@ -68,11 +74,13 @@ impl RemconStage {
             magnification,
             detector: config.detector.clone(),
             eht_kv: config.eht_kv,
+            moving_flag_delay_s: config.moving_flag_delay_s,
             extra: Mutex::new(Extra {
                 z_mm: config.z_mm,
                 r_deg: config.rotation_deg.rem_euclid(360.0),
                 m_mm: config.m_mm,
                 photos: 0,
+                flag_honest_at: 0.0,
             }),
             store,
         }
@@ -121,7 +129,9 @@ impl RemconStage {
     }
 
     fn reading(&self) -> StageReading {
-        let (pose, busy) = self.stage.with_model(|m, now| (m.pose(now), m.busy(now)));
+        let (pose, busy, now) = self
+            .stage
+            .with_model(|m, now| (m.pose(now), m.busy(now), now));
         let e = self.extra();
         StageReading {
             x_mm: pose.x_um / 1000.0,
@@ -130,7 +140,7 @@ impl RemconStage {
             t_deg: pose.tilt_deg,
             r_deg: e.r_deg,
             m_mm: e.m_mm,
-            moving: busy,
+            moving: busy && now >= e.flag_honest_at,
         }
     }
 
@@ -142,14 +152,15 @@ impl RemconStage {
         ];
         match self
             .stage
-            .with_model(|m, now| m.move_roles(now, &targets, true))
+            .with_model(|m, now| m.move_roles(now, &targets, true).map(|s| (s, now)))
         {
-            Ok(started) => {
+            Ok((started, now)) => {
                 if started {
                     let mut e = self.extra();
                     e.z_mm = target.z_mm;
                     e.r_deg = target.r_deg.rem_euclid(360.0);
                     e.m_mm = target.m_mm;
+                    e.flag_honest_at = now + self.moving_flag_delay_s;
                 }
                 Reply::Done(String::new())
             }
@@ -281,7 +292,7 @@ mod tests {
     }
 
     #[test]
-    fn c95_moves_linearly_with_the_moving_flag_then_settles() {
+    fn c95_moves_linearly_with_a_moving_flag_set_late_then_settles() {
         let (s, clock, _) = server(StageSimConfig::default());
         assert!(data(&s, "VER?").contains("SmartSEM"));
         assert_eq!(data(&s, "IST?"), "1 0");
@@ -290,7 +301,14 @@ mod tests {
         assert_eq!((r.z_mm, r.m_mm), (10.0, 0.0));
         // x 0.05 mm = 50 µm at 100 µm/s; tilt 2° at 1°/s.
         assert_eq!(data(&s, "C95 0.05 0 10 2 0 0"), "");
-        clock.advance(1.0);
+        // For the flag's delay (1 s) it reads 0.0 although the stage travels.
+        clock.advance(0.5);
+        let early = reading(&s);
+        assert!(
+            !early.moving && (early.t_deg - 0.5).abs() < 1e-9,
+            "{early:?}"
+        );
+        clock.advance(0.5);
         let mid = reading(&s);
         assert!(mid.moving);
         assert!((mid.t_deg - 1.0).abs() < 1e-9 && (mid.x_mm - 0.05).abs() < 1e-9);
@@ -343,6 +361,8 @@ mod tests {
         c.faults.stale_on_target = FaultTrigger::at([2]);
         c.faults.stale_on_target_s = 0.5;
         c.faults.move_error = FaultTrigger::at([3]);
+        // The fault alone, without the flag's usual delay.
+        c.remcon.moving_flag_delay_s = 0.0;
         let (s, clock, _) = server(c);
         // 1: answered as done, nothing moves.
         assert_eq!(data(&s, "C95 0 0 10 3 0 0"), "");

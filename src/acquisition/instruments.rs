@@ -146,8 +146,7 @@ impl Instruments {
         };
         let stage = match &shared {
             Some(link) => {
-                let backend: Box<dyn StageBackend> =
-                    Box::new(SharkSemBackend::new(link.clone(), stage_config.clone()));
+                let backend: Box<dyn StageBackend> = Box::new(SharkSemBackend::new(link.clone()));
                 StageDriver::with_backend(backend, stage_config, Arc::clone(&dyn_observer)).await?
             }
             None => StageDriver::open(stage_config, Arc::clone(&dyn_observer)).await?,

@@ -88,9 +88,10 @@ pub trait StageBackend: Send {
         targets: &'a [(StageAxis, f64)],
     ) -> BoxFuture<'a, Result<String, StageError>>;
 
-    /// How long after a move command the first poll may trust the instrument's
-    /// motion flags (RemCon32 sets its moving flag late, ~1 s).
-    fn first_poll_delay(&self) -> Duration;
+    /// How long after a move command a "settled" flag may still be stale (RemCon32 sets
+    /// its moving flag late, ~1 s [OD-Z]); zero when the flags hold at once. Until then
+    /// the safety layer takes arrival only from positions (on target and holding still).
+    fn flag_delay(&self) -> Duration;
 
     /// Whether each of `axes` has settled.
     fn poll_motion<'a>(
@@ -141,8 +142,8 @@ impl<B: StageBackend + ?Sized> StageBackend for Box<B> {
     ) -> BoxFuture<'a, Result<String, StageError>> {
         (**self).start_move(targets)
     }
-    fn first_poll_delay(&self) -> Duration {
-        (**self).first_poll_delay()
+    fn flag_delay(&self) -> Duration {
+        (**self).flag_delay()
     }
     fn poll_motion<'a>(
         &'a mut self,

@@ -93,13 +93,12 @@ impl StageProtocol {
     }
 
     /// The usual serial rate of the protocol: 115200 for PI controllers,
-    /// 9600 for RemCon32 [SF, SF-old, ML].
-    pub fn default_baud(self) -> u32 {
+    /// 9600 for RemCon32 [SF, SF-old, ML]; none for SharkSEM, which runs over TCP only.
+    pub fn default_baud(self) -> Option<u32> {
         match self {
-            Self::PiGcs => 115_200,
-            Self::Remcon32 => 9_600,
-            // TCP only: no serial rate.
-            Self::Sharksem => 0,
+            Self::PiGcs => Some(115_200),
+            Self::Remcon32 => Some(9_600),
+            Self::Sharksem => None,
         }
     }
 }
@@ -133,7 +132,8 @@ pub struct StageConfig {
     /// `serial:///dev/ttyUSB0`) or `tcp://HOST:PORT`. Default `/dev/ttyUSB0`.
     pub endpoint: String,
     /// Serial baud rate (ignored for TCP and pseudo-terminals); 0 = the
-    /// protocol's usual rate (115200 for pi-gcs, 9600 for remcon32). Default 0.
+    /// protocol's usual rate (115200 for pi-gcs, 9600 for remcon32; sharksem has no serial
+    /// line). Default 0.
     pub baud: u32,
     /// GCS identifier of the X axis. Default `1` (the simulator uses `X`).
     pub axis_x: AxisId,
@@ -191,8 +191,9 @@ pub struct StageConfig {
     pub xy_speed_um_s: f64,
     /// Tilt to return to after a run or an abort, degrees. Default 0.
     pub safe_tilt_deg: f64,
-    /// remcon32: time after a move command before the moving flag is trusted
-    /// (the flag may be set late; the documentation advises ~1 s [OD-Z]). Default 1 s.
+    /// remcon32: time after a move command during which a "not moving" flag may be stale (it
+    /// is set late; the documentation advises ~1 s [OD-Z]); until then arrival needs two polls
+    /// on target with the position unchanged. Default 1 s.
     pub moving_flag_delay_s: f64,
     /// Time for the SEM to finish a watch-folder trigger (`imaging.trigger`,
     /// e.g. `FREC`), which answers only once done. Default 60 s.
@@ -252,12 +253,13 @@ pub(crate) fn secs(s: f64) -> Duration {
 }
 
 impl StageConfig {
-    /// The serial rate to open the port at: `baud`, or the protocol's usual one.
-    pub fn effective_baud(&self) -> u32 {
+    /// The serial rate to open the port at: `baud`, or the protocol's usual one (none for a
+    /// protocol without a serial line, unless `baud` is set).
+    pub fn effective_baud(&self) -> Option<u32> {
         if self.baud == 0 {
             self.protocol.default_baud()
         } else {
-            self.baud
+            Some(self.baud)
         }
     }
 

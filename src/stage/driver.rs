@@ -5,13 +5,15 @@
 //! - Targets outside the limits are refused before anything is sent. The
 //!   limits are the configured ones, narrowed (never widened) by those the
 //!   instrument reports.
-//! - Every move is verified: the motion flags are polled (the first poll only
-//!   after the backend's documented delay) until the axes settle, then the
-//!   position is read back within the tolerance. A stale "settled" flag shows
-//!   as a position still changing and is polled through; a position that stays
-//!   off target without changing while the instrument reports it settled is a
-//!   move that did not happen, re-issued once, then an error. Past the move
-//!   timeout the stage is stopped.
+//! - Every move is verified: the motion flags are polled until the axes settle,
+//!   then the position is read back within the tolerance. A stale "settled" flag
+//!   shows as a position still changing and is polled through. Within the
+//!   backend's flag delay (RemCon32 sets its moving flag late) a "settled" flag
+//!   proves nothing: arrival then needs two consecutive polls on target with the
+//!   position unchanged between them. A position that stays off target without
+//!   changing while the instrument reports it settled, past that delay, is a move
+//!   that did not happen, re-issued once, then an error. Past the move timeout
+//!   the stage is stopped.
 //! - [`StageDriver::stop`] stops every axis at once (after an abort, on
 //!   errors); [`StageDriver::move_to_safe_tilt`] returns to the safe tilt.
 //! - Cancel safety: dropping a method's future mid-exchange (e.g. `select!`
@@ -378,11 +380,12 @@ impl<B: StageBackend> StageDriver<B> {
         let mut last_pos = start;
         let mut last_progress = Instant::now();
         let mut polls = 0u32;
-        // The first poll after a move command waits for the backend's flags to be trustworthy.
-        let mut wait = self.backend.first_poll_delay();
+        // Until then a "settled" flag may be stale (set late after the command).
+        let mut flags_trusted_at = started + self.backend.flag_delay();
+        // The previous poll's positions when it read settled and on target.
+        let mut on_target_before: Option<Vec<f64>> = None;
         loop {
-            tokio::time::sleep(wait).await;
-            wait = poll;
+            tokio::time::sleep(poll).await;
             polls += 1;
             let motion = self.backend.poll_motion(&axes).await?;
             let on = motion.settled;
@@ -399,7 +402,49 @@ impl<B: StageBackend> StageDriver<B> {
                     .iter()
                     .zip(&pos)
                     .position(|(&(axis, t), &p)| (p - t).abs() > self.config.tolerance(axis));
-                let Some(off) = off else {
+                let trusted = Instant::now() >= flags_trusted_at;
+                let held = on_target_before
+                    .as_deref()
+                    .is_some_and(|before| self.unchanged(targets, before, &pos));
+                if off.is_none() && !trusted && !held {
+                    // On target, but the flag may be stale: the next poll must find it still there.
+                    on_target_before = Some(pos);
+                } else if let Some(off) = off {
+                    on_target_before = None;
+                    // "Settled" yet not there: a stale flag (the position still changes) or,
+                    // once the flag can be trusted, a move that did not happen (it does not).
+                    if !self.unchanged(targets, &last_pos, &pos) {
+                        last_pos = pos;
+                        last_progress = Instant::now();
+                    } else if trusted && last_progress.elapsed() >= no_motion {
+                        let (axis, target) = targets[off];
+                        if reissued {
+                            return Err(StageError::MoveNotExecuted {
+                                command: text,
+                                axis,
+                                target,
+                                position: pos[off],
+                                tolerance: self.config.tolerance(axis),
+                                unit: axis.unit(),
+                            });
+                        }
+                        warn!(
+                            command = %text, %axis, position = pos[off], target,
+                            "stage reports on target but did not move; re-issuing the move once"
+                        );
+                        self.backend.start_move(targets).await?;
+                        self.emit(
+                            StageEvent::MoveReissued,
+                            self.axis_states(targets, Some(&pos), Some(&on)),
+                        );
+                        reissued = true;
+                        last_progress = Instant::now();
+                        flags_trusted_at = last_progress + self.backend.flag_delay();
+                        timeout = self.move_timeout(&pos, targets);
+                        deadline = last_progress + timeout;
+                        last_pos = pos;
+                    }
+                } else {
                     let elapsed = started.elapsed();
                     self.emit(
                         StageEvent::Reached,
@@ -413,44 +458,9 @@ impl<B: StageBackend> StageDriver<B> {
                         polls,
                         elapsed,
                     });
-                };
-                // "On target" yet not there: a stale flag (the position still
-                // changes) or a move that did not happen (it does not).
-                let moved = targets
-                    .iter()
-                    .zip(pos.iter().zip(&last_pos))
-                    .any(|(&(axis, _), (&p, &q))| (p - q).abs() > self.config.tolerance(axis));
-                if moved {
-                    last_pos = pos;
-                    last_progress = Instant::now();
-                } else if last_progress.elapsed() >= no_motion {
-                    let (axis, target) = targets[off];
-                    if reissued {
-                        return Err(StageError::MoveNotExecuted {
-                            command: text,
-                            axis,
-                            target,
-                            position: pos[off],
-                            tolerance: self.config.tolerance(axis),
-                            unit: axis.unit(),
-                        });
-                    }
-                    warn!(
-                        command = %text, %axis, position = pos[off], target,
-                        "stage reports on target but did not move; re-issuing the move once"
-                    );
-                    self.backend.start_move(targets).await?;
-                    self.emit(
-                        StageEvent::MoveReissued,
-                        self.axis_states(targets, Some(&pos), Some(&on)),
-                    );
-                    reissued = true;
-                    last_progress = Instant::now();
-                    timeout = self.move_timeout(&pos, targets);
-                    deadline = last_progress + timeout;
-                    last_pos = pos;
-                    wait = self.backend.first_poll_delay();
                 }
+            } else {
+                on_target_before = None;
             }
             if Instant::now() >= deadline {
                 let now_at = self.backend.read_position(&axes).await.ok();
@@ -468,6 +478,14 @@ impl<B: StageBackend> StageDriver<B> {
                 });
             }
         }
+    }
+
+    /// Whether every axis of `targets` is where it was, within its tolerance.
+    fn unchanged(&self, targets: &[(StageAxis, f64)], before: &[f64], now: &[f64]) -> bool {
+        targets
+            .iter()
+            .zip(before.iter().zip(now))
+            .all(|(&(axis, _), (&q, &p))| (p - q).abs() <= self.config.tolerance(axis))
     }
 
     async fn read_position(&mut self, event: StageEvent) -> Result<StagePosition, StageError> {

@@ -6,7 +6,8 @@ use std::time::Duration;
 use sdsem_protocol::gcs::GcsErrorCode;
 use sdsem_protocol::remcon::RemconError;
 
-use super::config::{StageAxis, StageProtocol};
+use super::config::{StageAxis, StageConfig, StageProtocol};
+use super::transport::Endpoint;
 
 /// Everything that can go wrong between sdsem and the stage controller.
 #[derive(Debug, thiserror::Error)]
@@ -44,10 +45,7 @@ pub enum StageError {
     },
 
     /// A query was not answered, retries included.
-    #[error(
-        "no reply to `{command}` within {timeout:?} ({attempts} attempt(s)); check the cable, \
-         the baud rate (stage.baud) and that the controller is powered and not busy"
-    )]
+    #[error("no reply to `{command}` within {timeout:?} ({attempts} attempt(s)); {remedy}")]
     NoReply {
         /// The query.
         command: String,
@@ -55,12 +53,13 @@ pub enum StageError {
         attempts: u32,
         /// Time allowed for each.
         timeout: Duration,
+        /// What to check, for this link ([`LinkRemedies`]).
+        remedy: String,
     },
 
     /// A query was answered with garbage, retries included.
     #[error(
-        "garbled reply to `{command}` ({attempts} attempt(s)), last {reply:?}: {cause}; check the \
-         baud rate (stage.baud), the cable and its shielding, and that the axis names match"
+        "garbled reply to `{command}` ({attempts} attempt(s)), last {reply:?}: {cause}; {remedy}"
     )]
     Garbled {
         /// The query.
@@ -71,6 +70,8 @@ pub enum StageError {
         cause: String,
         /// Attempts made.
         attempts: u32,
+        /// What to check, for this link ([`LinkRemedies`]).
+        remedy: String,
     },
 
     /// The controller refused a command: `ERR?` answered a non-zero code.
@@ -234,6 +235,68 @@ pub enum StageError {
 error_from!(StageError {
     SharkSem(crate::sharksem::SharkError)
 });
+
+/// What to check when the stage link answers nothing or garbage. Over TCP: the address and
+/// the language spoken there; over a serial line: the cable and the baud rate.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub(crate) struct LinkRemedies {
+    /// For a query not answered.
+    pub silent: String,
+    /// For a reply that does not parse.
+    pub garbled: String,
+}
+
+impl LinkRemedies {
+    /// The remedies for `config.endpoint` and `config.protocol`.
+    pub fn new(config: &StageConfig) -> Self {
+        let protocol = config.protocol;
+        let (language, axes) = match protocol {
+            StageProtocol::PiGcs => ("PI GCS", ", and that stage.axis_x/axis_y/axis_tilt match"),
+            StageProtocol::Remcon32 => ("Zeiss RemCon32", ""),
+            StageProtocol::Sharksem => ("TESCAN SharkSEM", ""),
+        };
+        match Endpoint::parse(&config.endpoint) {
+            Ok(Endpoint::Tcp(addr)) => {
+                let (server, alive) = match protocol {
+                    StageProtocol::PiGcs => (
+                        "the stage controller's TCP port",
+                        "the controller is powered and not busy",
+                    ),
+                    // No TCP RemCon32 is known: a serial-to-Ethernet server forwards its line (VENDORS §1.1).
+                    StageProtocol::Remcon32 => (
+                        "a serial-to-Ethernet server on the SEM PC's RemCon32 line",
+                        "RemCon32 runs on the SEM PC",
+                    ),
+                    StageProtocol::Sharksem => {
+                        ("the SEM's SharkSEM control port", "the SEM software runs")
+                    }
+                };
+                let check = format!(
+                    "check that {addr} (stage.endpoint) is {server}, that it speaks {language} \
+                     (stage.protocol = \"{protocol}\")"
+                );
+                Self {
+                    silent: format!("{check} and that {alive}"),
+                    garbled: format!("{check}{axes}"),
+                }
+            }
+            // A serial line (an endpoint that does not parse never opened).
+            _ => Self {
+                silent: format!(
+                    "check the cable, the baud rate (stage.baud; {}) and that the controller is \
+                     powered and not busy",
+                    config
+                        .effective_baud()
+                        .map_or_else(|| "none set".to_owned(), |b| format!("{b} in use"))
+                ),
+                garbled: format!(
+                    "check the baud rate (stage.baud), the cable and its shielding, and that the \
+                     device speaks {language} (stage.protocol = \"{protocol}\"){axes}"
+                ),
+            },
+        }
+    }
+}
 
 fn not_ready_message(unreferenced: &[String], servo_off: &[String]) -> String {
     let mut what = Vec::new();

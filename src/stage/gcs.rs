@@ -26,7 +26,7 @@ use tracing::{info, warn};
 
 use super::backend::{BoxFuture, Connected, MotionPoll, StageBackend, StageIdentity};
 use super::config::{StageAxis, StageConfig, StageProtocol, secs};
-use super::error::{StageError, remedy};
+use super::error::{LinkRemedies, StageError, remedy};
 use super::observer::{AxisState, IoOutcome, StageEvent, StageObserver, StageState, wall_ns};
 use super::wire::{Received, Wire, WireTiming};
 
@@ -45,7 +45,13 @@ impl<T: AsyncRead + AsyncWrite + Unpin + Send> GcsBackend<T> {
             resync_quiet: secs(config.resync_quiet_s),
         };
         Self {
-            wire: Wire::new(io, ReplyFramer::new(), Arc::clone(&observer), timing),
+            wire: Wire::new(
+                io,
+                ReplyFramer::new(),
+                Arc::clone(&observer),
+                timing,
+                LinkRemedies::new(&config),
+            ),
             config,
             observer,
         }
@@ -295,11 +301,7 @@ impl<T: AsyncRead + AsyncWrite + Unpin + Send> GcsBackend<T> {
         let bytes = command.to_bytes();
         let timeout = self.wire.timing().reply_timeout;
         let attempts = self.config.query_retries.saturating_add(1);
-        let mut failure = StageError::NoReply {
-            command: text.clone(),
-            attempts,
-            timeout,
-        };
+        let mut failure = self.wire.no_reply(&text, attempts, timeout);
         for attempt in 1..=attempts {
             let sent = self
                 .wire
@@ -404,8 +406,8 @@ impl<T: AsyncRead + AsyncWrite + Unpin + Send> StageBackend for GcsBackend<T> {
         Box::pin(self.start_move_inner(targets))
     }
 
-    fn first_poll_delay(&self) -> Duration {
-        secs(self.config.poll_interval_s)
+    fn flag_delay(&self) -> Duration {
+        Duration::ZERO
     }
 
     fn poll_motion<'a>(

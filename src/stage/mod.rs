@@ -67,7 +67,7 @@ pub async fn open_backend(
         StageProtocol::Sharksem => {
             let link =
                 SharkLink::connect(SharkSemBackend::session_config(config), observer).await?;
-            Box::new(SharkSemBackend::new(link, config.clone()))
+            Box::new(SharkSemBackend::new(link))
         }
     })
 }

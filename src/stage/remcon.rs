@@ -7,7 +7,8 @@
 //! - Moves: `C95?`, then `C95 x y z t r m` with every other axis re-sent as read
 //!   (read-modify-write; tilt before rotation; mm and degrees at the wire, µm
 //!   inside sdsem). The moving flag (7th value of `C95?`) is trusted only
-//!   `stage.moving_flag_delay_s` after the command: it may be set late [OD-Z].
+//!   `stage.moving_flag_delay_s` after the command: it may be set late [OD-Z];
+//!   before that, the safety layer takes arrival only from the positions.
 //! - Stop: `ABO`. Errors `*600`…`*617` are named, with a remedy; `#` is an
 //!   invalid command. Queries are retried after a timeout or a garbled reply;
 //!   a move is never re-sent blindly (the safety layer re-issues it once when
@@ -24,7 +25,7 @@ use tracing::{info, warn};
 
 use super::backend::{BoxFuture, Connected, MotionPoll, StageBackend, StageIdentity};
 use super::config::{StageAxis, StageConfig, StageProtocol, secs};
-use super::error::{StageError, remcon_remedy};
+use super::error::{LinkRemedies, StageError, remcon_remedy};
 use super::observer::{IoOutcome, StageObserver};
 use super::wire::{Framing, Received, Wire, WireTiming};
 
@@ -79,7 +80,13 @@ impl<T: AsyncRead + AsyncWrite + Unpin + Send> RemconBackend<T> {
             resync_quiet: secs(config.resync_quiet_s),
         };
         Self {
-            wire: Wire::new(io, ReplyFramer::new(), observer, timing),
+            wire: Wire::new(
+                io,
+                ReplyFramer::new(),
+                observer,
+                timing,
+                LinkRemedies::new(&config),
+            ),
             config,
             last: None,
         }
@@ -111,11 +118,7 @@ impl<T: AsyncRead + AsyncWrite + Unpin + Send> RemconBackend<T> {
             Repeat::Retry => self.config.query_retries.saturating_add(1),
             Repeat::Once => 1,
         };
-        let mut failure = StageError::NoReply {
-            command: text.to_owned(),
-            attempts,
-            timeout,
-        };
+        let mut failure = self.wire.no_reply(text, attempts, timeout);
         for attempt in 1..=attempts {
             let sent = self
                 .wire
@@ -416,12 +419,8 @@ impl<T: AsyncRead + AsyncWrite + Unpin + Send> StageBackend for RemconBackend<T>
         Box::pin(self.start_move_inner(targets))
     }
 
-    fn first_poll_delay(&self) -> Duration {
-        secs(
-            self.config
-                .moving_flag_delay_s
-                .max(self.config.poll_interval_s),
-        )
+    fn flag_delay(&self) -> Duration {
+        secs(self.config.moving_flag_delay_s)
     }
 
     fn poll_motion<'a>(

@@ -29,7 +29,6 @@ use crate::sharksem::{SessionConfig, SharkError, SharkLink, SharkSession};
 #[derive(Debug)]
 pub struct SharkSemBackend {
     link: SharkLink,
-    config: StageConfig,
 }
 
 impl SharkSemBackend {
@@ -47,8 +46,8 @@ impl SharkSemBackend {
 
     /// A backend on `link` (nothing is sent before [`StageBackend::connect`]).
     #[must_use]
-    pub fn new(link: SharkLink, config: StageConfig) -> Self {
-        Self { link, config }
+    pub fn new(link: SharkLink) -> Self {
+        Self { link }
     }
 
     /// The session, to share it.
@@ -242,8 +241,8 @@ impl StageBackend for SharkSemBackend {
         Box::pin(self.start_move_inner(targets))
     }
 
-    fn first_poll_delay(&self) -> Duration {
-        secs(self.config.poll_interval_s)
+    fn flag_delay(&self) -> Duration {
+        Duration::ZERO
     }
 
     fn poll_motion<'a>(

@@ -74,10 +74,11 @@ impl Drop for SerialLink {
     }
 }
 
-/// Opens the stage link described by `endpoint`.
+/// Opens the stage link described by `endpoint`; a serial line at `baud`
+/// ([`super::StageConfig::effective_baud`]), which it needs.
 pub async fn open(
     endpoint: &str,
-    baud: u32,
+    baud: Option<u32>,
     connect_timeout: Duration,
 ) -> Result<StageLink, StageError> {
     match Endpoint::parse(endpoint)? {
@@ -102,6 +103,13 @@ pub async fn open(
             Ok(StageLink::Tcp(stream))
         }
         Endpoint::Serial(path) => {
+            let baud = baud.ok_or_else(|| StageError::Config {
+                field: "stage.baud",
+                reason: format!(
+                    "{endpoint} is a serial line, and stage.protocol has no usual serial rate: \
+                     set stage.baud"
+                ),
+            })?;
             // On a pseudo-terminal the baud rate does nothing (DESIGN §8); harmless.
             // 8N1 without flow control: PI controllers and RemCon32 alike [SF, ML].
             let port = tokio_serial::new(path.to_string_lossy(), baud)
@@ -239,12 +247,22 @@ mod tests {
 
     #[tokio::test]
     async fn missing_device_names_the_device_and_the_remedy() {
-        let e = open("/dev/does-not-exist-sdsem", 115_200, Duration::from_secs(1))
+        let e = open(
+            "/dev/does-not-exist-sdsem",
+            Some(115_200),
+            Duration::from_secs(1),
+        )
+        .await
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("/dev/does-not-exist-sdsem"), "{e}");
+        assert!(e.contains("plugged in"), "{e}");
+        // A protocol without a serial line and no stage.baud: said before opening anything.
+        let e = open("/dev/does-not-exist-sdsem", None, Duration::from_secs(1))
             .await
             .unwrap_err()
             .to_string();
-        assert!(e.contains("/dev/does-not-exist-sdsem"), "{e}");
-        assert!(e.contains("plugged in"), "{e}");
+        assert!(e.contains("set stage.baud"), "{e}");
     }
 
     #[tokio::test]
@@ -256,7 +274,7 @@ mod tests {
             .unwrap()
             .port();
         let endpoint = format!("tcp://127.0.0.1:{port}");
-        let e = open(&endpoint, 115_200, Duration::from_secs(1))
+        let e = open(&endpoint, Some(115_200), Duration::from_secs(1))
             .await
             .unwrap_err()
             .to_string();
@@ -271,7 +289,9 @@ mod tests {
         let (mut master, _slave) = serialport::TTYPort::pair().unwrap();
         let path = serialport::SerialPort::name(&_slave).unwrap();
         for _ in 0..2 {
-            let mut link = open(&path, 115_200, Duration::from_secs(1)).await.unwrap();
+            let mut link = open(&path, Some(115_200), Duration::from_secs(1))
+                .await
+                .unwrap();
             link.write_all(b"ERR?\n").await.unwrap();
             let mut got = [0u8; 5];
             std::io::Read::read_exact(&mut master, &mut got).unwrap();

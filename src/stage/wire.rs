@@ -15,7 +15,7 @@ use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
 use tokio::time::Instant;
 use tracing::{debug, warn};
 
-use super::error::StageError;
+use super::error::{LinkRemedies, StageError};
 use super::observer::{IoOutcome, StageIo, StageObserver, wall_ns};
 
 /// A protocol's incremental reply framer, as the link drives it.
@@ -81,6 +81,7 @@ pub(crate) struct Wire<T, F> {
     framer: F,
     observer: Arc<dyn StageObserver>,
     timing: WireTiming,
+    remedies: LinkRemedies,
     seq: u64,
     /// A reply may still be on its way (an exchange was cut short).
     dirty: bool,
@@ -91,12 +92,19 @@ pub(crate) fn millis(d: Duration) -> f64 {
 }
 
 impl<T: AsyncRead + AsyncWrite + Unpin + Send, F: Framing> Wire<T, F> {
-    pub fn new(io: T, framer: F, observer: Arc<dyn StageObserver>, timing: WireTiming) -> Self {
+    pub fn new(
+        io: T,
+        framer: F,
+        observer: Arc<dyn StageObserver>,
+        timing: WireTiming,
+        remedies: LinkRemedies,
+    ) -> Self {
         Self {
             io,
             framer,
             observer,
             timing,
+            remedies,
             seq: 0,
             dirty: false,
         }
@@ -109,6 +117,16 @@ impl<T: AsyncRead + AsyncWrite + Unpin + Send, F: Framing> Wire<T, F> {
 
     pub fn timing(&self) -> WireTiming {
         self.timing
+    }
+
+    /// `command` got no reply in `attempts` attempts of `timeout` each.
+    pub fn no_reply(&self, command: &str, attempts: u32, timeout: Duration) -> StageError {
+        StageError::NoReply {
+            command: command.to_owned(),
+            attempts,
+            timeout,
+            remedy: self.remedies.silent.clone(),
+        }
     }
 
     /// The awaited reply came: nothing more is on its way.
@@ -301,6 +319,7 @@ impl<T: AsyncRead + AsyncWrite + Unpin + Send, F: Framing> Wire<T, F> {
             reply: Some(reply),
             cause,
             attempts: attempt,
+            remedy: self.remedies.garbled.clone(),
         })
     }
 
@@ -328,6 +347,7 @@ impl<T: AsyncRead + AsyncWrite + Unpin + Send, F: Framing> Wire<T, F> {
             reply: None,
             cause,
             attempts: attempt,
+            remedy: self.remedies.garbled.clone(),
         })
     }
 
@@ -345,11 +365,7 @@ impl<T: AsyncRead + AsyncWrite + Unpin + Send, F: Framing> Wire<T, F> {
         self.record(sent, text, attempt, None, IoOutcome::Timeout, Some(detail));
         debug!(command = %text, attempt, "stage reply timed out");
         self.resync(self.timing.reply_timeout, text).await?;
-        Ok(StageError::NoReply {
-            command: text.to_owned(),
-            attempts: attempt,
-            timeout,
-        })
+        Ok(self.no_reply(text, attempt, timeout))
     }
 
     /// Records a request that gets no reply of its own.

@@ -50,7 +50,7 @@ async fn driver(
     let link = SharkLink::connect(SharkSemBackend::session_config(&config), observer.clone())
         .await
         .unwrap();
-    let backend = SharkSemBackend::new(link, config.clone());
+    let backend = SharkSemBackend::new(link);
     let d = StageDriver::with_backend(backend, config, observer.clone())
         .await
         .unwrap();
@@ -158,7 +158,7 @@ async fn an_uncalibrated_stage_is_refused_at_connect() {
     let link = SharkLink::connect(SharkSemBackend::session_config(&config), observer.clone())
         .await
         .unwrap();
-    let e = StageDriver::with_backend(SharkSemBackend::new(link, config.clone()), config, observer)
+    let e = StageDriver::with_backend(SharkSemBackend::new(link), config, observer)
         .await
         .err()
         .unwrap()
@@ -222,13 +222,9 @@ async fn stage_and_imaging_share_one_session() {
     let (mut source, _) = SharkSemSource::with_link(link.clone(), &imaging, Some(0.0))
         .await
         .unwrap();
-    let mut stage = StageDriver::with_backend(
-        SharkSemBackend::new(link, config.clone()),
-        config,
-        observer.clone(),
-    )
-    .await
-    .unwrap();
+    let mut stage = StageDriver::with_backend(SharkSemBackend::new(link), config, observer.clone())
+        .await
+        .unwrap();
     stage.move_tilt(4.0).await.unwrap();
     let frame = source.grab(imaging.request(Role::Left)).await.unwrap();
     assert_eq!(frame.tilt_deg(), 4.0);

@@ -242,7 +242,51 @@ async fn xy_targets_in_micrometres_go_out_in_millimetres() {
     assert!((p.x_um - 120.0).abs() < 1e-6 && (p.y_um + 35.5).abs() < 1e-6);
 }
 
-/// The fault the first-poll delay exists for: the move starts (and its flag
+#[tokio::test(start_paused = true)]
+async fn a_flag_that_reads_not_moving_while_the_stage_travels_does_not_end_the_move() {
+    // The simulator's flag reads 0.0 for 1 s after every C95 although the stage travels.
+    let (io, server) = served(StageSimConfig::default());
+    assert_eq!(server.truth().faults.stale_on_target, 0);
+    let observer = Arc::new(MemoryObserver::default());
+    let mut stage = connect(io, config(), observer.clone()).await.unwrap();
+    let started = Instant::now();
+    let report = stage.move_tilt(3.0).await.unwrap();
+    // 3° at 1°/s, then 0.2 s of settling the honest flag shows.
+    assert!(report.elapsed >= Duration::from_secs_f64(3.2), "{report:?}");
+    assert!(started.elapsed() >= Duration::from_secs_f64(3.2));
+    let truth = server.truth();
+    assert!((truth.pose.tilt_deg - 3.0).abs() < 1e-9, "{truth:?}");
+    assert!(truth.axes[2].on_target, "settled: {truth:?}");
+    // sdsem polled during the delay and saw the lie: "not moving" halfway there.
+    let lies = observer
+        .states()
+        .iter()
+        .filter(|s| s.event == StageEvent::Poll)
+        .filter(|s| {
+            let a = &s.axes[0];
+            a.on_target == Some(true) && a.position.is_some_and(|p| p > 0.0 && p < 3.0)
+        })
+        .count();
+    assert!(lies >= 5, "{lies} polls saw the stale flag");
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_short_move_is_verified_by_its_position_before_the_flag_can_be_trusted() {
+    let (io, server) = served(StageSimConfig::default());
+    let mut stage = connect(io, config(), Arc::new(NoopObserver)).await.unwrap();
+    // 5 µm at 100 µm/s: there after 0.05 s, long before the flag's 1 s.
+    let report = stage.move_xy(5.0, 0.0).await.unwrap();
+    assert!(report.elapsed < Duration::from_millis(400), "{report:?}");
+    assert!((server.truth().pose.x_um - 5.0).abs() < 1e-9);
+    // Two polls on target with the position unchanged between them.
+    assert!(report.polls >= 2, "{report:?}");
+    // A move that ends within the delay but only just: never accepted while still travelling.
+    let report = stage.move_xy(5.0, 80.0).await.unwrap();
+    assert!(report.elapsed >= Duration::from_millis(800), "{report:?}");
+    assert!((server.truth().pose.y_um - 80.0).abs() < 1e-9);
+}
+
+/// The fault the flag delay exists for: the move starts (and its flag
 /// rises) 0.8 s after the command.
 fn late_flag() -> StageSimConfig {
     let mut sim = StageSimConfig::default();
@@ -486,8 +530,33 @@ async fn a_silent_server_is_a_clear_error_naming_the_query() {
         matches!(&err, StageError::NoReply { command, attempts: 3, .. } if command == "VER?"),
         "{err}"
     );
-    assert!(err.to_string().contains("stage.baud"), "{err}");
+    // Over TCP the remedy names the address and the language, not a baud rate.
+    let text = err.to_string();
+    assert!(
+        text.contains("check that 127.0.0.1:1 (stage.endpoint) is a serial-to-Ethernet server")
+            && text.contains(
+                "speaks Zeiss RemCon32 (stage.protocol = \"remcon32\") and that RemCon32 runs"
+            )
+            && !text.contains("baud"),
+        "{text}"
+    );
     assert_eq!(lines(&log).iter().filter(|l| *l == "VER?").count(), 3);
+
+    // Over a serial line: the cable and the baud rate in use.
+    let (io, _) = scripted(|_| Vec::new());
+    let serial = StageConfig {
+        endpoint: "/dev/ttyUSB0".into(),
+        ..config()
+    };
+    let err = connect(io, serial, Arc::new(NoopObserver))
+        .await
+        .err()
+        .unwrap();
+    assert!(
+        err.to_string()
+            .contains("check the cable, the baud rate (stage.baud; 9600 in use)"),
+        "{err}"
+    );
 }
 
 #[tokio::test(start_paused = true)]
