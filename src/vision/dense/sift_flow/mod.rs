@@ -292,8 +292,7 @@ impl Engine {
         };
         let mut buffers_fwd = BpBuffers::default();
         let mut buffers_bwd = BpBuffers::default();
-        for l in self.finest + 1..levels {
-            let (wa, ha, wb, hb) = sizes[l];
+        for (l, &(wa, ha, wb, hb)) in sizes.iter().enumerate().skip(self.finest + 1) {
             reserve(&mut buffers_fwd, l, (wa, ha));
             if both {
                 reserve(&mut buffers_bwd, l, (wb, hb));
