@@ -501,11 +501,13 @@ fn refine_to_full_resolution(
     let refine = params.flow.refinement();
     let Matched { fwd, bwd, finest } = matched;
     let (a, b) = (&inputs.a, &inputs.b);
-    rayon::join(
+    // The backward field reaches full resolution after the forward one's refinement, whose
+    // buffers are the largest of the stage.
+    let (fwd, bwd) = rayon::join(
         || sift_flow::to_full_resolution(a, b, Some(&ra), Some(&inputs.vb), fwd, finest, 0, refine),
         || {
             bwd.map(|bw| {
-                sift_flow::to_full_resolution(
+                sift_flow::to_level(
                     b,
                     a,
                     Some(&rb),
@@ -517,6 +519,10 @@ fn refine_to_full_resolution(
                 )
             })
         },
+    );
+    (
+        fwd,
+        bwd.map(|(r, level)| refine::upsample_refined(r, b.dimensions(), level)),
     )
 }
 

@@ -94,7 +94,20 @@ pub struct RefinedFlow {
     pub clamped: Vec<bool>,
 }
 
-/// Central differences, one-sided at the border.
+/// The central differences of `d` (width `w`, height `h`) at pixel `(x, y)`, one-sided at the border.
+#[inline]
+fn gradient_at(d: &[f32], w: usize, h: usize, x: usize, y: usize) -> (f32, f32) {
+    let (yu, yd) = (y.saturating_sub(1), (y + 1).min(h - 1));
+    let sy = if yd > yu { 1.0 / (yd - yu) as f32 } else { 0.0 };
+    let (xl, xr) = (x.saturating_sub(1), (x + 1).min(w - 1));
+    let sx = if xr > xl { 1.0 / (xr - xl) as f32 } else { 0.0 };
+    (
+        (d[y * w + xr] - d[y * w + xl]) * sx,
+        (d[yd * w + x] - d[yu * w + x]) * sy,
+    )
+}
+
+/// [`gradient_at`] of every pixel.
 fn gradients(img: &Image) -> (Vec<f32>, Vec<f32>) {
     let (w, h) = img.dimensions();
     let d = img.data();
@@ -104,13 +117,8 @@ fn gradients(img: &Image) -> (Vec<f32>, Vec<f32>) {
         .zip(gy.par_chunks_mut(w))
         .enumerate()
         .for_each(|(y, (rx, ry))| {
-            let (yu, yd) = (y.saturating_sub(1), (y + 1).min(h - 1));
-            let sy = if yd > yu { 1.0 / (yd - yu) as f32 } else { 0.0 };
             for x in 0..w {
-                let (xl, xr) = (x.saturating_sub(1), (x + 1).min(w - 1));
-                let sx = if xr > xl { 1.0 / (xr - xl) as f32 } else { 0.0 };
-                rx[x] = (d[y * w + xr] - d[y * w + xl]) * sx;
-                ry[x] = (d[yd * w + x] - d[yu * w + x]) * sy;
+                (rx[x], ry[x]) = gradient_at(d, w, h, x, y);
             }
         });
     (gx, gy)
@@ -204,12 +212,18 @@ fn refine_level(
 ) -> RefinedFlow {
     let (w, h) = a.dimensions();
     let (u0, v0) = (&u_start[..], &v_start[..]);
-    let prepared = |img: &Image| {
-        let n = normalise_contrast(img, params.presmooth_sigma, params.normalise_sigma);
-        let g = gradients(&n);
-        (n, g)
-    };
-    let ((na, (gax, gay)), (nb, (gbx, gby))) = rayon::join(|| prepared(a), || prepared(b));
+    // The second image is sampled at real positions: its gradients are kept; the first one's
+    // are taken where needed.
+    let normalised =
+        |img: &Image| normalise_contrast(img, params.presmooth_sigma, params.normalise_sigma);
+    let (na, (nb, (gbx, gby))) = rayon::join(
+        || normalised(a),
+        || {
+            let n = normalised(b);
+            let g = gradients(&n);
+            (n, g)
+        },
+    );
     let sb = Sampled {
         w: b.width(),
         h: b.height(),
@@ -231,50 +245,52 @@ fn refine_level(
         .into_par_iter()
         .map(|p| valid_a.is_none_or(|m| m[p]) && u0[p].is_finite() && v0[p].is_finite())
         .collect();
-    let (xb, start_sums) = if params.range_sigma > 0.0 {
-        let mut sums: Vec<[f32; 4]> = u0
-            .iter()
-            .zip(v0)
-            .zip(&usable)
-            .map(|((&a, &b), &u)| {
-                if u {
-                    [a, b, 1.0, 1.0]
-                } else {
-                    [0.0, 0.0, 0.0, 1.0]
-                }
-            })
-            .collect();
-        let g = CrossGrid::with_sums(
+    // The working memory of this level, touched once: the smoothing sums of the start (4 per
+    // pixel), then the Gauss–Newton products of the iterations (6), then the NCC's sums and
+    // their blur's second buffer (4 + 4).
+    let n = w * h;
+    let mut work: Vec<f32> = Vec::with_capacity(8 * n);
+    let xb = if params.range_sigma > 0.0 {
+        work.resize(4 * n, 0.0);
+        let sums = work.as_chunks_mut::<4>().0;
+        sums.par_iter_mut().enumerate().for_each(|(p, s)| {
+            *s = if usable[p] {
+                [u0[p], v0[p], 1.0, 1.0]
+            } else {
+                [0.0, 0.0, 0.0, 1.0]
+            };
+        });
+        Some(CrossGrid::with_sums(
             &range_key(a.data(), w, h),
             w,
             h,
             params.window_sigma,
             params.range_sigma,
-            &mut sums,
-        );
-        (Some(g), Some(sums))
+            sums,
+        ))
     } else {
-        (None, None)
+        None
     };
     let (u0, v0): (Vec<f32>, Vec<f32>) = {
-        let sums: Vec<[f32; 4]> = match start_sums {
-            Some(sums) => sums,
-            None => {
-                let packed: Vec<[f32; 3]> = (0..w * h)
-                    .into_par_iter()
-                    .map(|p| {
-                        if usable[p] {
-                            [u0[p], v0[p], 1.0]
-                        } else {
-                            [0.0; 3]
-                        }
-                    })
-                    .collect();
-                blur(&packed, w, h, params.window_sigma)
-                    .into_par_iter()
-                    .map(|[a, b, n]| [a, b, n, 1.0])
-                    .collect()
-            }
+        let blurred: Vec<[f32; 4]>;
+        let sums: &[[f32; 4]] = if xb.is_some() {
+            work.as_chunks::<4>().0
+        } else {
+            let packed: Vec<[f32; 3]> = (0..w * h)
+                .into_par_iter()
+                .map(|p| {
+                    if usable[p] {
+                        [u0[p], v0[p], 1.0]
+                    } else {
+                        [0.0; 3]
+                    }
+                })
+                .collect();
+            blurred = blur(&packed, w, h, params.window_sigma)
+                .into_par_iter()
+                .map(|[a, b, n]| [a, b, n, 1.0])
+                .collect();
+            &blurred
         };
         let mean = |p: usize, o: &[f32], c: usize| {
             let s = &sums[p];
@@ -304,7 +320,9 @@ fn refine_level(
         sb.at(x + u[p], y + v[p])
     };
     let mut clamped = vec![false; w * h];
-    let mut products = vec![[0f32; 6]; w * h];
+    // Every product is written before it is read.
+    work.resize(6 * n, 0.0);
+    let products = work.as_chunks_mut::<6>().0;
     // The Gaussian window's second buffer; the cross grid brings its own.
     let mut scratch = if xb.is_some() {
         Vec::new()
@@ -320,9 +338,10 @@ fn refine_level(
                     *out = [0.0; 6];
                     return;
                 };
-                let gx = 0.5 * (gax[p] + bx);
+                let (gax, gay) = gradient_at(na.data(), w, h, p % w, p / w);
+                let gx = 0.5 * (gax + bx);
                 let gy = if params.vertical {
-                    0.5 * (gay[p] + by)
+                    0.5 * (gay + by)
                 } else {
                     0.0
                 };
@@ -332,10 +351,10 @@ fn refine_level(
         });
         match &xb {
             // The steps below read the sums of usable pixels only.
-            Some(g) => g.aggregate(&mut products, &mut grid, Some(&usable)),
-            None => blur_in_place(&mut products, &mut scratch, w, h, params.window_sigma),
+            Some(g) => g.aggregate(products, &mut grid, Some(&usable)),
+            None => blur_in_place(products, &mut scratch, w, h, params.window_sigma),
         }
-        let sums = &products;
+        let sums = &*products;
         u.par_iter_mut()
             .zip(v.par_iter_mut())
             .zip(clamped.par_iter_mut())
@@ -373,24 +392,23 @@ fn refine_level(
             });
     }
     // Quality of the final match: NCC of the normalised images over the window,
-    // from the sums of [aa, bb, ab, 1] (the iterations' buffers are freed
-    // first, so these take their memory).
-    drop((products, scratch, grid));
-    let mut sums: Vec<[f32; 4]> = (0..w * h)
-        .into_par_iter()
-        .map(|p| match warped(&u, &v, p) {
+    // from the sums of [aa, bb, ab, 1].
+    drop((scratch, grid));
+    work.resize(8 * n, 0.0);
+    let (sums, scratch) = work.split_at_mut(4 * n);
+    let (sums, scratch) = (sums.as_chunks_mut::<4>().0, scratch.as_chunks_mut::<4>().0);
+    sums.par_iter_mut().enumerate().for_each(|(p, s)| {
+        *s = match warped(&u, &v, p) {
             Some([bw, _, _]) => {
                 let av = na.data()[p];
                 [av * av, bw * bw, av * bw, 1.0]
             }
             None => [0.0; 4],
-        })
-        .collect();
-    let mut scratch = vec![[0f32; 4]; w * h];
+        };
+    });
     // The Gaussian window here even with `range_sigma`: as good a confidence
     // (simulated scenes) for less time.
-    blur_in_place(&mut sums, &mut scratch, w, h, params.window_sigma);
-    drop(scratch);
+    blur_in_place(sums, scratch, w, h, params.window_sigma);
     let ncc = sums
         .par_iter()
         .enumerate()
@@ -492,6 +510,25 @@ pub fn refine_flow_down_to(
     stop: usize,
     params: &RefineParams,
 ) -> RefinedFlow {
+    let stop = stop.min(level);
+    let r = refine_flow_to_level(a, b, valid_a, valid_b, flow, level, stop, params);
+    upsample_refined(r, a.dimensions(), stop)
+}
+
+/// [`refine_flow_down_to`] before its upsampling: the flow on the grid of pyramid level
+/// `stop` (≤ `level`) of `a`; [`upsample_refined`] takes it to full resolution.
+#[must_use]
+#[allow(clippy::too_many_arguments)]
+pub fn refine_flow_to_level(
+    a: &Image,
+    b: &Image,
+    valid_a: Option<&[bool]>,
+    valid_b: Option<&[bool]>,
+    flow: (&[f32], &[f32]),
+    level: usize,
+    stop: usize,
+    params: &RefineParams,
+) -> RefinedFlow {
     use super::sift_flow::pyramid::{halve_image, halve_mask};
     let stop = stop.min(level);
     // Pyramids of both images and masks, finest first (the full resolution borrowed).
@@ -542,10 +579,22 @@ pub fn refine_flow_down_to(
             if l > 0 { max_step.max(1.0) } else { max_step },
         ));
     }
-    let mut r = result.expect("level `stop` always runs");
-    for l in (0..stop).rev() {
-        let (wc, hc) = imgs[l + 1].0.dimensions();
-        let (wf, hf) = imgs[l].0.dimensions();
+    result.expect("level `stop` always runs")
+}
+
+/// A [`RefinedFlow`] on the grid of pyramid level `level` of an image of size `full`,
+/// upsampled bilinearly to `full` (flow, NCC and clamp flags).
+#[must_use]
+pub fn upsample_refined(mut r: RefinedFlow, full: (usize, usize), level: usize) -> RefinedFlow {
+    use super::sift_flow::pyramid::half_size;
+    let mut sizes = vec![full];
+    for _ in 0..level {
+        let &(w, h) = sizes.last().expect("not empty");
+        sizes.push((half_size(w), half_size(h)));
+    }
+    for l in (0..level).rev() {
+        let (wc, hc) = sizes[l + 1];
+        let (wf, hf) = sizes[l];
         let clamped: Vec<f32> = r.clamped.iter().map(|&c| f32::from(u8::from(c))).collect();
         r = RefinedFlow {
             u: upsample_flow(&r.u, wc, hc, wf, hf, 2.0),

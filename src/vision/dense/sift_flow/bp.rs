@@ -46,6 +46,8 @@ pub struct DualLayerBp<'a> {
     edges: Option<&'a EdgeTruncation>,
     /// Per layer: `msgs[k][(p · SLOTS + slot) · n_k + l]`.
     msgs: [Vec<f32>; 2],
+    /// The messages of the warm-start grids, kept between runs ([`BpBuffers`]).
+    coarse: Option<Box<BpBuffers>>,
     /// Per layer: the argmin of every pixel's belief, kept current by the sweeps.
     labels: [Vec<u16>; 2],
     /// Whether `labels` are those of the current messages: the
@@ -58,6 +60,63 @@ pub struct DualLayerBp<'a> {
     spans: Vec<(usize, usize)>,
     min_strip_rows: usize,
     max_strips: usize,
+}
+
+/// The message memory of a [`DualLayerBp`] and of its warm-start grids behind it. A matcher
+/// hands it from level to level and direction to direction, reserved once for its largest
+/// grids ([`BpBuffers::reserve`]): the memory is touched once, not again for every solve.
+#[derive(Debug, Default)]
+pub struct BpBuffers {
+    msgs: [Vec<f32>; 2],
+    coarse: Option<Box<BpBuffers>>,
+}
+
+impl BpBuffers {
+    /// Buffers with room for the messages of a `width × height` grid with `states` per layer
+    /// and of its `hierarchy` warm-start grids, without touching the memory.
+    #[must_use]
+    pub fn reserve(width: usize, height: usize, states: [usize; 2], hierarchy: usize) -> Self {
+        let mut out = Self::default();
+        out.grow(width, height, states, hierarchy);
+        out
+    }
+
+    /// Grows the room to that of [`BpBuffers::reserve`] for the given grid (kept if larger).
+    pub fn grow(&mut self, width: usize, height: usize, states: [usize; 2], hierarchy: usize) {
+        for (m, n) in self.msgs.iter_mut().zip(states) {
+            let len = width * height * SLOTS * n;
+            if m.capacity() < len {
+                // The old contents are never read: no copy.
+                *m = Vec::with_capacity(len);
+            }
+        }
+        if hierarchy > 0 && width >= 2 && height >= 2 {
+            self.coarse.get_or_insert_default().grow(
+                width.div_ceil(2),
+                height.div_ceil(2),
+                states,
+                hierarchy - 1,
+            );
+        }
+    }
+
+    /// Bytes of message memory reserved, all grids.
+    #[must_use]
+    pub fn capacity_bytes(&self) -> usize {
+        self.msgs.iter().map(Vec::capacity).sum::<usize>() * size_of::<f32>()
+            + self.coarse.as_ref().map_or(0, |c| c.capacity_bytes())
+    }
+}
+
+/// `v` holding `len` zeros, in its own memory when it has room.
+fn zeroed(mut v: Vec<f32>, len: usize) -> Vec<f32> {
+    if v.capacity() < len {
+        // Fresh zeroed memory costs no writes.
+        return vec![0f32; len];
+    }
+    v.clear();
+    v.resize(len, 0.0);
+    v
 }
 
 /// What [`DualLayerBp::run`] returns.
@@ -431,11 +490,39 @@ impl<'a> DualLayerBp<'a> {
         min_strip_rows: usize,
         max_strips: usize,
     ) -> Self {
+        Self::with_buffers(
+            space,
+            data,
+            weights,
+            min_strip_rows,
+            max_strips,
+            BpBuffers::default(),
+        )
+    }
+
+    /// [`DualLayerBp::new`] keeping its messages in `buffers` (grown when too small); get
+    /// them back with [`DualLayerBp::into_buffers`].
+    ///
+    /// # Panics
+    /// As [`DualLayerBp::new`].
+    #[must_use]
+    pub fn with_buffers(
+        space: &'a LabelSpace,
+        data: &'a DataTerm,
+        weights: EnergyWeights,
+        min_strip_rows: usize,
+        max_strips: usize,
+        buffers: BpBuffers,
+    ) -> Self {
         assert!(space.states(0) <= MAX_STATES && space.states(1) <= MAX_STATES);
         let area = space.width * space.height;
+        let BpBuffers {
+            msgs: [m0, m1],
+            coarse,
+        } = buffers;
         let msgs = [
-            vec![0f32; area * SLOTS * space.states(0)],
-            vec![0f32; area * SLOTS * space.states(1)],
+            zeroed(m0, area * SLOTS * space.states(0)),
+            zeroed(m1, area * SLOTS * space.states(1)),
         ];
         Self {
             space,
@@ -443,6 +530,7 @@ impl<'a> DualLayerBp<'a> {
             weights,
             edges: None,
             msgs,
+            coarse,
             labels: [vec![0; area], vec![0; area]],
             labels_current: false,
             strips: strips_for(space.height, min_strip_rows, max_strips),
@@ -450,6 +538,21 @@ impl<'a> DualLayerBp<'a> {
             min_strip_rows,
             max_strips,
         }
+    }
+
+    /// The message memory, for the next solver.
+    #[must_use]
+    pub fn into_buffers(self) -> BpBuffers {
+        BpBuffers {
+            msgs: self.msgs,
+            coarse: self.coarse,
+        }
+    }
+
+    /// Frees the messages of the warm-start grids (kept for the next solver otherwise): for the
+    /// last, largest grid, whose iterations would hold them for nothing.
+    pub fn release_warm_start_buffers(&mut self) {
+        self.coarse = None;
     }
 
     /// Sweeps only the columns `spans[y]` of every row `y` (for instance the
@@ -497,7 +600,7 @@ impl<'a> DualLayerBp<'a> {
     /// a strong smoothness lets the first sweeps lock the flow at its initial
     /// offsets.
     pub fn warm_start(&mut self, hierarchy: usize, iterations: usize) {
-        if hierarchy == 0 || self.space.width < 2 || self.space.height < 2 {
+        if !self.warm_start_replaces_messages(hierarchy) {
             return;
         }
         let (cspace, cdata) = self.data.coarsen(self.space);
@@ -505,12 +608,13 @@ impl<'a> DualLayerBp<'a> {
             gamma: self.weights.gamma / 2.0,
             ..self.weights
         };
-        let mut coarse = DualLayerBp::new(
+        let mut coarse = DualLayerBp::with_buffers(
             &cspace,
             &cdata,
             cweights,
             self.min_strip_rows,
             self.max_strips,
+            self.coarse.take().map(|b| *b).unwrap_or_default(),
         );
         coarse.restrict(coarsen_spans(&self.spans, cspace.width, cspace.height));
         coarse.warm_start(hierarchy - 1, iterations);
@@ -541,7 +645,15 @@ impl<'a> DualLayerBp<'a> {
                     }
                 });
         }
+        self.coarse = Some(Box::new(coarse.into_buffers()));
         self.labels_current = false;
+    }
+
+    /// Whether [`DualLayerBp::warm_start`] with `hierarchy` grids sets every message (it leaves
+    /// them alone on a grid too small to coarsen).
+    #[must_use]
+    pub fn warm_start_replaces_messages(&self, hierarchy: usize) -> bool {
+        hierarchy > 0 && self.space.width >= 2 && self.space.height >= 2
     }
 
     /// Starts both layers' inter-layer messages from the data term (the
@@ -948,6 +1060,45 @@ mod tests {
         let e_plain = energy(&data, &space, &labels, &weights);
         let e_step = energy_with(&data, &space, &labels, &weights, Some(&step));
         assert!(e_step < e_plain, "{e_step} vs {e_plain}");
+    }
+
+    /// Buffers handed on from a larger solve, still holding its messages, give the same run
+    /// as fresh ones, with and without the warm start.
+    #[test]
+    fn reused_buffers_give_the_same_run() {
+        let weights = two_region_weights();
+        let (big_space, big_data) = problem(30, 80);
+        for hierarchy in [0, 2] {
+            let mut first = DualLayerBp::new(&big_space, &big_data, weights, 16, 3);
+            first.warm_start(2, 4);
+            first.run(6);
+            let buffers = first.into_buffers();
+            let (space, data) = problem(24, 70);
+            let mut fresh = DualLayerBp::new(&space, &data, weights, 16, 3);
+            fresh.warm_start(hierarchy, 4);
+            let fresh = fresh.run(12);
+            let mut bp = DualLayerBp::with_buffers(&space, &data, weights, 16, 3, buffers);
+            bp.warm_start(hierarchy, 4);
+            let reused = bp.run(12);
+            assert_eq!(fresh.labels, reused.labels, "hierarchy {hierarchy}");
+            assert_eq!(fresh.energy, reused.energy, "hierarchy {hierarchy}");
+        }
+    }
+
+    #[test]
+    fn reserved_buffers_hold_every_grid_of_the_warm_start() {
+        // 10 × 8, then 5 × 4 and 3 × 2; 5 + 3 states; 5 slots; 4 bytes.
+        let b = BpBuffers::reserve(10, 8, [5, 3], 2);
+        assert_eq!(b.capacity_bytes(), (80 + 20 + 6) * 5 * 8 * 4);
+        // A smaller grid keeps the room; a larger layer grows alone.
+        let mut grown = b;
+        grown.grow(4, 4, [5, 3], 1);
+        assert_eq!(grown.capacity_bytes(), (80 + 20 + 6) * 5 * 8 * 4);
+        grown.grow(12, 12, [21, 3], 0);
+        assert_eq!(
+            grown.capacity_bytes(),
+            (144 * 21 + 144 * 3 + (20 + 6) * 8) * 5 * 4
+        );
     }
 
     #[test]

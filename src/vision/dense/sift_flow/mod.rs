@@ -16,18 +16,21 @@ pub use self::params::{DescriptorPyramid, FlowParams, WarmStartGrids, level_cell
 use self::params::{LevelPlan, MIN_STRIP_ROWS};
 pub(crate) use self::params::{check_size, min_side};
 
+use std::borrow::Cow;
 use std::time::Instant;
 
 use serde::Serialize;
 
-use self::bp::DualLayerBp;
+use self::bp::{BpBuffers, DualLayerBp};
 use self::energy::{DataTerm, EnergyWeights, LabelSpace};
 use super::error::DenseError;
 use crate::vision::Image;
 use crate::vision::dense::dense_sift::{
     DenseSiftParams, DescriptorImage, dense_sift, dense_sift_where,
 };
-use crate::vision::dense::refine::{RefineParams, RefinedFlow, refine_flow_down_to, upsample_flow};
+use crate::vision::dense::refine::{
+    RefineParams, RefinedFlow, refine_flow_to_level, upsample_flow, upsample_refined,
+};
 
 /// What one pyramid level did (goes into report.json).
 #[derive(Debug, Clone, PartialEq, Serialize)]
@@ -252,7 +255,8 @@ impl Engine {
         let halved = p.descriptors == DescriptorPyramid::Halved;
         let t0 = Instant::now();
         let mut desc_pyramid: Vec<(DescriptorImage, DescriptorImage)> = Vec::new();
-        let mut img_pyramid: Vec<(Image, Image)> = Vec::new();
+        // Level 0 is the inputs themselves.
+        let mut img_pyramid: Vec<(Cow<'_, Image>, Cow<'_, Image>)> = Vec::new();
         if halved {
             desc_pyramid.push(rayon::join(
                 || dense_sift(a, &sift),
@@ -268,18 +272,44 @@ impl Engine {
             }
         }
         if !halved || self.edge_truncation(p.finest_d.unwrap_or(p.d)) {
-            img_pyramid.push((a.clone(), b.clone()));
+            img_pyramid.push((Cow::Borrowed(a), Cow::Borrowed(b)));
             for l in 1..levels {
                 let (ia, ib) = &img_pyramid[l - 1];
                 let next = (pyramid::halve_image(ia), pyramid::halve_image(ib));
-                img_pyramid.push(next);
+                img_pyramid.push((Cow::Owned(next.0), Cow::Owned(next.1)));
             }
         }
         let pyramid_ms = ms(t0);
 
+        // The BP messages, reserved for the largest grids (untouched until used) and reused from
+        // level to level. The coarser levels solve both directions at once, one buffer each. The
+        // finest level, by far the largest, gets its own, reserved once the coarser ones are
+        // freed (they would sit beside its descriptors), and solves one direction after the
+        // other in it (its strips keep the cores busy): one direction's messages are alive.
+        let reserve = |buffers: &mut BpBuffers, l: usize, (w, h): (usize, usize)| {
+            let plan = &self.plan[l];
+            buffers.grow(w, h, plan.window.map(|w| 2 * w + 1), plan.hierarchy);
+        };
+        let mut buffers_fwd = BpBuffers::default();
+        let mut buffers_bwd = BpBuffers::default();
+        for (l, &(wa, ha, wb, hb)) in sizes.iter().enumerate().skip(self.finest + 1) {
+            reserve(&mut buffers_fwd, l, (wa, ha));
+            if both {
+                reserve(&mut buffers_bwd, l, (wb, hb));
+            }
+        }
         let mut fwd: Option<Direction> = None;
         let mut bwd: Option<Direction> = None;
         for l in (self.finest..levels).rev() {
+            if l == self.finest {
+                buffers_fwd = BpBuffers::default();
+                buffers_bwd = BpBuffers::default();
+                let (wa, ha, wb, hb) = sizes[l];
+                reserve(&mut buffers_fwd, l, (wa, ha));
+                if both {
+                    reserve(&mut buffers_fwd, l, (wb, hb));
+                }
+            }
             let td = Instant::now();
             // This level's descriptors, owned: they are dropped once its data
             // terms hold what BP needs of them (the halved pyramid's
@@ -320,7 +350,7 @@ impl Engine {
             let source = |k: usize| {
                 img_pyramid
                     .get(l)
-                    .map(|(ia, ib)| if k == 0 { ia } else { ib })
+                    .map(|(ia, ib)| if k == 0 { &**ia } else { &**ib })
             };
             let forward = || {
                 self.data_term(
@@ -349,10 +379,21 @@ impl Engine {
             let (f, b) = forward_and_backward(forward, both.then_some(backward));
             drop((da, db));
             let mask_b = masks_b[l].as_deref();
-            let (f, b) = forward_and_backward(
-                || self.solve(l, source(0), f, masks_a[l].as_deref(), descriptor_ms),
-                b.map(|b| move || self.solve(l, source(1), b, mask_b, descriptor_ms)),
-            );
+            let mask_a = masks_a[l].as_deref();
+            let (f, b) = if l == self.finest {
+                let f = self.solve(l, source(0), f, mask_a, descriptor_ms, &mut buffers_fwd);
+                let bf = &mut buffers_fwd;
+                (
+                    f,
+                    b.map(|b| self.solve(l, source(1), b, mask_b, descriptor_ms, bf)),
+                )
+            } else {
+                let (bf, bb) = (&mut buffers_fwd, &mut buffers_bwd);
+                forward_and_backward(
+                    || self.solve(l, source(0), f, mask_a, descriptor_ms, bf),
+                    b.map(|b| move || self.solve(l, source(1), b, mask_b, descriptor_ms, bb)),
+                )
+            };
             fwd = Some(merge(fwd, f));
             bwd = match (bwd, b) {
                 (prev, Some(b)) => Some(merge(prev, b)),
@@ -435,6 +476,7 @@ impl Engine {
         level: LevelData,
         mask_a: Option<&[bool]>,
         descriptor_ms: f64,
+        buffers: &mut BpBuffers,
     ) -> Direction {
         let plan = self.plan[l];
         let LevelData {
@@ -458,7 +500,14 @@ impl Engine {
             gamma: p.gamma * (1u32 << l.min(31)) as f32,
         };
         let tbp = Instant::now();
-        let mut bp = DualLayerBp::new(&space, &data, weights, MIN_STRIP_ROWS, p.max_strips);
+        let mut bp = DualLayerBp::with_buffers(
+            &space,
+            &data,
+            weights,
+            MIN_STRIP_ROWS,
+            p.max_strips,
+            std::mem::take(buffers),
+        );
         let spans = mask_a.map(|m| bp::active_spans(m, w, h, ACTIVE_MARGIN));
         if let Some(spans) = &spans {
             bp.restrict(spans.clone());
@@ -475,10 +524,14 @@ impl Engine {
         if let Some(e) = &edges {
             bp.truncate_edges(e);
         }
-        if p.dual_init_from_data {
+        // The warm start, when it runs, replaces these messages.
+        if p.dual_init_from_data && !bp.warm_start_replaces_messages(plan.hierarchy) {
             bp.init_dual_from_data();
         }
         bp.warm_start(plan.hierarchy, p.warm_start_iterations);
+        if finest {
+            bp.release_warm_start_buffers();
+        }
         // Coarser levels hand on their labels only: no more iterations once
         // the labels have settled.
         let patience = (p.settle_iterations > 0 && l > self.finest).then_some(p.settle_iterations);
@@ -502,6 +555,7 @@ impl Engine {
         } else {
             Vec::new()
         };
+        *buffers = bp.into_buffers();
         Direction {
             flow,
             margin,
@@ -630,8 +684,26 @@ pub(crate) fn to_full_resolution(
     stop: usize,
     refine: Option<&RefineParams>,
 ) -> RefinedFlow {
+    let (r, level) = to_level(a, b, valid_a, valid_b, run, finest, stop, refine);
+    upsample_refined(r, a.dimensions(), level)
+}
+
+/// [`to_full_resolution`] before the upsampling of a refined flow: the flow and the pyramid
+/// level of `a` it is on (`stop` when refined, 0 otherwise); [`upsample_refined`] finishes.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn to_level(
+    a: &Image,
+    b: &Image,
+    valid_a: Option<&[bool]>,
+    valid_b: Option<&[bool]>,
+    run: EngineRun,
+    finest: usize,
+    stop: usize,
+    refine: Option<&RefineParams>,
+) -> (RefinedFlow, usize) {
     if let Some(params) = refine {
-        return refine_flow_down_to(
+        let stop = stop.min(finest);
+        let r = refine_flow_to_level(
             a,
             b,
             valid_a,
@@ -641,6 +713,7 @@ pub(crate) fn to_full_resolution(
             stop,
             params,
         );
+        return (r, stop);
     }
     let (mut u, mut v) = (run.u, run.v);
     let mut size = (run.width, run.height);
@@ -656,12 +729,15 @@ pub(crate) fn to_full_resolution(
         size = (wf, hf);
     }
     let n = u.len();
-    RefinedFlow {
-        u,
-        v,
-        ncc: vec![1.0; n],
-        clamped: vec![false; n],
-    }
+    (
+        RefinedFlow {
+            u,
+            v,
+            ncc: vec![1.0; n],
+            clamped: vec![false; n],
+        },
+        0,
+    )
 }
 
 /// Replaces non-finite samples by the nearest finite one on the same row (or
