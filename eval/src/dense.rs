@@ -804,16 +804,18 @@ pub fn hard_cases() -> Vec<SimCase> {
     ]
     .into_iter()
     .enumerate()
-    .map(|(i, (kind, width, height, tilt_deg, tilt_axis_deg))| SimCase {
-        kind,
-        width,
-        height,
-        tilt_deg,
-        tilt_axis_deg,
-        seed: 101 + i as u64,
-        noiseless: false,
-        dwell_us: DWELL_US,
-    })
+    .map(
+        |(i, (kind, width, height, tilt_deg, tilt_axis_deg))| SimCase {
+            kind,
+            width,
+            height,
+            tilt_deg,
+            tilt_axis_deg,
+            seed: 101 + i as u64,
+            noiseless: false,
+            dwell_us: DWELL_US,
+        },
+    )
     .collect()
 }
 
@@ -904,21 +906,23 @@ fn summary(rows: &[SimFigures], mode: Preset) -> Option<String> {
             a
         }
     });
-    Some(format!(
-        "{:<8} {n} cases, all targets met by {}: coverage ≥ 95 % {}/{n} (worst {:.1} %), RMSE ≤ 5 % {}/{n} (worst {:.1} %), median ≤ 0.2 px {}/{n} (worst {:.3}), >1 px ≤ 3 % {}/{n} (worst {:.1} %), scale 1 ± 3 % {}/{n} (worst {:.3})",
-        format!("{mode:?}").to_lowercase(),
-        count(&|t| t.all()),
-        count(&|t| t.coverage),
-        100.0 * worst(&|f| f.coverage, false),
-        count(&|t| t.rmse),
-        100.0 * worst(&|f| f.rmse_relative, true),
-        count(&|t| t.median),
-        worst(&|f| f.median_px, true),
-        count(&|t| t.over_1px),
-        100.0 * worst(&|f| f.over_1px, true),
-        count(&|t| t.scale),
-        worst_scale,
-    ) + &support_summary(&rows))
+    Some(
+        format!(
+            "{:<8} {n} cases, all targets met by {}: coverage ≥ 95 % {}/{n} (worst {:.1} %), RMSE ≤ 5 % {}/{n} (worst {:.1} %), median ≤ 0.2 px {}/{n} (worst {:.3}), >1 px ≤ 3 % {}/{n} (worst {:.1} %), scale 1 ± 3 % {}/{n} (worst {:.3})",
+            format!("{mode:?}").to_lowercase(),
+            count(&|t| t.all()),
+            count(&|t| t.coverage),
+            100.0 * worst(&|f| f.coverage, false),
+            count(&|t| t.rmse),
+            100.0 * worst(&|f| f.rmse_relative, true),
+            count(&|t| t.median),
+            worst(&|f| f.median_px, true),
+            count(&|t| t.over_1px),
+            100.0 * worst(&|f| f.over_1px, true),
+            count(&|t| t.scale),
+            worst_scale,
+        ) + &support_summary(&rows),
+    )
 }
 
 /// The featureless supports' figures over a mode's rows: the worst fraction of reported
@@ -931,7 +935,10 @@ fn support_summary(rows: &[&SimFigures]) -> String {
     let worst = |key: fn(&SupportFigures) -> f64| supports.iter().map(key).fold(0.0, f64::max);
     format!(
         "; featureless support: reported >1 px ≤ 1 % {}/{} (worst {:.2} %), unknown up to {:.1} %",
-        supports.iter().filter(|s| s.reported_over_1px <= 0.01).count(),
+        supports
+            .iter()
+            .filter(|s| s.reported_over_1px <= 0.01)
+            .count(),
         supports.len(),
         100.0 * worst(|s| s.reported_over_1px),
         100.0 * worst(|s| s.unknown),

@@ -645,7 +645,10 @@ mod tests {
             let (model, tex) = build(kind, 3, 200.0);
             let (mut floor, mut raised) = (0, 0);
             for k in 0..4000 {
-                let (s, r) = (f64::from(k % 80) * 1.3 - 50.0, f64::from(k / 80) * 1.7 - 40.0);
+                let (s, r) = (
+                    f64::from(k % 80) * 1.3 - 50.0,
+                    f64::from(k / 80) * 1.7 - 40.0,
+                );
                 let (z, y) = model.sample(s, r);
                 if y < tex.plain_below_yield {
                     floor += 1;
@@ -656,7 +659,10 @@ mod tests {
                     assert!(z > 0.0, "{kind}");
                 }
             }
-            assert!(floor > 1000 && raised > 40, "{kind}: {floor} floor, {raised} raised");
+            assert!(
+                floor > 1000 && raised > 40,
+                "{kind}: {floor} floor, {raised} raised"
+            );
         }
     }
 

@@ -76,7 +76,9 @@ impl fmt::Display for SceneKind {
 
 /// A scene name that is not one of [`SceneKind::ALL`] or [`SceneKind::HARD`].
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
-#[error("unknown scene kind {0:?}: expected one of particles, grid, rough, dome, bare, calgrid, metal")]
+#[error(
+    "unknown scene kind {0:?}: expected one of particles, grid, rough, dome, bare, calgrid, metal"
+)]
 pub struct UnknownSceneKind(pub String);
 
 impl FromStr for SceneKind {
