@@ -652,8 +652,13 @@ fn left_right_consistency(
             }
         });
     if params.support.enabled
-        && let Some(judged) =
-            support::support_test((&inputs.a, &inputs.b), (va, vb), &raw, &params.support)
+        && let Some(judged) = support::support_test(
+            (&inputs.a, &inputs.b),
+            (va, vb),
+            &raw,
+            &params.support,
+            crate::vision::pipeline::matcher_window_sigma(params) as f32,
+        )
     {
         raw.data_mut()
             .par_iter_mut()

@@ -3,18 +3,22 @@
 //!
 //! Two tests on the rectified pair (parallax along +x), beside the left–right check of
 //! [`super::consistency`]:
-//! 1. **texture**: the Cramér–Rao bound of the disparity over a small Gaussian window
-//!    (`texture_sigma`; [`crate::vision::precision`]: `σ_d² = 2σ² / (N · ḡ²)`), with `ḡ²` the
-//!    window's mean squared gradient along x less the noise's share and σ the noise floor
-//!    that [`noise_sigma`] estimates; above `max_bound_px` the window has no texture along the
-//!    parallax that stands out of the noise. The texture must hold throughout the window
-//!    (every pixel within `2 · texture_sigma` passes): beside a featureless area a window
-//!    textured only at its edge takes the disparity of whatever lies there (a raised
-//!    feature's), not its own;
+//! Both judge the matcher's own Gaussian window (σ of the intensity refinement, or the
+//! descriptor's extent), which is what decides a match:
+//! 1. **texture**: the Cramér–Rao bound of the disparity over the window
+//!    ([`crate::vision::precision`]: `σ_d² = 2σ² / (N · ḡ²)`, `N = 4πσ_w²`), with the
+//!    signal-to-noise ratio of the gradient energy along x measured by the correlation of
+//!    both images' gradients at the match (their noise is independent, their texture common),
+//!    so that neither the noise's level nor its correlation after resampling has to be known;
+//!    above `max_bound_px` the window has no texture along the parallax that stands out of
+//!    the noise. The texture must hold throughout the window (every pixel within `2σ_w`
+//!    passes): beside a featureless area a window textured only at its edge takes the
+//!    disparity of whatever lies there (a raised feature's), not its own;
 //! 2. **distinctiveness**: the window's mean squared difference between the left image and
 //!    the right one at the match, against the same at offsets of 2 to `reach_px` pixels along
-//!    the row; when another offset matches within `min_distinctiveness` times the noise's
-//!    mean squared difference, the matching cost has no unique minimum (repetitive or flat
+//!    the row; when another offset comes within `min_distinctiveness` standard deviations of
+//!    the noise's share of that difference (`2σ² · √(2/N)`, σ the noise floor that
+//!    [`noise_sigma`] estimates), the matching cost has no unique minimum (repetitive or flat
 //!    texture) and the match is ambiguous.
 
 use rayon::prelude::*;
@@ -30,15 +34,13 @@ use crate::vision::precision::noise_sigma;
 pub struct SupportParams {
     /// Leave unknown the pixels the micrographs do not support (paper false).
     pub enabled: bool,
-    /// σ of the Gaussian window of the texture test, pixels.
-    pub texture_sigma: f32,
-    /// σ of the Gaussian window of the distinctiveness test, pixels.
+    /// σ of the Gaussian window both tests judge, pixels; 0: the matcher's own window.
     pub window_sigma: f32,
     /// Largest Cramér–Rao bound of the disparity (texture along the parallax against the noise floor), pixels.
     pub max_bound_px: f32,
     /// Offsets along the row that compete with the match, up to this many pixels (0: no distinctiveness test).
     pub reach_px: usize,
-    /// Least excess of a competing offset's mean squared difference over the match's, in units of the noise's.
+    /// Least excess of a competing offset's mean squared difference over the match's, in standard deviations of the noise's share.
     pub min_distinctiveness: f32,
 }
 
@@ -46,11 +48,10 @@ impl Default for SupportParams {
     fn default() -> Self {
         Self {
             enabled: true,
-            texture_sigma: 1.5,
-            window_sigma: 3.0,
-            max_bound_px: 0.25,
+            window_sigma: 0.0,
+            max_bound_px: 0.15,
             reach_px: 16,
-            min_distinctiveness: 0.5,
+            min_distinctiveness: 4.0,
         }
     }
 }
@@ -59,10 +60,8 @@ impl SupportParams {
     /// The name of the first field out of range.
     #[must_use]
     pub fn invalid_field(&self) -> Option<&'static str> {
-        let sigma_ok = |s: f32| s.is_finite() && (0.5..=32.0).contains(&s);
-        if !sigma_ok(self.texture_sigma) {
-            Some("support.texture_sigma")
-        } else if !sigma_ok(self.window_sigma) {
+        let sigma_ok = |s: f32| s.is_finite() && (s == 0.0 || (0.5..=32.0).contains(&s));
+        if !sigma_ok(self.window_sigma) {
             Some("support.window_sigma")
         } else if !(self.max_bound_px.is_finite() && self.max_bound_px > 0.0) {
             Some("support.max_bound_px")
@@ -179,7 +178,8 @@ fn offsets(reach: usize) -> Vec<f32> {
 }
 
 /// The support test of the matches `disparity` (left canvas, `NaN` unknown) of the rectified
-/// pair `(a, b)` with validity `(va, vb)`: per pixel [`Unknown::NoTexture`],
+/// pair `(a, b)` with validity `(va, vb)`, over a window of σ `sigma` pixels (the matcher's,
+/// unless `params.window_sigma` names one): per pixel [`Unknown::NoTexture`],
 /// [`Unknown::Ambiguous`] or [`Unknown::Measured`] (supported, or no match to judge). `None`
 /// when the noise floor cannot be measured (then nothing is judged).
 #[must_use]
@@ -188,47 +188,16 @@ pub fn support_test(
     (va, vb): (&[bool], &[bool]),
     disparity: &Image,
     params: &SupportParams,
+    sigma: f32,
 ) -> Option<Vec<Unknown>> {
+    let sigma = if params.window_sigma > 0.0 {
+        params.window_sigma
+    } else {
+        sigma.max(0.5)
+    };
     let (w, h) = a.dimensions();
-    let noise = [noise_sigma(a, Some(va))?, noise_sigma(b, Some(vb))?];
-    let noise_var = (0.5 * (noise[0] * noise[0] + noise[1] * noise[1])) as f32;
     let (ad, bd) = (a.data(), b.data());
-    // 1. Texture: squared central difference along x, where both neighbours are real.
-    let (g2, gmask): (Vec<f32>, Vec<f32>) = (0..w * h)
-        .into_par_iter()
-        .map(|q| {
-            let x = q % w;
-            if x == 0 || x + 1 == w || !(va[q - 1] && va[q] && va[q + 1]) {
-                return (0.0, 0.0);
-            }
-            let g = 0.5 * (ad[q + 1] - ad[q - 1]);
-            (g * g, 1.0)
-        })
-        .unzip();
-    let ts = params.texture_sigma;
-    let mean_g2 = window_mean(&g2, &gmask, w, h, ts);
-    // A central difference of white noise has variance σ²/2.
-    let grad_noise = 0.5 * noise_var;
-    let n_eff = 4.0 * std::f32::consts::PI * ts * ts;
-    let max_var = params.max_bound_px * params.max_bound_px;
-    let textured: Vec<bool> = mean_g2
-        .par_iter()
-        .map(|&m| {
-            let signal = m - grad_noise;
-            // σ_d² = 2σ² / (N ḡ²) ≤ max²  ⇔  N ḡ² max² ≥ 2σ².
-            signal.is_finite() && signal > 0.0 && n_eff * signal * max_var >= 2.0 * noise_var
-        })
-        .collect();
-    #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
-    let reach = (2.0 * ts).ceil() as usize;
-    let flat: Vec<bool> = textured.iter().zip(va).map(|(t, v)| *v && !t).collect();
-    let textured: Vec<bool> = near(&flat, w, h, reach)
-        .into_iter()
-        .zip(&textured)
-        .map(|(n, t)| *t && !n)
-        .collect();
-    let sigma = params.window_sigma;
-    // 2. Distinctiveness: mean squared difference at the match and at competing offsets.
+    // The squared difference of the two images at the match and at an offset along the row.
     let du = disparity.data();
     let matched = |s: f32| -> (Vec<f32>, Vec<f32>) {
         (0..w * h)
@@ -255,10 +224,69 @@ pub fn support_test(
             })
             .unzip()
     };
-    let at_match = {
-        let (e, m) = matched(0.0);
-        window_mean(&e, &m, w, h, sigma)
+    let (e0, m0) = matched(0.0);
+    // The noise floor ([`noise_sigma`], Immerkær) scales the distinctiveness test.
+    let noise = [noise_sigma(a, Some(va))?, noise_sigma(b, Some(vb))?];
+    let noise_var = (0.5 * (noise[0] * noise[0] + noise[1] * noise[1])) as f32;
+    // 1. Texture: the gradients along x of both images at the match. Their noise is
+    // independent and their texture common, so over the window the correlation
+    // ρ = ⟨g_a g_b⟩ / √(⟨g_a²⟩⟨g_b²⟩) is s / (1 + s) for a signal-to-noise ratio s of the
+    // gradient energy, whatever the noise's level or its correlation after resampling; with
+    // the noise's gradient variance σ²/2 the bound is σ_d² = 2σ² / (N s σ²/2) = 4 / (N s).
+    let grad = |d: &[f32], v: &[bool], q: usize| -> Option<f32> {
+        let x = q % w;
+        (x > 0 && x + 1 < w && v[q - 1] && v[q] && v[q + 1]).then(|| 0.5 * (d[q + 1] - d[q - 1]))
     };
+    let (gab, (gaa, (gbb, gm))): (Vec<f32>, (Vec<f32>, (Vec<f32>, Vec<f32>))) = (0..w * h)
+        .into_par_iter()
+        .map(|q| {
+            let none = (0.0, (0.0, (0.0, 0.0)));
+            let d = du[q];
+            let Some(ga) = grad(ad, va, q).filter(|_| d.is_finite()) else {
+                return none;
+            };
+            let xr = (q % w) as f32 + d;
+            if xr < 1.0 || xr > (w - 2) as f32 {
+                return none;
+            }
+            let x0 = xr.floor() as usize;
+            let row = q - q % w;
+            let (Some(g0), Some(g1)) = (grad(bd, vb, row + x0), grad(bd, vb, row + x0 + 1)) else {
+                return none;
+            };
+            let gb = g0 + (xr - x0 as f32) * (g1 - g0);
+            (ga * gb, (ga * ga, (gb * gb, 1.0)))
+        })
+        .unzip();
+    let (mab, (maa, mbb)) = rayon::join(
+        || window_mean(&gab, &gm, w, h, sigma),
+        || {
+            rayon::join(
+                || window_mean(&gaa, &gm, w, h, sigma),
+                || window_mean(&gbb, &gm, w, h, sigma),
+            )
+        },
+    );
+    let n_eff = 4.0 * std::f32::consts::PI * sigma * sigma;
+    let max_var = params.max_bound_px * params.max_bound_px;
+    let textured: Vec<bool> = (0..w * h)
+        .into_par_iter()
+        .map(|q| {
+            let rho = mab[q] / (maa[q] * mbb[q]).sqrt();
+            // s = ρ / (1 − ρ); 4 / (N s) ≤ max²  ⇔  4 (1 − ρ) ≤ N ρ max².
+            rho.is_finite() && rho > 0.0 && 4.0 * (1.0 - rho) <= n_eff * rho * max_var
+        })
+        .collect();
+    #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
+    let reach = (2.0 * sigma).ceil() as usize;
+    let flat: Vec<bool> = textured.iter().zip(va).map(|(t, v)| *v && !t).collect();
+    let textured: Vec<bool> = near(&flat, w, h, reach)
+        .into_iter()
+        .zip(&textured)
+        .map(|(n, t)| *t && !n)
+        .collect();
+    // 2. Distinctiveness: the match's window against competing offsets'.
+    let at_match = window_mean(&e0, &m0, w, h, sigma);
     let mut least_excess = vec![f32::INFINITY; w * h];
     for s in offsets(params.reach_px) {
         let (e, m) = matched(s);
@@ -273,8 +301,9 @@ pub fn support_test(
                 }
             });
     }
-    // The noise's own mean squared difference between the two images is 2σ².
-    let min_excess = params.min_distinctiveness * 2.0 * noise_var;
+    // The noise's own mean squared difference between the two images is 2σ²; its window
+    // mean varies by about 2σ² · √(2/N).
+    let min_excess = params.min_distinctiveness * 2.0 * noise_var * (2.0 / n_eff).sqrt();
     Some(
         (0..w * h)
             .into_par_iter()
@@ -335,6 +364,7 @@ mod tests {
             (&valid, &valid),
             &disparity,
             &SupportParams::default(),
+            3.0,
         )
         .unwrap();
         let at = |x: usize| r[20 * 120 + x];
@@ -358,6 +388,7 @@ mod tests {
             (&valid, &valid),
             &disparity,
             &SupportParams::default(),
+            3.0,
         )
         .unwrap();
         assert_eq!(r[20 * w + 50], Unknown::Ambiguous);
@@ -366,7 +397,7 @@ mod tests {
             reach_px: 0,
             ..SupportParams::default()
         };
-        let r = support_test((&a, &b), (&valid, &valid), &disparity, &none).unwrap();
+        let r = support_test((&a, &b), (&valid, &valid), &disparity, &none, 3.0).unwrap();
         assert_eq!(r[20 * w + 50], Unknown::Measured);
     }
 
@@ -380,8 +411,8 @@ mod tests {
         assert!(n[7 + 2] && n[3 * 7 + 4] && !n[3 * 7 + 5] && !n[0]);
     }
 
-    /// A flat floor beside a textured block: the floor pixels whose window reaches the
-    /// block's edge are not supported either.
+    /// A flat floor beside a textured block: the floor pixels whose window (σ 3) reaches the
+    /// block's edge only at its rim, 2σ away, are not supported either.
     #[test]
     fn texture_at_the_window_edge_does_not_support_a_flat_pixel() {
         let (w, h) = (100, 30);
@@ -411,11 +442,12 @@ mod tests {
             (&valid, &valid),
             &disparity,
             &SupportParams::default(),
+            3.0,
         )
         .unwrap();
         let row = &r[15 * w..16 * w];
         assert_eq!(row[30], Unknown::Measured);
-        for (x, u) in row.iter().enumerate().take(90).skip(51) {
+        for (x, u) in row.iter().enumerate().take(90).skip(56) {
             assert_eq!(*u, Unknown::NoTexture, "x = {x}");
         }
     }
