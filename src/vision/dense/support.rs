@@ -49,7 +49,7 @@ impl Default for SupportParams {
         Self {
             enabled: true,
             window_sigma: 0.0,
-            max_bound_px: 0.15,
+            max_bound_px: 0.2,
             reach_px: 16,
             min_distinctiveness: 4.0,
         }
