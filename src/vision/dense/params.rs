@@ -38,7 +38,7 @@ pub struct DenseParams {
     pub reassign: ReassignParams,
     /// The bilateral grid filter of the disparity (Paris & Durand 2009).
     pub bilateral: BilateralParams,
-    /// Leave unknown what the micrographs cannot tell: texture, distinctiveness (paper: `enabled = false`).
+    /// Leave unknown what the micrographs cannot tell: texture, distinctiveness (opt-in, `enabled = true`).
     pub support: SupportParams,
     /// Peak memory of the stage, MiB: a larger rectified canvas is matched in overlapping tiles; 0 = never tile.
     pub memory_budget_mib: usize,

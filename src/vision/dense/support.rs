@@ -32,7 +32,8 @@ use crate::vision::precision::noise_sigma;
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct SupportParams {
-    /// Leave unknown the pixels the micrographs do not support (paper false).
+    /// Leave unknown the pixels the micrographs do not support (opt-in: on real pairs it still
+    /// leaves too much unknown, see README).
     pub enabled: bool,
     /// σ of the Gaussian window both tests judge, pixels; 0: the matcher's own window.
     pub window_sigma: f32,
@@ -47,7 +48,7 @@ pub struct SupportParams {
 impl Default for SupportParams {
     fn default() -> Self {
         Self {
-            enabled: true,
+            enabled: false,
             window_sigma: 0.0,
             max_bound_px: 0.2,
             reach_px: 16,
