@@ -341,6 +341,7 @@ pub fn write_outputs(
                                         confidence_path,
                                         &recon.confidence,
                                         Some(p),
+                                        Some(&recon.unknown),
                                     ),
                                 )
                             },

@@ -9,13 +9,17 @@ use std::io::{BufReader, Seek, Write};
 use std::path::Path;
 
 use tiff::decoder::{Decoder, DecodingResult, Limits};
-use tiff::encoder::{Rational, TiffEncoder, colortype::Gray32Float};
+use tiff::encoder::{
+    Rational, TiffEncoder,
+    colortype::{Gray8, Gray32Float},
+};
 use tiff::tags::{ResolutionUnit, Tag};
 
 use super::ExportError;
 use super::atomic::Target;
 use crate::vision::Image;
 use crate::vision::datum::Datum;
+use crate::vision::dense::Unknown;
 
 /// A height map read back from `height.tif`.
 #[derive(Debug, Clone, PartialEq)]
@@ -63,6 +67,16 @@ fn description(kind: Field, pixel_size_um: Option<f64>, datum: Option<&Datum>) -
             "unknown": "NaN",
             "interpolated": 0,
             "grid": "left micrograph",
+            "reasons": "page 2",
+        }),
+        Field::Reasons => serde_json::json!({
+            "sdsem": "unknown-reason",
+            "schema_version": DESCRIPTION_SCHEMA_VERSION,
+            "grid": "left micrograph",
+            "codes": Unknown::ALL
+                .iter()
+                .map(|u| (u.code().to_string(), serde_json::Value::from(u.name())))
+                .collect::<serde_json::Map<_, _>>(),
         }),
     };
     if let Some(p) = pixel_size_um {
@@ -80,6 +94,8 @@ fn description(kind: Field, pixel_size_um: Option<f64>, datum: Option<&Datum>) -
 enum Field {
     Height,
     Confidence,
+    /// The reason of every unknown height, a byte per pixel ([`Unknown::code`]).
+    Reasons,
 }
 
 fn encode_field<W: Write + Seek>(
@@ -88,9 +104,35 @@ fn encode_field<W: Write + Seek>(
     pixel_size_um: Option<f64>,
     kind: Field,
     datum: Option<&Datum>,
+    reasons: Option<&[Unknown]>,
 ) -> tiff::TiffResult<()> {
     let (w, h) = dims_u32(height_um)?;
     let mut encoder = TiffEncoder::new(out)?;
+    if let Some(reasons) = reasons {
+        encode_page(&mut encoder, height_um, pixel_size_um, kind, datum)?;
+        let mut image = encoder.new_image::<Gray8>(w, h)?;
+        image.encoder().write_tag(
+            Tag::ImageDescription,
+            description(Field::Reasons, pixel_size_um, None).as_str(),
+        )?;
+        if let Some(p) = pixel_size_um.filter(|p| p.is_finite() && *p > 0.0) {
+            image.resolution(ResolutionUnit::Centimeter, rational(1e4 / p));
+        }
+        let codes: Vec<u8> = reasons.iter().map(|u| u.code()).collect();
+        return image.write_data(&codes);
+    }
+    encode_page(&mut encoder, height_um, pixel_size_um, kind, datum)
+}
+
+/// One float32 page of `encoder`.
+fn encode_page<W: Write + Seek>(
+    encoder: &mut TiffEncoder<W>,
+    height_um: &Image,
+    pixel_size_um: Option<f64>,
+    kind: Field,
+    datum: Option<&Datum>,
+) -> tiff::TiffResult<()> {
+    let (w, h) = dims_u32(height_um)?;
     let mut image = encoder.new_image::<Gray32Float>(w, h)?;
     image.encoder().write_tag(
         Tag::ImageDescription,
@@ -125,28 +167,38 @@ pub fn write_height_tiff<'a>(
         target.into(),
         height_um,
         pixel_size_um,
-        Field::Height,
-        datum,
+        (Field::Height, datum),
+        None,
     )
 }
 
 /// Writes `confidence.tif` atomically: float32 on the height map's grid,
 /// `(0, 1]` where the height is measured, 0 where it was interpolated between
-/// measured neighbours, NaN where it is unknown.
+/// measured neighbours, NaN where it is unknown; with `reasons` (one per pixel) a second
+/// page, 8-bit, says why ([`Unknown::code`], named in its description).
 ///
 /// # Errors
-/// [`ExportError::Invalid`] for an empty map, [`ExportError::Write`] on I/O failure.
+/// [`ExportError::Invalid`] for an empty map or reasons of another size, [`ExportError::Write`]
+/// on I/O failure.
 pub fn write_confidence_tiff<'a>(
     target: impl Into<Target<'a>>,
     confidence: &Image,
     pixel_size_um: Option<f64>,
+    reasons: Option<&[Unknown]>,
 ) -> Result<(), ExportError> {
+    let target = target.into();
+    if reasons.is_some_and(|r| r.len() != confidence.len()) {
+        return Err(ExportError::Invalid {
+            path: target.path(),
+            reason: "the unknown-reason map does not have one entry per pixel".to_owned(),
+        });
+    }
     write_field(
-        target.into(),
+        target,
         confidence,
         pixel_size_um,
-        Field::Confidence,
-        None,
+        (Field::Confidence, None),
+        reasons,
     )
 }
 
@@ -154,13 +206,13 @@ fn write_field(
     target: Target<'_>,
     map: &Image,
     pixel_size_um: Option<f64>,
-    kind: Field,
-    datum: Option<&Datum>,
+    (kind, datum): (Field, Option<&Datum>),
+    reasons: Option<&[Unknown]>,
 ) -> Result<(), ExportError> {
     if map.is_empty() {
         let what = match kind {
             Field::Height => "height",
-            Field::Confidence => "confidence",
+            Field::Confidence | Field::Reasons => "confidence",
         };
         return Err(ExportError::Invalid {
             path: target.path(),
@@ -168,7 +220,8 @@ fn write_field(
         });
     }
     target.write(|w| {
-        encode_field(&mut *w, map, pixel_size_um, kind, datum).map_err(std::io::Error::other)
+        encode_field(&mut *w, map, pixel_size_um, kind, datum, reasons)
+            .map_err(std::io::Error::other)
     })
 }
 
@@ -217,6 +270,39 @@ pub fn read_height_tiff(path: &Path) -> Result<HeightTiff, ExportError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The first page stays what readers of the confidence knew; the second says why a
+    /// height is unknown, its codes named in the description.
+    #[test]
+    fn confidence_carries_the_reasons_on_a_second_page() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("confidence.tif");
+        let conf = Image::from_vec(3, 2, vec![0.5, f32::NAN, 0.0, 1.0, f32::NAN, 0.25]).unwrap();
+        let reasons = [
+            Unknown::Measured,
+            Unknown::NoTexture,
+            Unknown::Interpolated,
+            Unknown::Measured,
+            Unknown::Ambiguous,
+            Unknown::Measured,
+        ];
+        write_confidence_tiff(&path, &conf, Some(0.1), Some(&reasons)).unwrap();
+        let back = read_height_tiff(&path).unwrap();
+        assert!(back.height_um.get(1, 0).is_nan() && back.height_um.get(0, 0) == 0.5);
+        let mut decoder = Decoder::new(std::fs::File::open(&path).unwrap()).unwrap();
+        assert!(decoder.more_images());
+        decoder.next_image().unwrap();
+        let description: serde_json::Value =
+            serde_json::from_str(&decoder.get_tag_ascii_string(Tag::ImageDescription).unwrap())
+                .unwrap();
+        assert_eq!(description["sdsem"], "unknown-reason");
+        assert_eq!(description["codes"]["4"], "no-texture");
+        let DecodingResult::U8(codes) = decoder.read_image().unwrap() else {
+            panic!("8-bit reasons expected");
+        };
+        assert_eq!(codes, [0, 4, 1, 0, 5, 0]);
+        assert!(write_confidence_tiff(&path, &conf, None, Some(&reasons[..2])).is_err());
+    }
 
     #[test]
     fn height_round_trips_with_nan_and_pixel_size() {

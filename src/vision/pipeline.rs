@@ -20,7 +20,7 @@ use super::Image;
 use super::datum::{Datum, apply_datum};
 use super::dense::tile::{Rect, fits_budget};
 use super::dense::{
-    CanvasDisparity, DenseError, DenseParams, DenseStats, dense_disparity_in_range,
+    CanvasDisparity, DenseError, DenseParams, DenseStats, Unknown, dense_disparity_in_range,
     dense_disparity_tiled,
 };
 use super::depth::{DepthError, StereoGeometry, height_on_left_grid};
@@ -148,6 +148,9 @@ pub struct Reconstruction {
     /// was interpolated between measured neighbours (`fill_max_gap`), `NaN`
     /// where the height is unknown.
     pub confidence: Image,
+    /// Per pixel of the left grid, why its height is unknown or interpolated
+    /// ([`Unknown::Measured`] where measured): `confidence.tif`'s second page.
+    pub unknown: Vec<Unknown>,
     pub report: ReconReport,
 }
 
@@ -236,6 +239,7 @@ pub fn reconstruct_observed(
     let mut height_um = height_on_left_grid(&disp.disparity, &r.h_left, &r.h_right, &stereo, w, h)?;
     let datum = apply_datum(&mut height_um, params.datum, geometry.pixel_size_um);
     let confidence = left_grid_confidence(&disp.confidence, &disp.filled, &height_um, &r.h_left);
+    let unknown = left_grid_unknown(&disp.unknown, canvas, &height_um, &confidence, &r.h_left);
     let depth = depth_report(&height_um, &stereo);
     if depth.valid_fraction == 0.0 {
         return Err(ReconstructError::NoOverlap);
@@ -303,6 +307,7 @@ pub fn reconstruct_observed(
     Ok(Reconstruction {
         height_um,
         confidence,
+        unknown,
         report,
     })
 }
@@ -339,6 +344,52 @@ fn left_grid_confidence(
         }
     }
     confidence
+}
+
+/// Why each height of the left grid is unknown or interpolated: interpolated where its
+/// confidence is 0, else the reason of the canvas pixels it is resampled from (the first of
+/// the four around it that has one); [`Unknown::NotSeen`] off the canvas.
+fn left_grid_unknown(
+    canvas_unknown: &[Unknown],
+    (cw, ch): (usize, usize),
+    height_um: &Image,
+    confidence: &Image,
+    h_left: &Matrix3<f64>,
+) -> Vec<Unknown> {
+    let (w, h) = height_um.dimensions();
+    (0..w * h)
+        .into_par_iter()
+        .map(|p| {
+            if height_um.data()[p].is_finite() {
+                return if confidence.data()[p] == 0.0 {
+                    Unknown::Interpolated
+                } else {
+                    Unknown::Measured
+                };
+            }
+            let q = h_left * Vector3::new((p % w) as f64, (p / w) as f64, 1.0);
+            if q.z.abs() <= 1e-12 {
+                return Unknown::NotSeen;
+            }
+            let (x, y) = (q.x / q.z, q.y / q.z);
+            let inside = |c: f64, n: usize| c >= 0.0 && c <= (n - 1) as f64;
+            if !(inside(x, cw) && inside(y, ch)) {
+                return Unknown::NotSeen;
+            }
+            #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
+            let corners = [
+                (x.floor() as usize, y.floor() as usize),
+                (x.ceil() as usize, y.floor() as usize),
+                (x.floor() as usize, y.ceil() as usize),
+                (x.ceil() as usize, y.ceil() as usize),
+            ];
+            corners
+                .iter()
+                .map(|&(cx, cy)| canvas_unknown[cy * cw + cx])
+                .find(|u| !matches!(u, Unknown::Measured | Unknown::Interpolated))
+                .unwrap_or(Unknown::NotSeen)
+        })
+        .collect()
 }
 
 /// The Gaussian window (σ, pixels) whose precision bounds the disparity:

@@ -48,6 +48,7 @@ pub(crate) fn build(kind: SceneKind, seed: u64, field_um: f64) -> (Box<dyn Surfa
                 boundary_contrast: 0.25,
                 speck_cell_um: 2.0,
                 speck_brightness: 0.8,
+                plain_below_yield: 0.0,
             },
         ),
         SceneKind::Grid => (
@@ -60,6 +61,7 @@ pub(crate) fn build(kind: SceneKind, seed: u64, field_um: f64) -> (Box<dyn Surfa
                 boundary_contrast: 0.25,
                 speck_cell_um: 2.5,
                 speck_brightness: 0.7,
+                plain_below_yield: 0.0,
             },
         ),
         SceneKind::Rough => (
@@ -72,6 +74,7 @@ pub(crate) fn build(kind: SceneKind, seed: u64, field_um: f64) -> (Box<dyn Surfa
                 boundary_contrast: 0.2,
                 speck_cell_um: 3.0,
                 speck_brightness: 0.6,
+                plain_below_yield: 0.0,
             },
         ),
         SceneKind::Dome => (
@@ -84,6 +87,40 @@ pub(crate) fn build(kind: SceneKind, seed: u64, field_um: f64) -> (Box<dyn Surfa
                 boundary_contrast: 0.25,
                 speck_cell_um: 2.0,
                 speck_brightness: 0.8,
+                plain_below_yield: 0.0,
+            },
+        ),
+        SceneKind::Bare => (
+            Box::new(Particles::on_flat_support(seed, field_um)),
+            Texture {
+                plain_below_yield: 0.4,
+                ..build(SceneKind::Particles, seed, field_um).1
+            },
+        ),
+        SceneKind::Calgrid => (
+            Box::new(CalGrid::new(seed)),
+            Texture {
+                mottle: 0.05,
+                mottle_lambda_um: 2.0,
+                grain_um: 3.0,
+                grain_contrast: 0.04,
+                boundary_contrast: 0.05,
+                speck_cell_um: 4.0,
+                speck_brightness: 0.1,
+                plain_below_yield: 0.4,
+            },
+        ),
+        SceneKind::Metal => (
+            Box::new(Rough::new(seed, field_um)),
+            Texture {
+                mottle: 0.04,
+                mottle_lambda_um: 2.0,
+                grain_um: 1.5,
+                grain_contrast: 0.03,
+                boundary_contrast: 0.04,
+                speck_cell_um: 3.0,
+                speck_brightness: 0.1,
+                plain_below_yield: 0.0,
             },
         ),
     }
@@ -134,6 +171,8 @@ impl Particle {
 /// Grains and particles of three size classes on a substrate.
 struct Particles {
     seed: u64,
+    /// Relief of the support, µm (0: flat).
+    support_um: f64,
     particles: Vec<Particle>,
     /// Bucket grid over the field: indices of the particles touching each bucket.
     buckets: Vec<Vec<u32>>,
@@ -195,6 +234,7 @@ impl Particles {
         }
         Self {
             seed,
+            support_um: 0.4,
             particles,
             buckets,
             bucket_um,
@@ -205,6 +245,14 @@ impl Particles {
 }
 
 impl Particles {
+    /// The same particles on a flat support (z = 0).
+    fn on_flat_support(seed: u64, field_um: f64) -> Self {
+        Self {
+            support_um: 0.0,
+            ..Self::new(seed, field_um)
+        }
+    }
+
     /// The tallest particle over `(s, r)`: its height above the substrate and its yield.
     fn bump(&self, s: f64, r: f64) -> Option<(f64, f64)> {
         let bi = (s + self.half) / self.bucket_um;
@@ -231,7 +279,7 @@ impl Particles {
 
 impl SurfaceModel for Particles {
     fn sample(&self, s: f64, r: f64) -> (f64, f64) {
-        let base = substrate(self.seed, s, r, 0.4);
+        let base = substrate(self.seed, s, r, self.support_um);
         match self.bump(s, r) {
             Some((h, y)) if h > 0.0 => (base + h, y),
             _ => (base, SUBSTRATE_YIELD),
@@ -292,6 +340,57 @@ impl SurfaceModel for Grid {
         let rise = (d / self.round_um).min(1.0).sqrt();
         let polish = 0.06 * fbm(substream(self.seed, 902), s, r, 6.0, 4, 0.5, 0.0);
         (floor.max(self.thickness * rise + polish * rise), 0.72)
+    }
+}
+
+// ---------------------------------------------------------------- calibration grid
+
+/// A calibration grid: a square mesh of thin bars, about 2 µm high with steep walls, on a
+/// flat, dark floor of low yield.
+struct CalGrid {
+    pitch: f64,
+    half_bar: f64,
+    height: f64,
+    round_um: f64,
+    cos: f64,
+    sin: f64,
+    offset: (f64, f64),
+}
+
+impl CalGrid {
+    fn new(seed: u64) -> Self {
+        let mut draw = Draw::new(seed, 5);
+        let angle = draw.range(5.0, 20.0).to_radians();
+        let pitch = draw.range(18.0, 22.0);
+        Self {
+            pitch,
+            half_bar: draw.range(0.9, 1.2),
+            height: draw.range(1.8, 2.4),
+            round_um: 0.3,
+            cos: angle.cos(),
+            sin: angle.sin(),
+            offset: (draw.range(0.0, pitch), draw.range(0.0, pitch)),
+        }
+    }
+
+    fn depth_into_bar(&self, x: f64) -> f64 {
+        let m = x.rem_euclid(self.pitch);
+        self.half_bar - m.min(self.pitch - m)
+    }
+}
+
+/// Yield of the calibration grid's floor: darker than the usual substrate.
+const DARK_FLOOR_YIELD: f64 = 0.18;
+
+impl SurfaceModel for CalGrid {
+    fn sample(&self, s: f64, r: f64) -> (f64, f64) {
+        let u = s * self.cos + r * self.sin + self.offset.0;
+        let v = -s * self.sin + r * self.cos + self.offset.1;
+        let d = self.depth_into_bar(u).max(self.depth_into_bar(v));
+        if d <= 0.0 {
+            return (0.0, DARK_FLOOR_YIELD);
+        }
+        (self.height * (d / self.round_um).min(1.0).sqrt(), 0.62)
     }
 }
 
@@ -457,6 +556,9 @@ impl SurfaceModel for Dome {
 /// materials (`yld` above ~0.45), not on the low-yield substrate.
 pub(crate) fn albedo(tex: &Texture, seed: u64, s: f64, r: f64, footprint: f64, yld: f64) -> f64 {
     use super::noise::{cellular, lod_weight};
+    if yld < tex.plain_below_yield {
+        return 1.0;
+    }
     // Non-metallic materials (substrate, carbon) look grainy: stronger mottling.
     let metal = ((yld - 0.4) / 0.15).clamp(0.0, 1.0);
     let mottle = tex.mottle
@@ -535,6 +637,33 @@ mod tests {
             hi = hi.max(z);
         }
         assert!(hi - lo > 13.0 && hi - lo < 20.0, "relief {lo}..{hi}");
+    }
+
+    #[test]
+    fn featureless_supports_are_flat_and_plain() {
+        for kind in [SceneKind::Bare, SceneKind::Calgrid] {
+            let (model, tex) = build(kind, 3, 200.0);
+            let (mut floor, mut raised) = (0, 0);
+            for k in 0..4000 {
+                let (s, r) = (
+                    f64::from(k % 80) * 1.3 - 50.0,
+                    f64::from(k / 80) * 1.7 - 40.0,
+                );
+                let (z, y) = model.sample(s, r);
+                if y < tex.plain_below_yield {
+                    floor += 1;
+                    assert_eq!(z, 0.0, "{kind}: the support is flat");
+                    assert_eq!(albedo(&tex, 3, s, r, 0.1, y), 1.0, "{kind}: and plain");
+                } else {
+                    raised += 1;
+                    assert!(z > 0.0, "{kind}");
+                }
+            }
+            assert!(
+                floor > 1000 && raised > 40,
+                "{kind}: {floor} floor, {raised} raised"
+            );
+        }
     }
 
     #[test]

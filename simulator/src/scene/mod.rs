@@ -38,11 +38,20 @@ pub enum SceneKind {
     Rough,
     /// A dome ~30 µm high with a dent in its flank, dusted with small particles.
     Dome,
+    /// The particles of `Particles` on a flat, untextured support: only scan noise there.
+    Bare,
+    /// A calibration grid: thin raised bars (~2 µm high) in squares on a dark, flat, untextured floor.
+    Calgrid,
+    /// A rough metal surface of low contrast: `Rough`'s relief with a faint material texture.
+    Metal,
 }
 
 impl SceneKind {
-    /// Every kind, in command-line spelling order.
+    /// The standard specimens, in command-line spelling order.
     pub const ALL: [Self; 4] = [Self::Particles, Self::Grid, Self::Rough, Self::Dome];
+    /// The specimens that show a reconstruction's failure modes: featureless support,
+    /// repetitive structure, low contrast.
+    pub const HARD: [Self; 3] = [Self::Bare, Self::Calgrid, Self::Metal];
 
     /// The command-line / configuration name.
     #[must_use]
@@ -52,6 +61,9 @@ impl SceneKind {
             Self::Grid => "grid",
             Self::Rough => "rough",
             Self::Dome => "dome",
+            Self::Bare => "bare",
+            Self::Calgrid => "calgrid",
+            Self::Metal => "metal",
         }
     }
 }
@@ -62,9 +74,11 @@ impl fmt::Display for SceneKind {
     }
 }
 
-/// A scene name that is not one of [`SceneKind::ALL`].
+/// A scene name that is not one of [`SceneKind::ALL`] or [`SceneKind::HARD`].
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
-#[error("unknown scene kind {0:?}: expected one of particles, grid, rough, dome")]
+#[error(
+    "unknown scene kind {0:?}: expected one of particles, grid, rough, dome, bare, calgrid, metal"
+)]
 pub struct UnknownSceneKind(pub String);
 
 impl FromStr for SceneKind {
@@ -73,6 +87,7 @@ impl FromStr for SceneKind {
     fn from_str(s: &str) -> Result<Self, Self::Err> {
         Self::ALL
             .into_iter()
+            .chain(Self::HARD)
             .find(|k| k.name().eq_ignore_ascii_case(s.trim()))
             .ok_or_else(|| UnknownSceneKind(s.to_owned()))
     }
@@ -144,6 +159,8 @@ pub(crate) struct Texture {
     pub speck_cell_um: f64,
     /// Peak brightness of a speck.
     pub speck_brightness: f64,
+    /// Materials of a yield below this have no texture at all (a featureless support).
+    pub plain_below_yield: f64,
 }
 
 /// Heights averaged over a neighbourhood, on a coarser grid: the local mean
@@ -569,7 +586,7 @@ mod tests {
 
     #[test]
     fn kind_names_round_trip() {
-        for k in SceneKind::ALL {
+        for k in SceneKind::ALL.into_iter().chain(SceneKind::HARD) {
             assert_eq!(k.to_string().parse::<SceneKind>().unwrap(), k);
         }
         assert!("Grid".parse::<SceneKind>().is_ok());

@@ -7,7 +7,9 @@
 //! 3. `reassign_beside_discontinuities` ([`reassign`]);
 //! 4. `left_right_check_at_matcher_level` ([`consistency`]);
 //! 5. `refine_to_full_resolution`: Lucas–Kanade on the intensities ([`refine`]);
-//! 6. `left_right_consistency` of the refined fields and the per-pixel confidence;
+//! 6. `left_right_consistency` of the refined fields, the support test ([`support`]: texture
+//!    along the parallax against the noise floor, distinctiveness of the match) and the
+//!    per-pixel confidence, with the reason of every unknown pixel;
 //! 7. `bilateral_filtering` ([`fill`], then the bilateral grid).
 //!
 //! Which of them act is the parameters' choice ([`DenseParams`]); the paper preset runs 2 at
@@ -21,10 +23,12 @@ mod params;
 pub mod reassign;
 pub mod refine;
 pub mod sift_flow;
+pub mod support;
 pub mod tile;
 
 pub use self::error::DenseError;
 pub use self::params::DenseParams;
+pub use self::support::{SupportParams, Unknown};
 pub use self::tile::{CanvasDisparity, dense_disparity_tiled};
 
 use std::time::Instant;
@@ -71,6 +75,11 @@ pub struct DenseStats {
     pub filled_fraction: f64,
     /// Fraction of valid left pixels rejected by the left–right check.
     pub rejected_fraction: f64,
+    /// Fraction of valid left pixels left unknown by the support test: no texture along the
+    /// parallax above the noise floor ([`Unknown::NoTexture`]).
+    pub no_texture_fraction: f64,
+    /// The same for a matching cost without a unique minimum ([`Unknown::Ambiguous`]).
+    pub ambiguous_fraction: f64,
     /// Of those, the fraction the check of the SIFT-flow fields rejected
     /// (improved mode; the rest failed on the refined fields only).
     pub rejected_by_matching_fraction: f64,
@@ -112,6 +121,8 @@ pub struct Disparity {
     pub occluded: Vec<bool>,
     /// Pixels whose disparity was interpolated, not measured (`fill_max_gap`).
     pub filled: Vec<bool>,
+    /// Per pixel, why its disparity is unknown or interpolated ([`Unknown::Measured`] where measured).
+    pub unknown: Vec<Unknown>,
     pub stats: DenseStats,
 }
 
@@ -209,6 +220,14 @@ pub fn dense_disparity_in_range(
         bilateral_filtering(&consistent.raw, &consistent.confidence, &inputs.va, &params);
     let filter_ms = ms(tf);
 
+    let mut unknown = consistent.unknown;
+    for (u, _) in unknown
+        .iter_mut()
+        .zip(&filtered.filled)
+        .filter(|(_, f)| **f)
+    {
+        *u = Unknown::Interpolated;
+    }
     let Inputs { va, n_valid, .. } = inputs;
     let fraction = |marks: &[bool]| {
         va.iter().zip(marks).filter(|(v, m)| **v && **m).count() as f64 / n_valid as f64
@@ -226,6 +245,8 @@ pub fn dense_disparity_in_range(
         coverage: filtered.known as f64 / n_valid as f64,
         filled_fraction: filtered.filled.iter().filter(|&&f| f).count() as f64 / n_valid as f64,
         rejected_fraction: fraction(&consistent.rejected),
+        no_texture_fraction: count_valid(&va, &unknown, Unknown::NoTexture) / n_valid as f64,
+        ambiguous_fraction: count_valid(&va, &unknown, Unknown::Ambiguous) / n_valid as f64,
         rejected_by_matching_fraction: consistent
             .rejected_by_matching
             .as_deref()
@@ -254,8 +275,18 @@ pub fn dense_disparity_in_range(
         confidence: consistent.confidence,
         occluded: consistent.rejected,
         filled: filtered.filled,
+        unknown,
         stats,
     })
+}
+
+/// Valid pixels whose reason is `which`.
+fn count_valid(valid: &[bool], unknown: &[Unknown], which: Unknown) -> f64 {
+    valid
+        .iter()
+        .zip(unknown)
+        .filter(|(v, u)| **v && **u == which)
+        .count() as f64
 }
 
 /// With `search_from_sparse`, the search centred on the disparity range of the sparse matches
@@ -537,11 +568,13 @@ struct Consistent {
     flow_stats: FlowStats,
     ncc: Vec<f32>,
     clamped: Vec<bool>,
+    /// Why each pixel without a disparity has none.
+    unknown: Vec<Unknown>,
 }
 
-/// The left–right consistency of the refined fields (together with the matcher-level check)
-/// and a confidence per pixel: the matcher's margin, the refinement's NCC (a tenth where it hit
-/// its step bound) and the agreement of both directions.
+/// The left–right consistency of the refined fields (together with the matcher-level check),
+/// the support test of what passed, and a confidence per pixel: the matcher's margin, the
+/// refinement's NCC (a tenth where it hit its step bound) and the agreement of both directions.
 fn left_right_consistency(
     inputs: &Inputs,
     (fwd, bwd): (RefinedFlow, Option<RefinedFlow>),
@@ -598,11 +631,13 @@ fn left_right_consistency(
     };
     let mut raw = u;
     let mut confidence = Image::zeros(w, h);
+    let mut unknown = vec![Unknown::Measured; w * h];
     raw.data_mut()
         .par_iter_mut()
         .zip(confidence.data_mut().par_iter_mut())
+        .zip(unknown.par_iter_mut())
         .enumerate()
-        .for_each(|(p, (d, c))| {
+        .for_each(|(p, ((d, c), why))| {
             let x = (p % w) as f32 + *d;
             let y = (p / w) as f32 + v.data()[p];
             let lands = x >= 0.0 && y >= 0.0 && x <= (w - 1) as f32 && y <= (h - 1) as f32 && {
@@ -611,12 +646,39 @@ fn left_right_consistency(
                 vb[q]
             };
             if !va[p] || rejected[p] || !lands {
+                *why = if va[p] && lands {
+                    Unknown::LeftRight
+                } else {
+                    Unknown::NotSeen
+                };
                 *d = f32::NAN;
                 *c = 0.0;
             } else {
                 *c = ambiguity[p] * agreement[p];
             }
         });
+    if params.support.enabled
+        && let Some(judged) = support::support_test(
+            (&inputs.a, &inputs.b),
+            (va, vb),
+            &raw,
+            &params.support,
+            crate::vision::pipeline::matcher_window_sigma(params) as f32,
+        )
+    {
+        raw.data_mut()
+            .par_iter_mut()
+            .zip(confidence.data_mut().par_iter_mut())
+            .zip(unknown.par_iter_mut())
+            .zip(judged)
+            .for_each(|(((d, c), why), j)| {
+                if j != Unknown::Measured && d.is_finite() {
+                    *d = f32::NAN;
+                    *c = 0.0;
+                    *why = j;
+                }
+            });
+    }
     Consistent {
         raw,
         vertical: v,
@@ -626,6 +688,7 @@ fn left_right_consistency(
         flow_stats,
         ncc,
         clamped,
+        unknown,
     }
 }
 

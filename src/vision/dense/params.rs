@@ -6,6 +6,7 @@ use serde::{Deserialize, Serialize};
 use super::DenseError;
 use super::reassign::ReassignParams;
 use super::sift_flow::FlowParams;
+use super::support::SupportParams;
 use crate::vision::Preset;
 use crate::vision::filter::bilateral_grid::BilateralParams;
 
@@ -37,6 +38,8 @@ pub struct DenseParams {
     pub reassign: ReassignParams,
     /// The bilateral grid filter of the disparity (Paris & Durand 2009).
     pub bilateral: BilateralParams,
+    /// Leave unknown what the micrographs cannot tell: texture, distinctiveness (opt-in, `enabled = true`).
+    pub support: SupportParams,
     /// Peak memory of the stage, MiB: a larger rectified canvas is matched in overlapping tiles; 0 = never tile.
     pub memory_budget_mib: usize,
 }
@@ -63,6 +66,7 @@ impl DenseParams {
             weighted_filter: true,
             reassign: ReassignParams::default(),
             bilateral: BilateralParams::default(),
+            support: SupportParams::default(),
             memory_budget_mib: 1024,
         };
         match preset {
@@ -77,6 +81,10 @@ impl DenseParams {
                 reassign: ReassignParams {
                     enabled: false,
                     ..ReassignParams::default()
+                },
+                support: SupportParams {
+                    enabled: false,
+                    ..SupportParams::default()
                 },
                 ..improved
             },
@@ -105,6 +113,9 @@ impl DenseParams {
             return bad("lr_tolerance_smooth", "must be non-negative");
         }
         if let Some(name) = self.reassign.invalid_field() {
+            return bad(name, "out of its range (see the parameter table)");
+        }
+        if let Some(name) = self.support.invalid_field() {
             return bad(name, "out of its range (see the parameter table)");
         }
         Ok(())

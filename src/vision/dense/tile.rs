@@ -222,6 +222,8 @@ pub struct CanvasDisparity {
     pub confidence: Image,
     /// Pixels whose disparity was interpolated, not measured (`fill_max_gap`).
     pub filled: Vec<bool>,
+    /// Per pixel, why its disparity is unknown or interpolated ([`Disparity::unknown`]).
+    pub unknown: Vec<super::Unknown>,
     pub stats: DenseStats,
 }
 
@@ -231,6 +233,7 @@ impl From<Disparity> for CanvasDisparity {
             disparity: d.disparity,
             confidence: d.confidence,
             filled: d.filled,
+            unknown: d.unknown,
             stats: d.stats,
         }
     }
@@ -299,6 +302,7 @@ pub fn dense_disparity_tiled(
     let mut confidence = Image::zeros(width, height);
     let mut weight_sum = vec![0u16; width * height];
     let mut filled = vec![false; width * height];
+    let mut unknown = vec![super::Unknown::NotSeen; width * height];
     let mut merged = StatsMerge::default();
     for tile in &plan.tiles {
         let p = tile.padded;
@@ -329,9 +333,10 @@ pub fn dense_disparity_tiled(
             .par_chunks_mut(width)
             .zip(confidence.data_mut()[p.y * width..(p.y + p.height) * width].par_chunks_mut(width))
             .zip(weight_sum[p.y * width..(p.y + p.height) * width].par_chunks_mut(width))
-            .zip(filled[p.y * width..(p.y + p.height) * width].par_chunks_mut(width));
+            .zip(filled[p.y * width..(p.y + p.height) * width].par_chunks_mut(width))
+            .zip(unknown[p.y * width..(p.y + p.height) * width].par_chunks_mut(width));
         rows.enumerate()
-            .for_each(|(ty, (((d_row, c_row), w_row), f_row))| {
+            .for_each(|(ty, ((((d_row, c_row), w_row), f_row), u_row))| {
                 if wy[ty] == 0 {
                     return;
                 }
@@ -354,6 +359,7 @@ pub fn dense_disparity_tiled(
                     c_row[x] += wf * d.confidence.data()[q];
                     if 2 * w >= WEIGHT_UNITS * WEIGHT_UNITS {
                         f_row[x] = d.filled[q];
+                        u_row[x] = d.unknown[q];
                     }
                 }
             });
@@ -376,6 +382,7 @@ pub fn dense_disparity_tiled(
         disparity,
         confidence,
         filled,
+        unknown,
         stats,
     })
 }
@@ -399,12 +406,12 @@ fn count_in(valid: &[bool], p: Rect, core: Rect) -> usize {
 struct StatsMerge {
     first: Option<(DenseStats, usize)>,
     weight: f64,
-    sums: [f64; 10],
+    sums: [f64; 12],
     timings: super::DenseTimings,
 }
 
 impl StatsMerge {
-    fn figures(s: &DenseStats) -> [f64; 10] {
+    fn figures(s: &DenseStats) -> [f64; 12] {
         [
             s.flow.v2_over_u2,
             s.flow.rms_v.powi(2),
@@ -416,6 +423,8 @@ impl StatsMerge {
             s.reassigned_fraction,
             s.refine_clamped_fraction,
             s.refine_mean_ncc,
+            s.no_texture_fraction,
+            s.ambiguous_fraction,
         ]
     }
 
@@ -452,6 +461,8 @@ impl StatsMerge {
         s.reassigned_fraction = m[7];
         s.refine_clamped_fraction = m[8];
         s.refine_mean_ncc = m[9];
+        s.no_texture_fraction = m[10];
+        s.ambiguous_fraction = m[11];
         s.timings = self.timings;
         s.tiles = tiles;
         Some(s)
