@@ -238,7 +238,8 @@ pub fn support_test(
         let x = q % w;
         (x > 0 && x + 1 < w && v[q - 1] && v[q] && v[q + 1]).then(|| 0.5 * (d[q + 1] - d[q - 1]))
     };
-    let (gab, (gaa, (gbb, gm))): (Vec<f32>, (Vec<f32>, (Vec<f32>, Vec<f32>))) = (0..w * h)
+    type Planes = (Vec<f32>, (Vec<f32>, (Vec<f32>, Vec<f32>)));
+    let (gab, (gaa, (gbb, gm))): Planes = (0..w * h)
         .into_par_iter()
         .map(|q| {
             let none = (0.0, (0.0, (0.0, 0.0)));
