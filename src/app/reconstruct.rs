@@ -185,6 +185,8 @@ pub fn run(
         ReconstructError::Sparse(e) => super::rectify::name_files(e, left, right, "sparse stage: "),
         e => e.into(),
     })?;
+    // The exports read the left micrograph alone.
+    drop(pair.right);
     let mut report = ReportFile {
         sdsem_version: env!("CARGO_PKG_VERSION"),
         left: left.to_owned(),

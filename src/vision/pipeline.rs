@@ -18,7 +18,7 @@ use serde::Serialize;
 
 use super::Image;
 use super::datum::{Datum, apply_datum};
-use super::dense::tile::{Rect, fits_budget};
+use super::dense::tile::{Coverage, Rect, fits_budget};
 use super::dense::{
     CanvasDisparity, DenseError, DenseParams, DenseStats, Unknown, dense_disparity_in_range,
     dense_disparity_tiled,
@@ -223,7 +223,8 @@ pub fn reconstruct_observed(
                 r.expect("H_right is invertible (checked above)"),
             )
         };
-        let disp = dense_disparity_tiled(canvas, source, &params.dense, range)?;
+        let coverage = left_coverage(left.dimensions(), &r.h_left, canvas);
+        let disp = dense_disparity_tiled(canvas, &coverage, source, &params.dense, range)?;
         (sparse, disp, sparse_ms, ms(t))
     };
 
@@ -240,6 +241,9 @@ pub fn reconstruct_observed(
     let datum = apply_datum(&mut height_um, params.datum, geometry.pixel_size_um);
     let confidence = left_grid_confidence(&disp.confidence, &disp.filled, &height_um, &r.h_left);
     let unknown = left_grid_unknown(&disp.unknown, canvas, &height_um, &confidence, &r.h_left);
+    // The canvas maps (up to twice the micrograph's pixels) go before the precision's planes.
+    let dense_stats = disp.stats;
+    drop((disp.disparity, disp.confidence, disp.filled, disp.unknown));
     let depth = depth_report(&height_um, &stereo);
     if depth.valid_fraction == 0.0 {
         return Err(ReconstructError::NoOverlap);
@@ -268,7 +272,7 @@ pub fn reconstruct_observed(
             let (l, r) = (map(&r.h_left, c.left), map(&r.h_right, c.right));
             (r.0 - l.0, r.1 - l.1)
         })),
-        v2_over_u2_dense: disp.stats.flow.v2_over_u2,
+        v2_over_u2_dense: dense_stats.flow.v2_over_u2,
         rmse_before_px: r.initial_error_px,
         rmse_after_px: r.final_error_px,
     };
@@ -292,7 +296,7 @@ pub fn reconstruct_observed(
             canvas: r.canvas,
             timings: s.timings,
         },
-        dense: disp.stats,
+        dense: dense_stats,
         rectification,
         depth,
         datum,
@@ -312,6 +316,25 @@ pub fn reconstruct_observed(
     })
 }
 
+/// Where the left micrograph (`width × height`) lies on the canvas: the quadrilateral its pixel
+/// centres' hull maps to by `h_left`, or the whole canvas when a corner does not map.
+fn left_coverage(
+    (w, h): (usize, usize),
+    h_left: &Matrix3<f64>,
+    canvas: (usize, usize),
+) -> Coverage {
+    let (xm, ym) = (w.saturating_sub(1) as f64, h.saturating_sub(1) as f64);
+    let corners = [(0.0, 0.0), (xm, 0.0), (xm, ym), (0.0, ym)].map(|(x, y)| {
+        let q = h_left * Vector3::new(x, y, 1.0);
+        if q.z > 1e-12 {
+            (q.x / q.z, q.y / q.z)
+        } else {
+            (f64::NAN, f64::NAN)
+        }
+    });
+    Coverage::of_quadrilateral(canvas, corners)
+}
+
 /// The lowest confidence a measured height reads, so that 0 marks the
 /// interpolated heights alone.
 const MIN_MEASURED_CONFIDENCE: f32 = 1e-6;
@@ -326,23 +349,52 @@ fn left_grid_confidence(
     h_left: &Matrix3<f64>,
 ) -> Image {
     let (w, h) = height_um.dimensions();
-    let mut confidence = resample_to_left_grid(canvas_confidence, h_left, w, h);
-    let filled = filled.contains(&true).then(|| {
-        let (cw, ch) = canvas_confidence.dimensions();
-        let mask = Image::from_fn(cw, ch, |x, y| f32::from(u8::from(filled[y * cw + x])));
-        resample_to_left_grid(&mask, h_left, w, h)
-    });
-    for (p, c) in confidence.data_mut().iter_mut().enumerate() {
-        if !height_um.data()[p].is_finite() {
-            *c = f32::NAN;
-        } else if filled.as_ref().is_some_and(|f| f.data()[p] >= 0.5) || !c.is_finite() {
-            *c = 0.0;
-        } else {
-            // A measured height whose match had no margin or correlation
-            // still is one: 0 stays reserved for interpolated heights.
-            *c = c.max(MIN_MEASURED_CONFIDENCE);
+    let (cw, ch) = canvas_confidence.dimensions();
+    let any_filled = filled.contains(&true);
+    // The filled mask as 0/1 samples, interpolated as `Image::sample_bilinear` would, without
+    // a canvas-sized copy of it.
+    let filled_at = |x: f64, y: f64| -> f32 {
+        if !(x >= 0.0 && y >= 0.0 && x <= (cw - 1) as f64 && y <= (ch - 1) as f64) {
+            return 0.0;
         }
-    }
+        #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
+        let (x0, y0) = (x.floor() as usize, y.floor() as usize);
+        let (x1, y1) = ((x0 + 1).min(cw - 1), (y0 + 1).min(ch - 1));
+        #[allow(clippy::cast_possible_truncation)]
+        let (fx, fy) = ((x - x0 as f64) as f32, (y - y0 as f64) as f32);
+        let at = |x: usize, y: usize| f32::from(u8::from(filled[y * cw + x]));
+        let top = at(x0, y0) * (1.0 - fx) + at(x1, y0) * fx;
+        let bottom = at(x0, y1) * (1.0 - fx) + at(x1, y1) * fx;
+        top * (1.0 - fy) + bottom * fy
+    };
+    let mut confidence = Image::zeros(w, h);
+    confidence
+        .data_mut()
+        .par_chunks_mut(w.max(1))
+        .zip(height_um.data().par_chunks(w.max(1)))
+        .enumerate()
+        .for_each(|(y, (row, height_row))| {
+            for (x, (c, hv)) in row.iter_mut().zip(height_row).enumerate() {
+                let p = h_left * Vector3::new(x as f64, y as f64, 1.0);
+                let (mut sampled, mut filled) = (0.0, 0.0);
+                if p.z.abs() > 1e-12 {
+                    let (px, py) = (p.x / p.z, p.y / p.z);
+                    sampled = canvas_confidence.sample_bilinear(px, py).unwrap_or(0.0);
+                    if any_filled {
+                        filled = filled_at(px, py);
+                    }
+                }
+                *c = if !hv.is_finite() {
+                    f32::NAN
+                } else if filled >= 0.5 || !sampled.is_finite() {
+                    0.0
+                } else {
+                    // A measured height whose match had no margin or correlation
+                    // still is one: 0 stays reserved for interpolated heights.
+                    sampled.max(MIN_MEASURED_CONFIDENCE)
+                };
+            }
+        });
     confidence
 }
 
@@ -452,24 +504,6 @@ fn rows(m: &Matrix3<f64>) -> [[f64; 3]; 3] {
         [m[(1, 0)], m[(1, 1)], m[(1, 2)]],
         [m[(2, 0)], m[(2, 1)], m[(2, 2)]],
     ]
-}
-
-/// Samples a rectified-canvas image at `H_left·(x, y)` for every pixel of the
-/// left micrograph (0 outside the canvas).
-fn resample_to_left_grid(rect: &Image, h_left: &Matrix3<f64>, w: usize, h: usize) -> Image {
-    let mut out = Image::zeros(w, h);
-    out.data_mut()
-        .par_chunks_mut(w.max(1))
-        .enumerate()
-        .for_each(|(y, row)| {
-            for (x, v) in row.iter_mut().enumerate() {
-                let p = h_left * Vector3::new(x as f64, y as f64, 1.0);
-                if p.z.abs() > 1e-12 {
-                    *v = rect.sample_bilinear(p.x / p.z, p.y / p.z).unwrap_or(0.0);
-                }
-            }
-        });
-    out
 }
 
 fn depth_report(height: &Image, g: &StereoGeometry) -> DepthReport {

@@ -24,7 +24,7 @@ use rayon::prelude::*;
 use serde::Serialize;
 
 use super::Image;
-use super::filter::blur::blur_plane;
+use super::filter::blur::blur_in_place;
 
 /// The sum of squares of Immerkær's kernel `[1 −2 1; −2 4 −2; 1 −2 1]`:
 /// its response to white noise of variance σ² has variance 36σ².
@@ -112,45 +112,55 @@ pub fn disparity_bound(
     let noise_var = 0.5 * (noise[0] * noise[0] + noise[1] * noise[1]);
     let grad_noise = (0.5 * noise_var) as f32;
     let (nx, ny) = (parallax[0] as f32, parallax[1] as f32);
-    let (g2, weight): (Vec<f32>, Vec<f32>) = (0..w * h)
+    let counted = |q: usize| {
+        let (x, y) = (q % w, q / w);
+        x > 0
+            && y > 0
+            && x + 1 < w
+            && y + 1 < h
+            && ok(q)
+            && ok(q - 1)
+            && ok(q + 1)
+            && ok(q - w)
+            && ok(q + w)
+    };
+    // The gradient energy and its weight as the two channels of one plane, blurred in place:
+    // the blur treats channels apart, so each is what it would be alone.
+    let mut planes: Vec<[f32; 2]> = (0..w * h)
         .into_par_iter()
         .map(|q| {
-            let (x, y) = (q % w, q / w);
-            if x == 0 || y == 0 || x + 1 == w || y + 1 == h {
-                return (0.0, 0.0);
-            }
-            if !(ok(q) && ok(q - 1) && ok(q + 1) && ok(q - w) && ok(q + w)) {
-                return (0.0, 0.0);
+            if !counted(q) {
+                return [0.0, 0.0];
             }
             let gx = 0.5 * (d[q + 1] - d[q - 1]);
             let gy = 0.5 * (d[q + w] - d[q - w]);
             let g = nx * gx + ny * gy;
-            ((g * g - grad_noise).max(0.0), 1.0)
-        })
-        .unzip();
-    let sigma = window_sigma as f32;
-    let (sg, sw) = rayon::join(
-        || blur_plane(&g2, w, h, sigma),
-        || blur_plane(&weight, w, h, sigma),
-    );
-    let n_eff = 4.0 * std::f64::consts::PI * window_sigma * window_sigma;
-    let mut bounds: Vec<f64> = (0..w * h)
-        .filter(|&q| weight[q] > 0.0 && sw[q] > 1e-3)
-        .map(|q| {
-            let mean = f64::from(sg[q] / sw[q]);
-            if mean > 0.0 {
-                (2.0 * noise_var / (n_eff * mean)).sqrt()
-            } else {
-                f64::INFINITY
-            }
+            [(g * g - grad_noise).max(0.0), 1.0]
         })
         .collect();
-    if bounds.is_empty() {
+    let mut scratch = vec![[0f32; 2]; w * h];
+    blur_in_place(&mut planes, &mut scratch, w, h, window_sigma as f32);
+    drop(scratch);
+    let n_eff = 4.0 * std::f64::consts::PI * window_sigma * window_sigma;
+    // The bound falls as the mean gradient energy rises (monotone also as rounded), so the
+    // median bound is the bound of the mirrored order statistic of the means.
+    let mut means: Vec<f32> = (0..w * h)
+        .filter(|&q| counted(q) && planes[q][1] > 1e-3)
+        .map(|q| planes[q][0] / planes[q][1])
+        .collect();
+    drop(planes);
+    if means.is_empty() {
         return None;
     }
-    let mid = bounds.len() / 2;
-    let (_, median, _) = bounds.select_nth_unstable_by(mid, f64::total_cmp);
-    median.is_finite().then_some(*median)
+    let mid = means.len() - 1 - means.len() / 2;
+    let (_, mean, _) = means.select_nth_unstable_by(mid, f32::total_cmp);
+    let mean = f64::from(*mean);
+    let median = if mean > 0.0 {
+        (2.0 * noise_var / (n_eff * mean)).sqrt()
+    } else {
+        f64::INFINITY
+    };
+    median.is_finite().then_some(median)
 }
 
 /// Standard deviation of the finite samples of `img`.

@@ -11,6 +11,10 @@
 //! descriptor's extent, a few top-level pixels of BP context, the refinement window, the
 //! re-assignment band and the bilateral filter's support; the seam is a linear cross-fade over the
 //! inner half of the overlap.
+//!
+//! A rotated or sheared rectification leaves up to half the canvas outside the left micrograph
+//! ([`Coverage`]): tiles are cut down to the columns it covers, with their overlap, and strips
+//! are made as tall as the budget then allows, so that time follows the micrograph's pixels.
 
 use rayon::prelude::*;
 
@@ -38,7 +42,8 @@ pub struct Rect {
 }
 
 /// One tile: the part of the canvas it answers for (`core`, the tiles' cores partition the
-/// canvas) and the part it is matched on (`padded`, the core and the overlap).
+/// canvas) and the part it is matched on (`padded`, the core and the overlap, cut to the
+/// columns the left micrograph covers: the core's pixels beyond them have no height).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Tile {
     pub core: Rect,
@@ -53,6 +58,77 @@ pub struct TilePlan {
     pub margin: (usize, usize),
     /// Width of the cross-fade centred on each inner core edge, columns and rows.
     pub blend: (usize, usize),
+}
+
+/// The canvas columns the left micrograph covers, row by row: `[start, end)` (empty when
+/// `start >= end`). Tiles need not be matched where the left micrograph has no pixel.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Coverage {
+    width: usize,
+    rows: Vec<(usize, usize)>,
+}
+
+impl Coverage {
+    /// Every pixel of a `width × height` canvas.
+    #[must_use]
+    pub fn full((width, height): (usize, usize)) -> Self {
+        Self {
+            width,
+            rows: vec![(0, width); height],
+        }
+    }
+
+    /// The pixels of a `width × height` canvas inside the convex quadrilateral `corners` (canvas
+    /// coordinates, in order around it), widened by a pixel each side for interpolation.
+    #[must_use]
+    pub fn of_quadrilateral((width, height): (usize, usize), corners: [(f64, f64); 4]) -> Self {
+        if corners
+            .iter()
+            .any(|(x, y)| !(x.is_finite() && y.is_finite()))
+        {
+            return Self::full((width, height));
+        }
+        let rows = (0..height)
+            .map(|y| {
+                let y = y as f64;
+                let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
+                for (i, &(x0, y0)) in corners.iter().enumerate() {
+                    let (x1, y1) = corners[(i + 1) % 4];
+                    if y < y0.min(y1) - 1e-6 || y > y0.max(y1) + 1e-6 {
+                        continue;
+                    }
+                    let x = if (y1 - y0).abs() < 1e-9 {
+                        [x0, x1]
+                    } else {
+                        let t = ((y - y0) / (y1 - y0)).clamp(0.0, 1.0);
+                        [x0 + t * (x1 - x0); 2]
+                    };
+                    lo = lo.min(x[0].min(x[1]));
+                    hi = hi.max(x[0].max(x[1]));
+                }
+                if lo > hi {
+                    return (0, 0);
+                }
+                // Clamped to the canvas before the casts.
+                #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
+                let start = (lo.floor() - 1.0).clamp(0.0, width as f64) as usize;
+                #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
+                let end = (hi.floor() + 2.0).clamp(0.0, width as f64) as usize;
+                (start, end.max(start))
+            })
+            .collect();
+        Self { width, rows }
+    }
+
+    /// The columns covered in any of the rows `[y0, y1)`, `None` when none is.
+    #[must_use]
+    pub fn columns(&self, y0: usize, y1: usize) -> Option<(usize, usize)> {
+        let (lo, hi) = self.rows[y0.min(self.rows.len())..y1.min(self.rows.len())]
+            .iter()
+            .filter(|(a, b)| a < b)
+            .fold((self.width, 0), |(lo, hi), &(a, b)| (lo.min(a), hi.max(b)));
+        (lo < hi).then_some((lo, hi))
+    }
 }
 
 /// The dense stage's estimate of its peak memory on a `width × height` canvas, bytes.
@@ -125,74 +201,103 @@ fn cuts(n: usize, parts: usize) -> Vec<usize> {
     (0..=parts).map(|i| i * n / parts).collect()
 }
 
+/// Grows `[lo, hi)` about its centre to at least `min` pixels within `[0, n)`.
+fn grow(mut lo: usize, mut hi: usize, min: usize, n: usize) -> (usize, usize) {
+    while hi - lo < min.min(n) {
+        lo = lo.saturating_sub(1);
+        hi = (hi + 1).min(n);
+    }
+    (lo, hi)
+}
+
 /// The tiles of a `width × height` canvas for `params` (already centred on the whole canvas's
 /// search, see [`dense_disparity_tiled`]): as few padded pixels as the budget allows, the
 /// cores at least as long as the overlap, every padded tile tall and wide enough for the
-/// pyramid. A budget too small for that is exceeded (and logged) rather than refused.
+/// pyramid and cut to the columns `coverage` has in its rows. Full-width strips when they fit
+/// the budget (each as tall as it allows), else a grid. A budget too small for the overlap and
+/// the pyramid is exceeded (and logged) rather than refused.
 #[must_use]
 pub fn plan(
     params: &DenseParams,
     (width, height): (usize, usize),
     top_shift: f32,
     range: Option<(f64, f64)>,
+    coverage: &Coverage,
 ) -> TilePlan {
     let (mx, my) = margins(params, top_shift, range);
     let min_side = super::sift_flow::min_side(params.flow.levels);
     let budget_px = (params.memory_budget_mib.saturating_mul(1 << 20)
         / estimated_bytes(params, (1, 1)).max(1))
     .max(1);
-    let padded = |core: usize, margin: usize, n: usize| (core + 2 * margin).min(n).max(min_side);
-    let mut best: Option<(usize, usize, usize)> = None;
-    for nx in 1..=width.div_ceil(mx.max(1)).max(1) {
-        let cw = width.div_ceil(nx);
-        if nx > 1 && cw < mx {
-            break;
+    // The padded rectangle of the core `[x0, x1) × [y0, y1)`: grown by the margins, cut to the
+    // covered columns of its rows with their margin, then to the pyramid's smallest side;
+    // `None` when it covers nothing.
+    let padded = |(x0, x1): (usize, usize), (y0, y1): (usize, usize)| -> Option<Rect> {
+        let (px0, px1) = grow(x0.saturating_sub(mx), (x1 + mx).min(width), min_side, width);
+        let (py0, py1) = grow(
+            y0.saturating_sub(my),
+            (y1 + my).min(height),
+            min_side,
+            height,
+        );
+        let (c0, c1) = coverage.columns(py0, py1)?;
+        if c1 <= px0 || c0 >= px1 {
+            return None;
         }
-        let pw = padded(cw, mx, width);
-        // The tallest core whose padded tile fits the budget, at least the overlap.
-        let ph_max = budget_px / pw.max(1);
-        let ch = ph_max.saturating_sub(2 * my).max(my).max(1).min(height);
-        let ny = height.div_ceil(ch);
-        let ch = height.div_ceil(ny);
-        let ph = padded(ch, my, height);
-        let cost = nx * ny * pw * ph;
-        let over = pw * ph > budget_px;
-        if best.is_none_or(|(c, _, _)| cost < c) && (!over || best.is_none()) {
-            best = Some((cost, nx, ny));
-        }
-    }
-    let (_, nx, ny) = best.unwrap_or((0, 1, 1));
-    let (xs, ys) = (cuts(width, nx), cuts(height, ny));
-    let span = |a: usize, b: usize, margin: usize, n: usize| {
-        // Grown by the margin, then to the pyramid's smallest side, within the canvas.
-        let (mut lo, mut hi) = (a.saturating_sub(margin), (b + margin).min(n));
-        while hi - lo < min_side.min(n) {
-            lo = lo.saturating_sub(1);
-            hi = (hi + 1).min(n);
-        }
-        (lo, hi - lo)
+        let lo = px0.max(c0.saturating_sub(mx));
+        let hi = px1.min(c1 + mx);
+        let (lo, hi) = grow(lo, hi, min_side, width);
+        Some(Rect {
+            x: lo,
+            y: py0,
+            width: hi - lo,
+            height: py1 - py0,
+        })
     };
-    let mut tiles = Vec::with_capacity(nx * ny);
-    for j in 0..ny {
-        for i in 0..nx {
-            let (px, pw) = span(xs[i], xs[i + 1], mx, width);
-            let (py, ph) = span(ys[j], ys[j + 1], my, height);
-            tiles.push(Tile {
-                core: Rect {
-                    x: xs[i],
-                    y: ys[j],
-                    width: xs[i + 1] - xs[i],
-                    height: ys[j + 1] - ys[j],
-                },
-                padded: Rect {
-                    x: px,
-                    y: py,
-                    width: pw,
-                    height: ph,
-                },
-            });
+    let area = |r: Option<Rect>| r.map_or(0, |r| r.width * r.height);
+    let tiles_of = |xs: &[usize], ys: &[usize]| -> Vec<Tile> {
+        let mut tiles = Vec::with_capacity((xs.len() - 1) * (ys.len() - 1));
+        for y in ys.windows(2) {
+            for x in xs.windows(2) {
+                if let Some(p) = padded((x[0], x[1]), (y[0], y[1])) {
+                    tiles.push(Tile {
+                        core: Rect {
+                            x: x[0],
+                            y: y[0],
+                            width: x[1] - x[0],
+                            height: y[1] - y[0],
+                        },
+                        padded: p,
+                    });
+                }
+            }
+        }
+        tiles
+    };
+    // Of the strips and the grids, the fewest padded pixels within the budget (or, when none
+    // fits, the fewest padded pixels).
+    let strip_cuts = strips(height, my, budget_px, |y0, y1| {
+        area(padded((0, width), (y0, y1)))
+    });
+    let candidates = strip_cuts
+        .map(|ys| (vec![0, width], ys))
+        .into_iter()
+        .chain(grids(width, height, (mx, my), min_side, budget_px));
+    let mut best: Option<(bool, usize, Vec<Tile>)> = None;
+    for (xs, ys) in candidates {
+        let tiles = tiles_of(&xs, &ys);
+        let fits = tiles
+            .iter()
+            .all(|t| t.padded.width * t.padded.height <= budget_px);
+        let cost: usize = tiles.iter().map(|t| t.padded.width * t.padded.height).sum();
+        if best
+            .as_ref()
+            .is_none_or(|(f, c, _)| (fits, std::cmp::Reverse(cost)) > (*f, std::cmp::Reverse(*c)))
+        {
+            best = Some((fits, cost, tiles));
         }
     }
+    let tiles = best.map(|(_, _, t)| t).unwrap_or_default();
     let largest = tiles
         .iter()
         .map(|t| t.padded.width * t.padded.height)
@@ -210,6 +315,70 @@ pub fn plan(
         margin: (mx, my),
         blend: (mx.max(2) / 2, my.max(2) / 2),
     }
+}
+
+/// Full-width strips, each core as tall as `area(y0, y1)` (padded pixels of the core rows
+/// `[y0, y1)`, growing with them) keeps within `budget_px`, none shorter than the overlap `my`:
+/// the row cuts, `None` when a strip of `my` rows already exceeds the budget.
+fn strips(
+    height: usize,
+    my: usize,
+    budget_px: usize,
+    area: impl Fn(usize, usize) -> usize,
+) -> Option<Vec<usize>> {
+    let mut cuts = vec![0];
+    let mut y = 0;
+    while y < height {
+        let shortest = my.max(1).min(height - y);
+        if area(y, y + shortest) > budget_px {
+            return None;
+        }
+        let (mut lo, mut hi) = (shortest, height - y);
+        while lo < hi {
+            let mid = (lo + hi).div_ceil(2);
+            if area(y, y + mid) <= budget_px {
+                lo = mid;
+            } else {
+                hi = mid - 1;
+            }
+        }
+        y += lo;
+        cuts.push(y);
+    }
+    // A last strip shorter than the overlap shares the rows of the one before.
+    let n = cuts.len();
+    if n > 2 && cuts[n - 1] - cuts[n - 2] < my {
+        let start = cuts[n - 3];
+        if height - start >= 2 * my {
+            cuts[n - 2] = start + (height - start) / 2;
+        } else {
+            cuts.remove(n - 2);
+        }
+    }
+    Some(cuts)
+}
+
+/// The column and row cuts of the grids of tiles over the whole canvas, one per number of
+/// columns: each with its rows as tall as the budget allows, the cores at least as long as the
+/// overlap.
+fn grids(
+    width: usize,
+    height: usize,
+    (mx, my): (usize, usize),
+    min_side: usize,
+    budget_px: usize,
+) -> impl Iterator<Item = (Vec<usize>, Vec<usize>)> {
+    let padded =
+        move |core: usize, margin: usize, n: usize| (core + 2 * margin).min(n).max(min_side);
+    (1..=width.div_ceil(mx.max(1)).max(1))
+        .take_while(move |&nx| nx == 1 || width.div_ceil(nx) >= mx)
+        .map(move |nx| {
+            let pw = padded(width.div_ceil(nx), mx, width);
+            // The tallest core whose padded tile fits the budget, at least the overlap.
+            let ph_max = budget_px / pw.max(1);
+            let ch = ph_max.saturating_sub(2 * my).max(my).max(1).min(height);
+            (cuts(width, nx), cuts(height, height.div_ceil(ch)))
+        })
 }
 
 /// The dense stage's result the reconstruction needs, on the canvas: what [`Disparity`] holds
@@ -259,13 +428,15 @@ fn axis_weight(x: usize, (c0, c1): (usize, usize), n: usize, blend: usize) -> u3
 
 /// The dense stage tile by tile on a `canvas`-sized rectified pair: `source` gives the left and
 /// right canvas samples of a rectangle (e.g. [`crate::vision::rectify::warp::warp_rect`]), so
-/// that the whole rectified pair is never held. A canvas within the budget is one tile, and
-/// then the result is [`dense_disparity_in_range`]'s.
+/// that the whole rectified pair is never held; `coverage` says where the left micrograph lies
+/// on the canvas (no height beyond it). A canvas within the budget is one tile, and then the
+/// result is [`dense_disparity_in_range`]'s.
 ///
 /// # Errors
 /// As [`dense_disparity_in_range`]; [`DenseError::NoValidPixels`] when no tile has a valid pixel.
 pub fn dense_disparity_tiled(
     canvas: (usize, usize),
+    coverage: &Coverage,
     source: impl Fn(Rect) -> (Warped, Warped),
     params: &DenseParams,
     range: Option<(f64, f64)>,
@@ -291,7 +462,7 @@ pub fn dense_disparity_tiled(
     // The whole canvas's pyramid depth and search centre, for every tile.
     let (centred, top_shift) = super::centre_search_on_sparse_range(params, range, canvas);
     centred.validate()?;
-    let plan = plan(&centred, canvas, top_shift, range);
+    let plan = plan(&centred, canvas, top_shift, range, coverage);
     tracing::info!(
         tiles = plan.tiles.len(),
         margin = ?plan.margin,
@@ -307,7 +478,7 @@ pub fn dense_disparity_tiled(
     for tile in &plan.tiles {
         let p = tile.padded;
         let (l, r) = source(p);
-        let n_valid_core = count_in(&l.valid, p, tile.core);
+        let n_valid_core = count_in(&l.valid, p, intersection(p, tile.core));
         let d = match dense_disparity_in_range(
             &l.image,
             &r.image,
@@ -387,7 +558,20 @@ pub fn dense_disparity_tiled(
     })
 }
 
-/// Valid pixels of the padded tile `p` (mask `valid`) inside `core`.
+/// The rectangle both `a` and `b` hold (empty: zero width or height).
+fn intersection(a: Rect, b: Rect) -> Rect {
+    let (x0, y0) = (a.x.max(b.x), a.y.max(b.y));
+    let x1 = (a.x + a.width).min(b.x + b.width).max(x0);
+    let y1 = (a.y + a.height).min(b.y + b.height).max(y0);
+    Rect {
+        x: x0,
+        y: y0,
+        width: x1 - x0,
+        height: y1 - y0,
+    }
+}
+
+/// Valid pixels of the padded tile `p` (mask `valid`) inside `core` (within `p`).
 fn count_in(valid: &[bool], p: Rect, core: Rect) -> usize {
     (core.y..core.y + core.height)
         .map(|y| {
@@ -482,44 +666,107 @@ mod tests {
         p
     }
 
-    /// The cores partition the canvas, every padded tile holds its core and suits the pyramid,
-    /// and the cross-fade weights of every pixel sum to the full weight.
+    /// The cores partition the canvas, every padded tile holds the covered part of its core and
+    /// suits the pyramid, and the cross-fade weights of every covered pixel sum to the full
+    /// weight; a canvas the left micrograph half covers is matched on no more pixels.
     #[test]
     fn tiles_partition_the_canvas_and_their_weights_sum_to_one() {
-        for (canvas, budget) in [((900, 700), 1), ((3000, 500), 2), ((640, 2000), 1)] {
-            let p = params(budget);
-            let plan = plan(&p, canvas, 3.0, Some((-4.0, 10.0)));
-            assert!(plan.tiles.len() > 1, "{canvas:?}");
+        let cases = [
+            ((900, 700), 1),
+            ((3000, 500), 2),
+            ((640, 2000), 1),
+            ((900, 700), 64),
+            ((640, 2000), 48),
+        ];
+        for (canvas, budget) in cases {
             let (w, h) = canvas;
-            let mut covered = vec![0u8; w * h];
-            let mut weight = vec![0u32; w * h];
-            for t in &plan.tiles {
-                let (c, pd) = (t.core, t.padded);
-                assert!(pd.x <= c.x && pd.y <= c.y);
-                assert!(pd.x + pd.width >= c.x + c.width && pd.y + pd.height >= c.y + c.height);
-                assert!(pd.x + pd.width <= w && pd.y + pd.height <= h);
-                assert!(super::super::sift_flow::check_size(pd.width, pd.height, 3).is_ok());
-                for y in c.y..c.y + c.height {
-                    for x in c.x..c.x + c.width {
-                        covered[y * w + x] += 1;
+            let (wf, hf) = (w as f64, h as f64);
+            let diamond = [
+                (wf / 2.0, 0.0),
+                (wf, hf / 2.0),
+                (wf / 2.0, hf),
+                (0.0, hf / 2.0),
+            ];
+            let mut padded_px = Vec::new();
+            for coverage in [
+                Coverage::full(canvas),
+                Coverage::of_quadrilateral(canvas, diamond),
+            ] {
+                let p = params(budget);
+                let plan = plan(&p, canvas, 3.0, Some((-4.0, 10.0)), &coverage);
+                assert!(plan.tiles.len() > 1, "{canvas:?}");
+                let mut covered = vec![0u8; w * h];
+                let mut weight = vec![0u32; w * h];
+                for t in &plan.tiles {
+                    let (c, pd) = (t.core, t.padded);
+                    assert!(pd.x + pd.width <= w && pd.y + pd.height <= h);
+                    assert!(super::super::sift_flow::check_size(pd.width, pd.height, 3).is_ok());
+                    for y in c.y..c.y + c.height {
+                        for x in c.x..c.x + c.width {
+                            covered[y * w + x] += 1;
+                        }
+                    }
+                    for y in pd.y..pd.y + pd.height {
+                        let wy = axis_weight(y, (c.y, c.y + c.height), h, plan.blend.1);
+                        for x in pd.x..pd.x + pd.width {
+                            let wx = axis_weight(x, (c.x, c.x + c.width), w, plan.blend.0);
+                            weight[y * w + x] += wx * wy;
+                        }
                     }
                 }
-                for y in pd.y..pd.y + pd.height {
-                    let wy = axis_weight(y, (c.y, c.y + c.height), h, plan.blend.1);
-                    for x in pd.x..pd.x + pd.width {
-                        let wx = axis_weight(x, (c.x, c.x + c.width), w, plan.blend.0);
-                        weight[y * w + x] += wx * wy;
+                let full = WEIGHT_UNITS * WEIGHT_UNITS;
+                for y in 0..h {
+                    let (a, b) = coverage.rows[y];
+                    for x in a..b {
+                        assert_eq!(covered[y * w + x], 1, "{canvas:?} ({x}, {y})");
+                        assert_eq!(weight[y * w + x], full, "{canvas:?} ({x}, {y})");
                     }
                 }
+                padded_px.push(
+                    plan.tiles
+                        .iter()
+                        .map(|t| t.padded.width * t.padded.height)
+                        .sum::<usize>(),
+                );
             }
-            assert!(covered.iter().all(|&c| c == 1), "{canvas:?}");
-            let full = WEIGHT_UNITS * WEIGHT_UNITS;
-            assert!(weight.iter().all(|&s| s == full), "{canvas:?}");
+            // The cut never matches more pixels than the whole canvas's tiles.
+            assert!(padded_px[1] <= padded_px[0], "{canvas:?}: {padded_px:?}");
         }
         // Within the budget: one piece, the untiled run.
         assert!(fits_budget(&params(1024), (1280, 960)));
         assert!(fits_budget(&params(0), (100_000, 100_000)));
         assert!(!fits_budget(&params(1), (1280, 960)));
+    }
+
+    /// A quadrilateral's coverage holds every pixel inside it and little outside.
+    #[test]
+    fn coverage_of_a_quadrilateral_holds_its_pixels() {
+        let (w, h) = (300, 200);
+        let quad = [(40.5, 10.0), (290.0, 60.0), (250.0, 190.0), (10.0, 150.0)];
+        let c = Coverage::of_quadrilateral((w, h), quad);
+        let inside = |x: f64, y: f64| {
+            (0..4).all(|i| {
+                let ((x0, y0), (x1, y1)) = (quad[i], quad[(i + 1) % 4]);
+                (x1 - x0) * (y - y0) - (y1 - y0) * (x - x0) >= 0.0
+            })
+        };
+        for y in 0..h {
+            let (a, b) = c.rows[y];
+            let xs: Vec<usize> = (0..w).filter(|&x| inside(x as f64, y as f64)).collect();
+            if let (Some(&first), Some(&last)) = (xs.first(), xs.last()) {
+                assert!(
+                    a <= first && last < b,
+                    "row {y}: {a}..{b} misses {first}..={last}"
+                );
+                assert!(
+                    first - a <= 2 && b - last <= 3,
+                    "row {y}: {a}..{b} for {first}..={last}"
+                );
+            }
+        }
+        assert_eq!(c.rows[0], (0, 0));
+        assert_eq!(c.columns(0, 5), None);
+        assert_eq!(Coverage::full((w, h)).columns(3, 9), Some((0, w)));
     }
 
     /// Forced into tiles by a tiny budget, a dome's disparity across the seams agrees with the
@@ -541,12 +788,13 @@ mod tests {
             (warped(&pair.left), warped(&pair.right))
         };
         let range = Some((3.0, 9.0));
-        let whole = dense_disparity_tiled((w, h), source, &params(1024), range).unwrap();
+        let all = Coverage::full((w, h));
+        let whole = dense_disparity_tiled((w, h), &all, source, &params(1024), range).unwrap();
         let tiled_params = params(1);
-        let tiled = dense_disparity_tiled((w, h), source, &tiled_params, range).unwrap();
+        let tiled = dense_disparity_tiled((w, h), &all, source, &tiled_params, range).unwrap();
         assert_eq!(whole.stats.tiles, 1);
         let (_, shift) = super::super::centre_search_on_sparse_range(&tiled_params, range, (w, h));
-        let plan = plan(&tiled_params, (w, h), shift, range);
+        let plan = plan(&tiled_params, (w, h), shift, range, &all);
         assert_eq!(tiled.stats.tiles, plan.tiles.len());
         assert!(plan.tiles.len() >= 3, "{} tiles", plan.tiles.len());
         // Pixels within the cross-fade of an inner seam, away from the canvas's own borders.
