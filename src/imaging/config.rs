@@ -51,10 +51,10 @@ impl ImagingProtocol {
 /// | key | default | effect |
 /// | --- | --- | --- |
 /// | `protocol` | `sdsem-link` | where frames come from: `sdsem-link` (TCP), `watch-folder` (TIFFs the SEM stores) or `sharksem` (TESCAN) |
-/// | `endpoint` | `127.0.0.1:7520` | host:port of the SEM imaging server (sdsem-sim's or a microscope adapter's); sharksem: `tcp://HOST:8300`, the control port |
+/// | `endpoint` | `127.0.0.1:7520` | host:port of the imaging server (sdsem-sim's); sharksem: `tcp://HOST:8300`, the control port |
 /// | `data_port` | none | sharksem: the data port; none = control port + 1 |
 /// | `detector` | `""` | sharksem: detector name (`SE`, case-insensitive) or id (`DtEnumDetectors`); empty = the first listed |
-/// | `pixel_size_um` | none | sharksem: the micrograph's pixel size, set as the view field = pixel size × micrograph width; none = keep the SEM's field and read it back |
+/// | `pixel_size_um` | none | sharksem: pixel size, set as view field = pixel size × width; none = keep the SEM's field, read back |
 /// | `micrograph` | 1280 × 960, 10 µs | the left and right micrographs (12.3 s per frame) |
 /// | `tracking` | 320 × 240, 1 µs | the quick frame after each tilt step (77 ms) |
 /// | `bits` | 16 | sample depth, 8 or 16 |
