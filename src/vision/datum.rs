@@ -10,8 +10,12 @@
 //! The support is found by RANSAC on a coarse grid of block medians: planes through three
 //! random cells, scored by the cells within a tolerance of the plane minus a penalty for
 //! the cells far below it (a plane with heights below it is not the lowest), then refined
-//! by least squares on its inliers. The tolerance follows the map's own noise (the second
-//! differences of the grid, robustly) and is at least 0.5 % of the relief.
+//! by least squares on its inliers. Every other sample is drawn from the lowest quarter of
+//! the cells, so a support seen only in a few separate patches (the corners beside a large
+//! specimen) is still sampled. A plane with more than [`MAX_BELOW`] of the cells far below
+//! it is no support: then the mean plane is used and the report says why. The tolerance
+//! follows the map's own noise (the second differences of the grid, robustly) and is at
+//! least 0.5 % of the relief.
 
 use rand::{Rng, SeedableRng};
 use serde::{Deserialize, Serialize};
@@ -97,6 +101,11 @@ const MIN_SUPPORT: f64 = 0.05;
 const BELOW_PENALTY: f64 = 4.0;
 /// RANSAC samples (deterministic: a fixed seed).
 const ITERATIONS: usize = 2000;
+/// Share of the cells from which every other sample is drawn: the lowest.
+const LOW_POOL: f64 = 0.25;
+/// Largest share of the cells more than 3 tolerances below an accepted support: a specimen
+/// rests on its support, so a plane with half the measured area far below it is not one.
+const MAX_BELOW: f64 = 0.5;
 
 /// Levels `height_um` (µm, NaN unknown; pixel size `pixel_size_um`) on the datum `kind`
 /// and says what was done.
@@ -327,14 +336,17 @@ fn support_plane(height: &Image) -> Result<Support, String> {
     let tolerance = (3.0 * noise).max(0.005 * relief).max(1e-6);
     let min_cells = ((MIN_SUPPORT * n as f64).ceil() as usize).max(10);
 
+    // Cell indices by height: the first `low` of them are the lowest quarter.
+    let mut by_height: Vec<usize> = (0..n).collect();
+    by_height.sort_by(|&a, &b| pts[a].z.total_cmp(&pts[b].z));
+    let low = ((LOW_POOL * n as f64).ceil() as usize).clamp(3, n);
+
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0x5EED_DA7A);
     let mut best: Option<([f64; 3], f64)> = None;
-    for _ in 0..ITERATIONS {
-        let (i, j, k) = (
-            rng.random_range(0..n),
-            rng.random_range(0..n),
-            rng.random_range(0..n),
-        );
+    for it in 0..ITERATIONS {
+        let pool = if it % 2 == 0 { low } else { n };
+        let mut draw = || by_height[rng.random_range(0..pool)];
+        let (i, j, k) = (draw(), draw(), draw());
         if i == j || j == k || i == k {
             continue;
         }
@@ -374,6 +386,18 @@ fn support_plane(height: &Image) -> Result<Support, String> {
             Some(p) => plane = p,
             None => break,
         }
+    }
+    let below = pts
+        .iter()
+        .filter(|c| residual(&plane, c) < -3.0 * tolerance)
+        .count();
+    if below as f64 > MAX_BELOW * n as f64 {
+        return Err(format!(
+            "no flat region lies below the rest: the lowest candidate leaves {:.0} % of the \
+             measured area more than {:.2} µm below it",
+            100.0 * below as f64 / n as f64,
+            3.0 * tolerance
+        ));
     }
     Ok(Support { plane, tolerance })
 }
@@ -447,6 +471,68 @@ mod tests {
             (map.get(120, 60) - 5.0).abs() < 1e-3,
             "{}",
             map.get(120, 60)
+        );
+    }
+
+    /// A cap filling most of the frame (as the simulator's dome does at 1280×960): the
+    /// support shows only in the four corners, ~10 % of the map in separate patches.
+    #[test]
+    fn a_support_seen_only_in_the_corners_is_found() {
+        let mut seed = 11u32;
+        let mut map = Image::from_fn(256, 192, |x, y| {
+            seed = seed.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+            let noise = (f64::from(seed >> 8) / f64::from(1u32 << 24) - 0.5) * 0.02;
+            let support = -18.0 + 0.004 * x as f64 - 0.003 * y as f64;
+            let r2 = (x as f64 - 128.0).powi(2) + (y as f64 - 96.0).powi(2);
+            let cap = 25.0 * (1.0 - r2 / (128.0 * 128.0));
+            (support + cap.max(0.0) + noise) as f32
+        });
+        let datum = apply_datum(&mut map, DatumKind::Support, 0.1);
+        assert_eq!(datum.kind, DatumKind::Support, "{datum:?}");
+        for (x, y) in [(2, 2), (253, 2), (2, 189), (253, 189)] {
+            assert!(
+                map.get(x, y).abs() < 0.05,
+                "corner ({x}, {y}): {}",
+                map.get(x, y)
+            );
+        }
+        assert!(
+            (map.get(128, 96) - 25.0).abs() < 0.05,
+            "top {}",
+            map.get(128, 96)
+        );
+        assert!(datum.below_fraction.unwrap() < 0.01, "{datum:?}");
+    }
+
+    /// Where the only flat region has most of the map far below it (a rough floor with no
+    /// flat part), it is not taken for the support: the mean plane is used, and why is said.
+    #[test]
+    fn a_plane_with_most_of_the_map_below_it_is_no_support() {
+        let mut map = Image::from_fn(160, 120, |x, y| {
+            if x < 56 {
+                return (2.0 + 0.002 * y as f64) as f32;
+            }
+            // 8-pixel blocks at pseudo-random depths 3–8 µm below: no plane holds 5 % of them.
+            let mut h =
+                (((x / 8) as u64) << 32 | (y / 8) as u64).wrapping_add(0x9E37_79B9_7F4A_7C15);
+            h = (h ^ (h >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+            h = (h ^ (h >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+            let r = ((h ^ (h >> 31)) >> 40) as f64 / f64::from(1u32 << 24);
+            (-1.0 - 5.0 * r) as f32
+        });
+        let datum = apply_datum(&mut map, DatumKind::Support, 0.1);
+        assert_eq!(
+            (datum.requested, datum.kind),
+            (DatumKind::Support, DatumKind::MeanPlane),
+            "{datum:?}"
+        );
+        assert!(
+            datum
+                .fallback
+                .as_deref()
+                .unwrap()
+                .contains("below the rest"),
+            "{datum:?}"
         );
     }
 
