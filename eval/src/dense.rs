@@ -72,6 +72,8 @@ pub struct SimFigures {
     pub rectifier: Rectifier,
     /// Which path rectified the pair (`sparse`, `instrument`; `truth` for the exact one).
     pub geometry_source: &'static str,
+    /// The dense stage's systematic vertical flow (the instrument's check of its rows).
+    pub dense_rows: Option<sdsem::vision::rectify::instrument::DenseRows>,
     /// Fraction of pixels visible in both micrographs that got a height.
     pub coverage: f64,
     /// True height range (1st to 99th percentile) over the visible pixels, µm.
@@ -465,9 +467,16 @@ pub fn evaluate_case(
         rect.range,
     )?;
     let dense_ms = t.elapsed().as_secs_f64() * 1e3;
-    if rect.source == "instrument" {
+    let dense_rows = sdsem::vision::rectify::instrument::dense_rows(
+        &disp.vertical,
+        &disp.disparity,
+        &disp.unknown,
+    );
+    if rect.source == "instrument"
+        && let Some(v) = &dense_rows
+    {
         sdsem::vision::rectify::instrument::verify_dense_rows(
-            disp.stats.flow.rms_v,
+            v,
             case.tilt_axis_deg,
             &sparse.instrument,
         )
@@ -624,6 +633,7 @@ pub fn evaluate_case(
         mode: preset,
         rectifier,
         geometry_source: rect.source,
+        dense_rows,
         coverage,
         height_range_um,
         rmse_um,
@@ -754,7 +764,7 @@ pub fn format_row(f: &SimFigures) -> String {
         }
     }
     format!(
-        "{:<8} {:<9} {:>4}x{:<4} θ {:>4.1}° φ {:>5.1}° | geometry: {} | cover {:>5.1} % unknown {:>4.1} %{} | range {:>6.2} µm RMSE {:>5.3} µm ({:>4.1} %, floor {}) | median {:.3} px >1px {:>4.1} % | scale {:.3} | canvas raw {:.3} filtered {:.3} (bias {:+.3}) v {:.3} px | rect {:>5.0} ms dense {:>5.0} ms | {}",
+        "{:<8} {:<9} {:>4}x{:<4} θ {:>4.1}° φ {:>5.1}° | geometry: {} (rows {}) | cover {:>5.1} % unknown {:>4.1} %{} | range {:>6.2} µm RMSE {:>5.3} µm ({:>4.1} %, floor {}) | median {:.3} px >1px {:>4.1} % | scale {:.3} | canvas raw {:.3} filtered {:.3} (bias {:+.3}) v {:.3} px | rect {:>5.0} ms dense {:>5.0} ms | {}",
         format!("{:?}", f.mode).to_lowercase(),
         f.case.kind.name(),
         f.case.width,
@@ -762,6 +772,10 @@ pub fn format_row(f: &SimFigures) -> String {
         f.case.tilt_deg,
         f.case.tilt_axis_deg,
         f.geometry_source,
+        f.dense_rows.map_or_else(
+            || "—".to_owned(),
+            |r| format!("{:.2} px, axis {:+.1}°", r.offset_px, r.axis_error_deg)
+        ),
         100.0 * f.coverage,
         100.0 * f.unknown,
         f.support.map_or_else(String::new, |s| format!(

@@ -194,7 +194,7 @@ fn datum_line(d: &crate::vision::datum::Datum) -> String {
 fn geometry_line(g: &crate::vision::pipeline::GeometryReport) -> String {
     match (&g.instrument, &g.sparse_refused) {
         (Some(f), why) => format!(
-            "geometry: instrument (tilt axis {:.1}°; sparse stage: {}): {} of {} tiles and {} of {} matches on the rows, rotation {:.2}°, scale {:.4}, rows ±{:.2} px, dense vertical flow {} px RMS",
+            "geometry: instrument (tilt axis {:.1}°; sparse stage: {}): {} of {} tiles and {} of {} matches on the rows, rotation {:.2}°, scale {:.4}, rows ±{:.2} px, dense stage's rows {}",
             g.pair.tilt_axis_deg,
             why.as_deref().unwrap_or("not used"),
             f.tiles_agreeing,
@@ -204,8 +204,10 @@ fn geometry_line(g: &crate::vision::pipeline::GeometryReport) -> String {
             f.rotation_deg,
             f.scale,
             f.row_residual_rms_px,
-            f.dense_vertical_rms_px
-                .map_or_else(|| "—".to_owned(), |v| format!("{v:.2}")),
+            f.dense_rows.map_or_else(
+                || "not checked (tiled)".to_owned(),
+                |r| format!("{:.2} px off, axis {:+.2}°", r.offset_px, r.axis_error_deg)
+            ),
         ),
         (None, _) => "geometry: sparse (epipolar geometry from the matches)".to_owned(),
     }

@@ -31,8 +31,8 @@ use super::params::ReconstructionParams;
 use super::precision::{self, Precision};
 use super::rectify::RectifyError;
 use super::rectify::instrument::{
-    InstrumentError, InstrumentFigures, InstrumentRectification, instrument_rectification,
-    median_row_offset, tile_measurements, verify_dense_rows,
+    InstrumentError, InstrumentFigures, InstrumentRectification, dense_rows,
+    instrument_rectification, median_row_offset, tile_measurements, verify_dense_rows,
 };
 use super::rectify::warp::{warp, warp_rect};
 use super::sparse::{
@@ -228,7 +228,7 @@ pub fn reconstruct_observed(
     let range = established.range;
     let canvas = established.canvas;
     let (h_left, h_right) = (established.h_left, established.h_right);
-    let (disp, sparse_ms, dense_ms) = if fits_budget(&params.dense, canvas) {
+    let (disp, row_offset, sparse_ms, dense_ms) = if fits_budget(&params.dense, canvas) {
         let (wl, wr) = rayon::join(
             || warp(left, &h_left, canvas.0, canvas.1),
             || warp(right, &h_right, canvas.0, canvas.1),
@@ -247,7 +247,13 @@ pub fn reconstruct_observed(
             &params.dense,
             range,
         )?;
-        (CanvasDisparity::from(disp), sparse_ms, ms(t))
+        let row_offset = match established.source {
+            Established::Instrument { .. } => {
+                dense_rows(&disp.vertical, &disp.disparity, &disp.unknown)
+            }
+            Established::Sparse(_) => None,
+        };
+        (CanvasDisparity::from(disp), row_offset, sparse_ms, ms(t))
     } else {
         // Each tile warps its own rectangle: the rectified pair is never whole in memory.
         let sparse_ms = ms(t);
@@ -269,7 +275,8 @@ pub fn reconstruct_observed(
         };
         let coverage = left_coverage(left.dimensions(), &h_left, canvas);
         let disp = dense_disparity_tiled(canvas, &coverage, source, &params.dense, range)?;
-        (disp, sparse_ms, ms(t))
+        // Tiles keep no vertical flow: the instrument's rows rest on the tiles' check alone.
+        (disp, None, sparse_ms, ms(t))
     };
     // The instrument's rows are verified by the dense stage: what vertical flow is left.
     let mut instrument_figures = None;
@@ -277,15 +284,16 @@ pub fn reconstruct_observed(
         rectification, why, ..
     } = &established.source
     {
-        let rms_v = disp.stats.flow.rms_v;
-        verify_dense_rows(rms_v, geometry.tilt_axis_deg, &params.sparse.instrument).map_err(
-            |instrument| ReconstructError::Unrectifiable {
-                sparse: why.clone(),
-                instrument,
-            },
-        )?;
+        if let Some(v) = &row_offset {
+            verify_dense_rows(v, geometry.tilt_axis_deg, &params.sparse.instrument).map_err(
+                |instrument| ReconstructError::Unrectifiable {
+                    sparse: why.clone(),
+                    instrument,
+                },
+            )?;
+        }
         instrument_figures = Some(InstrumentFigures {
-            dense_vertical_rms_px: Some(rms_v),
+            dense_rows: row_offset,
             ..rectification.figures
         });
     }
@@ -898,7 +906,11 @@ mod tests {
             "{geometry:?}"
         );
         let f = geometry.instrument.unwrap();
-        assert!(f.dense_vertical_rms_px.unwrap() < 1.0, "{f:?}");
+        let rows = f.dense_rows.unwrap();
+        assert!(
+            rows.offset_px < 0.3 && rows.axis_error_deg.abs() < 1.0,
+            "{f:?}"
+        );
         let at = |p: [f64; 2]| {
             f64::from(r.height_um.get(
                 (p[0].round() as usize).min(319),
