@@ -32,8 +32,9 @@ use sdsem::vision::Image;
 use sdsem::vision::Preset;
 use sdsem::vision::dense::{DenseParams, DenseStats, dense_disparity_in_range};
 use sdsem::vision::depth::{StereoGeometry, height_on_left_grid};
+use sdsem::vision::pipeline::{Established, rectify_for_dense};
 use sdsem::vision::rectify::warp::{Warped, warp};
-use sdsem::vision::sparse::{SparseParams, rectify_pair};
+use sdsem::vision::sparse::SparseParams;
 
 /// Where the rectification of a simulated pair comes from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
@@ -69,6 +70,10 @@ pub struct SimFigures {
     pub case: SimCase,
     pub mode: Preset,
     pub rectifier: Rectifier,
+    /// Which path rectified the pair (`sparse`, `instrument`; `truth` for the exact one).
+    pub geometry_source: &'static str,
+    /// The dense stage's systematic vertical flow (the instrument's check of its rows).
+    pub dense_rows: Option<sdsem::vision::rectify::instrument::DenseRows>,
     /// Fraction of pixels visible in both micrographs that got a height.
     pub coverage: f64,
     /// True height range (1st to 99th percentile) over the visible pixels, µm.
@@ -129,8 +134,10 @@ pub enum SimEvalError {
     Singular,
     #[error("scene: {0}")]
     Scene(sdsem_sim::scene::SceneError),
-    #[error("sparse stage: {0}")]
-    Sparse(sdsem::vision::sparse::SparseError),
+    #[error("{0}")]
+    Rectify(sdsem::vision::pipeline::ReconstructError),
+    #[error("instrument geometry not verified by the dense stage: {0}")]
+    Unverified(sdsem::vision::rectify::instrument::InstrumentError),
     #[error("dense stage: {0}")]
     Dense(sdsem::vision::dense::DenseError),
     #[error("depth: {0}")]
@@ -141,7 +148,7 @@ pub enum SimEvalError {
 
 sdsem::error_from!(SimEvalError {
     Scene(sdsem_sim::scene::SceneError),
-    Sparse(sdsem::vision::sparse::SparseError),
+    Rectify(sdsem::vision::pipeline::ReconstructError),
     Dense(sdsem::vision::dense::DenseError),
     Depth(sdsem::vision::depth::DepthError),
 });
@@ -230,6 +237,7 @@ struct Rectified {
     h_right: Matrix3<f64>,
     /// Disparity range of the sparse inliers on the canvas (sparse only).
     range: Option<(f64, f64)>,
+    source: &'static str,
 }
 
 /// The flow's errors on the canvas: every visible left pixel and its exact
@@ -412,16 +420,28 @@ pub fn evaluate_case(
     let t = Instant::now();
     let rect = match rectifier {
         Rectifier::Sparse => {
-            let r = rectify_pair(&left, &right, Some(case.tilt_axis_deg), sparse)?;
+            // The reconstruction's own choice: the sparse stage, or the instrument's geometry.
+            let g = rectify_for_dense(
+                &left,
+                &right,
+                &sdsem::vision::geometry::PairGeometry {
+                    tilt_deg: case.tilt_deg,
+                    pixel_size_um,
+                    tilt_axis_deg: case.tilt_axis_deg,
+                },
+                sparse,
+            )?;
+            let (cw, ch) = g.canvas;
             Rectified {
-                range: sdsem::vision::pipeline::inlier_disparity_range(
-                    &r.sparse.inliers,
-                    &r.sparse.rectification,
-                ),
-                h_left: r.sparse.rectification.h_left,
-                h_right: r.sparse.rectification.h_right,
-                left: r.left,
-                right: r.right,
+                left: warp(&left, &g.h_left, cw, ch).ok_or(SimEvalError::Singular)?,
+                right: warp(&right, &g.h_right, cw, ch).ok_or(SimEvalError::Singular)?,
+                h_left: g.h_left,
+                h_right: g.h_right,
+                range: g.range,
+                source: match g.source {
+                    Established::Sparse(_) => "sparse",
+                    Established::Instrument { .. } => "instrument",
+                },
             }
         }
         Rectifier::Truth => {
@@ -432,6 +452,7 @@ pub fn evaluate_case(
                 h_left: hm,
                 h_right: hm,
                 range: None,
+                source: "truth",
             }
         }
     };
@@ -446,6 +467,21 @@ pub fn evaluate_case(
         rect.range,
     )?;
     let dense_ms = t.elapsed().as_secs_f64() * 1e3;
+    let dense_rows = sdsem::vision::rectify::instrument::dense_rows(
+        &disp.vertical,
+        &disp.disparity,
+        &disp.unknown,
+    );
+    if rect.source == "instrument"
+        && let Some(v) = &dense_rows
+    {
+        sdsem::vision::rectify::instrument::verify_dense_rows(
+            v,
+            case.tilt_axis_deg,
+            &sparse.instrument,
+        )
+        .map_err(SimEvalError::Unverified)?;
+    }
     let geometry = StereoGeometry {
         tilt_deg: case.tilt_deg,
         pixel_size_um,
@@ -596,6 +632,8 @@ pub fn evaluate_case(
         case: *case,
         mode: preset,
         rectifier,
+        geometry_source: rect.source,
+        dense_rows,
         coverage,
         height_range_um,
         rmse_um,
@@ -726,13 +764,18 @@ pub fn format_row(f: &SimFigures) -> String {
         }
     }
     format!(
-        "{:<8} {:<9} {:>4}x{:<4} θ {:>4.1}° φ {:>5.1}° | cover {:>5.1} % unknown {:>4.1} %{} | range {:>6.2} µm RMSE {:>5.3} µm ({:>4.1} %, floor {}) | median {:.3} px >1px {:>4.1} % | scale {:.3} | canvas raw {:.3} filtered {:.3} (bias {:+.3}) v {:.3} px | rect {:>5.0} ms dense {:>5.0} ms | {}",
+        "{:<8} {:<9} {:>4}x{:<4} θ {:>4.1}° φ {:>5.1}° | geometry: {} (rows {}) | cover {:>5.1} % unknown {:>4.1} %{} | range {:>6.2} µm RMSE {:>5.3} µm ({:>4.1} %, floor {}) | median {:.3} px >1px {:>4.1} % | scale {:.3} | canvas raw {:.3} filtered {:.3} (bias {:+.3}) v {:.3} px | rect {:>5.0} ms dense {:>5.0} ms | {}",
         format!("{:?}", f.mode).to_lowercase(),
         f.case.kind.name(),
         f.case.width,
         f.case.height,
         f.case.tilt_deg,
         f.case.tilt_axis_deg,
+        f.geometry_source,
+        f.dense_rows.map_or_else(
+            || "—".to_owned(),
+            |r| format!("{:.2} px, axis {:+.1}°", r.offset_px, r.axis_error_deg)
+        ),
         100.0 * f.coverage,
         100.0 * f.unknown,
         f.support.map_or_else(String::new, |s| format!(
@@ -1003,11 +1046,12 @@ pub fn run(opts: &super::EvalOptions, args: &DenseEvalArgs) -> anyhow::Result<()
                     rows.push(f);
                 }
                 Err(e) => {
-                    let what = if matches!(e, SimEvalError::Sparse(_)) {
-                        "REFUSED by the sparse stage"
-                    } else {
-                        "FAILED"
-                    };
+                    let what =
+                        if matches!(e, SimEvalError::Rectify(_) | SimEvalError::Unverified(_)) {
+                            "REFUSED (no rectification)"
+                        } else {
+                            "FAILED"
+                        };
                     let line = format!(
                         "{:<8} {:<9} {:>4}x{:<4} θ {:>4.1}° φ {:>5.1}° | {what}: {e}",
                         format!("{mode:?}").to_lowercase(),
@@ -1022,7 +1066,7 @@ pub fn run(opts: &super::EvalOptions, args: &DenseEvalArgs) -> anyhow::Result<()
                     }
                     failures.push(serde_json::json!({
                         "case": case, "mode": mode, "error": e.to_string(),
-                        "refused_by_sparse_stage": matches!(e, SimEvalError::Sparse(_)),
+                        "refused_by_rectification": matches!(e, SimEvalError::Rectify(_) | SimEvalError::Unverified(_)),
                     }));
                 }
             }

@@ -183,6 +183,10 @@ pub fn run(
     .map_err(|e| match e {
         // The sparse stage's refusals concern one image or the pair: name them.
         ReconstructError::Sparse(e) => super::rectify::name_files(e, left, right, "sparse stage: "),
+        // Neither path rectified the pair: both images are concerned.
+        e @ ReconstructError::Unrectifiable { .. } => {
+            anyhow::anyhow!("{} and {}: {e}", left.display(), right.display())
+        }
         e => e.into(),
     })?;
     // The exports read the left micrograph alone.
@@ -299,7 +303,7 @@ pub fn write_outputs(
     progress: Observer<'_>,
 ) -> Result<(), OutputError> {
     progress(Stage::Export);
-    let p = recon.report.geometry.pixel_size_um;
+    let p = recon.report.geometry.pair.pixel_size_um;
     let gsf_title = format!("sdsem height, zero = {}", recon.report.datum.zero);
     let height = &recon.height_um;
 

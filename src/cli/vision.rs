@@ -106,13 +106,14 @@ fn summarise(report: &reconstruct::ReportFile, out: &Path) {
     let t = &r.timings;
     eprintln!(
         "θ = {:.3}°, pixel {:.4} µm, tilt axis {:.1}°: {} inliers, rectification error {:.2} px → {:.2} px",
-        r.geometry.tilt_deg,
-        r.geometry.pixel_size_um,
-        r.geometry.tilt_axis_deg,
+        r.geometry.pair.tilt_deg,
+        r.geometry.pair.pixel_size_um,
+        r.geometry.pair.tilt_axis_deg,
         r.sparse.inliers,
         r.sparse.initial_error_px,
         r.sparse.final_error_px
     );
+    eprintln!("{}", geometry_line(&r.geometry));
     // Interpolated heights are counted on the rectified canvas (report.json:
     // dense.filled_fraction); confidence.tif marks them on the left grid.
     let filled = if r.dense.filled_fraction > 0.0 {
@@ -189,6 +190,29 @@ fn datum_line(d: &crate::vision::datum::Datum) -> String {
 
 /// The predicted precision in one line, with advice when the noise floor
 /// is a noticeable share of the relief.
+/// Which path rectified the pair and, for the instrument's, how it was verified.
+fn geometry_line(g: &crate::vision::pipeline::GeometryReport) -> String {
+    match (&g.instrument, &g.sparse_refused) {
+        (Some(f), why) => format!(
+            "geometry: instrument (tilt axis {:.1}°; sparse stage: {}): {} of {} tiles and {} of {} matches on the rows, rotation {:.2}°, scale {:.4}, rows ±{:.2} px, dense stage's rows {}",
+            g.pair.tilt_axis_deg,
+            why.as_deref().unwrap_or("not used"),
+            f.tiles_agreeing,
+            f.tiles_measured,
+            f.matches_agreeing,
+            f.matches_offered,
+            f.rotation_deg,
+            f.scale,
+            f.row_residual_rms_px,
+            f.dense_rows.map_or_else(
+                || "not checked (tiled)".to_owned(),
+                |r| format!("{:.2} px off, axis {:+.2}°", r.offset_px, r.axis_error_deg)
+            ),
+        ),
+        (None, _) => "geometry: sparse (epipolar geometry from the matches)".to_owned(),
+    }
+}
+
 fn precision_line(r: &crate::vision::pipeline::ReconReport) -> Option<String> {
     let relief = r.depth.height_p99_um - r.depth.height_p01_um;
     r.precision.as_ref().map(|p| describe_precision(p, relief))

@@ -3,6 +3,8 @@
 //!
 //! ```text
 //! left, right ─▶ sparse SIFT ─▶ matching ─▶ ORSA ─▶ quasi-Euclidean rectification
+//!                                  └─ refused ─▶ rectification from the tilt axis, verified
+//!                                                by the tiles' rows and the dense vertical flow
 //!             ─▶ dense SIFT ─▶ SIFT flow (dual-layer BP, coarse to fine)
 //!             ─▶ [sub-pixel, left–right check] ─▶ bilateral grid
 //!             ─▶ depth h = d·p / (2 sin(θ/2)) on the left micrograph's grid
@@ -28,8 +30,15 @@ use super::geometry::{MAX_TILT_DEG, PairGeometry};
 use super::params::ReconstructionParams;
 use super::precision::{self, Precision};
 use super::rectify::RectifyError;
-use super::rectify::warp::warp_rect;
-use super::sparse::{SparseError, sparse_stage, warp_onto_canvas};
+use super::rectify::instrument::{
+    InstrumentError, InstrumentFigures, InstrumentRectification, dense_rows,
+    instrument_rectification, median_row_offset, tile_measurements, verify_dense_rows,
+};
+use super::rectify::warp::{warp, warp_rect};
+use super::sparse::{
+    Correspondence, SparseError, SparseMatches, SparseParams, SparseResult, sparse_geometry,
+    sparse_matches,
+};
 use crate::progress::{Observer, Stage, unobserved};
 
 /// Why a pair cannot be reconstructed.
@@ -51,6 +60,12 @@ pub enum ReconstructError {
         "no height could be computed: the rectified images do not overlap (is it the same specimen area?)"
     )]
     NoOverlap,
+    /// Neither the sparse stage nor the instrument's geometry rectifies the pair.
+    #[error("sparse stage: {sparse}; the instrument's geometry cannot replace it: {instrument}")]
+    Unrectifiable {
+        sparse: String,
+        instrument: InstrumentError,
+    },
 }
 
 error_from!(ReconstructError {
@@ -121,10 +136,33 @@ fn v2_over_u2(d: impl Iterator<Item = (f64, f64)>) -> f64 {
     if su > 0.0 { sv / su } else { f64::NAN }
 }
 
+/// Which path produced the rectification (report.json `geometry.source`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum GeometrySource {
+    /// The sparse stage's epipolar geometry (SIFT, ORSA, quasi-Euclidean rectification).
+    Sparse,
+    /// The tilt axis and the pair's correlation ([`super::rectify::instrument`]).
+    Instrument,
+}
+
+/// The pair's geometry in report.json: the acquisition's figures, the path that rectified the
+/// pair, and how the instrument's path was verified when it ran.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct GeometryReport {
+    #[serde(flatten)]
+    pub pair: PairGeometry,
+    pub source: GeometrySource,
+    /// Why the sparse stage's geometry was not used (instrument source only).
+    pub sparse_refused: Option<String>,
+    /// The instrument's measurements and checks (instrument source only).
+    pub instrument: Option<InstrumentFigures>,
+}
+
 /// Everything a reconstruction reports (report.json, `/recon/report`).
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct ReconReport {
-    pub geometry: PairGeometry,
+    pub geometry: GeometryReport,
     pub image_size: (usize, usize),
     pub sparse: SparseReport,
     pub dense: DenseStats,
@@ -186,61 +224,92 @@ pub fn reconstruct_observed(
 
     let t = Instant::now();
     progress(Stage::Sparse);
-    let sparse = sparse_stage(left, right, Some(geometry.tilt_axis_deg), &params.sparse)?;
-    let range = inlier_disparity_range(&sparse.inliers, &sparse.rectification);
-    let canvas = sparse.rectification.canvas;
-    let (sparse, disp, sparse_ms, dense_ms) = if fits_budget(&params.dense, canvas) {
-        let rect = warp_onto_canvas(left, right, sparse)?;
+    let established = rectify_for_dense(left, right, geometry, &params.sparse)?;
+    let range = established.range;
+    let canvas = established.canvas;
+    let (h_left, h_right) = (established.h_left, established.h_right);
+    let (disp, row_offset, sparse_ms, dense_ms) = if fits_budget(&params.dense, canvas) {
+        let (wl, wr) = rayon::join(
+            || warp(left, &h_left, canvas.0, canvas.1),
+            || warp(right, &h_right, canvas.0, canvas.1),
+        );
+        let (Some(wl), Some(wr)) = (wl, wr) else {
+            return Err(SparseError::Rectify(RectifyError::Degenerate).into());
+        };
         let sparse_ms = ms(t);
         let t = Instant::now();
         progress(Stage::Dense);
         let disp = dense_disparity_in_range(
-            &rect.left.image,
-            &rect.right.image,
-            Some(&rect.left.valid),
-            Some(&rect.right.valid),
+            &wl.image,
+            &wr.image,
+            Some(&wl.valid),
+            Some(&wr.valid),
             &params.dense,
             range,
         )?;
-        (rect.sparse, CanvasDisparity::from(disp), sparse_ms, ms(t))
+        let row_offset = match established.source {
+            Established::Instrument { .. } => {
+                dense_rows(&disp.vertical, &disp.disparity, &disp.unknown)
+            }
+            Established::Sparse(_) => None,
+        };
+        (CanvasDisparity::from(disp), row_offset, sparse_ms, ms(t))
     } else {
         // Each tile warps its own rectangle: the rectified pair is never whole in memory.
         let sparse_ms = ms(t);
         let t = Instant::now();
         progress(Stage::Dense);
-        let r = &sparse.rectification;
-        if r.h_left.try_inverse().is_none() || r.h_right.try_inverse().is_none() {
+        if h_left.try_inverse().is_none() || h_right.try_inverse().is_none() {
             return Err(SparseError::Rectify(RectifyError::Degenerate).into());
         }
         let source = |rect: Rect| {
             let at = ((rect.x, rect.y), (rect.width, rect.height));
             let (l, r) = rayon::join(
-                || warp_rect(left, &r.h_left, at.0, at.1),
-                || warp_rect(right, &r.h_right, at.0, at.1),
+                || warp_rect(left, &h_left, at.0, at.1),
+                || warp_rect(right, &h_right, at.0, at.1),
             );
             (
                 l.expect("H_left is invertible (checked above)"),
                 r.expect("H_right is invertible (checked above)"),
             )
         };
-        let coverage = left_coverage(left.dimensions(), &r.h_left, canvas);
+        let coverage = left_coverage(left.dimensions(), &h_left, canvas);
         let disp = dense_disparity_tiled(canvas, &coverage, source, &params.dense, range)?;
-        (sparse, disp, sparse_ms, ms(t))
+        // Tiles keep no vertical flow: the instrument's rows rest on the tiles' check alone.
+        (disp, None, sparse_ms, ms(t))
     };
+    // The instrument's rows are verified by the dense stage: what vertical flow is left.
+    let mut instrument_figures = None;
+    if let Established::Instrument {
+        rectification, why, ..
+    } = &established.source
+    {
+        if let Some(v) = &row_offset {
+            verify_dense_rows(v, geometry.tilt_axis_deg, &params.sparse.instrument).map_err(
+                |instrument| ReconstructError::Unrectifiable {
+                    sparse: why.clone(),
+                    instrument,
+                },
+            )?;
+        }
+        instrument_figures = Some(InstrumentFigures {
+            dense_rows: row_offset,
+            ..rectification.figures
+        });
+    }
 
     let t = Instant::now();
     progress(Stage::Depth);
-    let r = &sparse.rectification;
     let stereo = StereoGeometry {
         tilt_deg: geometry.tilt_deg,
         pixel_size_um: geometry.pixel_size_um,
         tilt_axis_deg: geometry.tilt_axis_deg,
     };
     let (w, h) = left.dimensions();
-    let mut height_um = height_on_left_grid(&disp.disparity, &r.h_left, &r.h_right, &stereo, w, h)?;
+    let mut height_um = height_on_left_grid(&disp.disparity, &h_left, &h_right, &stereo, w, h)?;
     let datum = apply_datum(&mut height_um, params.datum, geometry.pixel_size_um);
-    let confidence = left_grid_confidence(&disp.confidence, &disp.filled, &height_um, &r.h_left);
-    let unknown = left_grid_unknown(&disp.unknown, canvas, &height_um, &confidence, &r.h_left);
+    let confidence = left_grid_confidence(&disp.confidence, &disp.filled, &height_um, &h_left);
+    let unknown = left_grid_unknown(&disp.unknown, canvas, &height_um, &confidence, &h_left);
     // The canvas maps (up to twice the micrograph's pixels) go before the precision's planes.
     let dense_stats = disp.stats;
     drop((disp.disparity, disp.confidence, disp.filled, disp.unknown));
@@ -257,45 +326,42 @@ pub fn reconstruct_observed(
         depth.um_per_disparity_px,
     );
 
-    let s = &sparse;
     let map = |hm: &Matrix3<f64>, p: [f64; 2]| {
         let q = hm * Vector3::new(p[0], p[1], 1.0);
         (q.x / q.z, q.y / q.z)
     };
+    let inliers = established.inliers();
+    let (initial_error_px, final_error_px) = established.errors();
     let rectification = RectificationFigures {
         v2_over_u2_before: v2_over_u2(
-            s.inliers
+            inliers
                 .iter()
                 .map(|c| (c.right[0] - c.left[0], c.right[1] - c.left[1])),
         ),
-        v2_over_u2_after: v2_over_u2(s.inliers.iter().map(|c| {
-            let (l, r) = (map(&r.h_left, c.left), map(&r.h_right, c.right));
+        v2_over_u2_after: v2_over_u2(inliers.iter().map(|c| {
+            let (l, r) = (map(&h_left, c.left), map(&h_right, c.right));
             (r.0 - l.0, r.1 - l.1)
         })),
         v2_over_u2_dense: dense_stats.flow.v2_over_u2,
-        rmse_before_px: r.initial_error_px,
-        rmse_after_px: r.final_error_px,
+        rmse_before_px: initial_error_px,
+        rmse_after_px: final_error_px,
     };
+    let sparse = established.sparse_report(initial_error_px, final_error_px);
     let report = ReconReport {
-        geometry: *geometry,
-        image_size: (w, h),
-        sparse: SparseReport {
-            keypoints_left: s.keypoints_left,
-            keypoints_right: s.keypoints_right,
-            matches: s.matches.len(),
-            inliers: s.inliers.len(),
-            model: format!("{:?}", s.model).to_lowercase(),
-            fallback_reason: s.fallback_reason.clone(),
-            log10_nfa: s.log10_nfa,
-            threshold_px: s.threshold_px,
-            orsa_iterations: s.orsa_iterations,
-            initial_error_px: r.initial_error_px,
-            final_error_px: r.final_error_px,
-            h_left: rows(&r.h_left),
-            h_right: rows(&r.h_right),
-            canvas: r.canvas,
-            timings: s.timings,
+        geometry: GeometryReport {
+            pair: *geometry,
+            source: match established.source {
+                Established::Sparse(_) => GeometrySource::Sparse,
+                Established::Instrument { .. } => GeometrySource::Instrument,
+            },
+            sparse_refused: match &established.source {
+                Established::Sparse(_) => None,
+                Established::Instrument { why, .. } => Some(why.clone()),
+            },
+            instrument: instrument_figures,
         },
+        image_size: (w, h),
+        sparse,
         dense: dense_stats,
         rectification,
         depth,
@@ -313,6 +379,194 @@ pub fn reconstruct_observed(
         confidence,
         unknown,
         report,
+    })
+}
+
+/// The canvas the dense stage works on, and the path that produced it.
+#[derive(Debug, Clone)]
+pub struct CanvasGeometry {
+    /// Original left/right pixel → canvas pixel; corresponding points share their row and the
+    /// disparity `x_right − x_left` grows with height.
+    pub h_left: Matrix3<f64>,
+    pub h_right: Matrix3<f64>,
+    pub canvas: (usize, usize),
+    /// Disparity range the dense search is centred on (`None`: its own search).
+    pub range: Option<(f64, f64)>,
+    pub source: Established,
+}
+
+/// How a [`CanvasGeometry`] was established.
+#[derive(Debug, Clone)]
+pub enum Established {
+    /// The sparse stage's epipolar geometry.
+    Sparse(SparseResult),
+    /// The instrument's (tilt axis and correlation), because the sparse stage's was refused or
+    /// implausible (`why`); `matches` are the sparse stage's putative matches.
+    Instrument {
+        rectification: InstrumentRectification,
+        matches: SparseMatches,
+        why: String,
+    },
+}
+
+impl CanvasGeometry {
+    fn sparse(s: SparseResult) -> Self {
+        Self {
+            h_left: s.rectification.h_left,
+            h_right: s.rectification.h_right,
+            canvas: s.rectification.canvas,
+            range: inlier_disparity_range(&s.inliers, &s.rectification),
+            source: Established::Sparse(s),
+        }
+    }
+
+    /// The correspondences the geometry rests on: the sparse inliers, or the tiles and matches
+    /// that agree on the instrument's rows.
+    fn inliers(&self) -> &[Correspondence] {
+        match &self.source {
+            Established::Sparse(s) => &s.inliers,
+            Established::Instrument { rectification, .. } => &rectification.agreeing,
+        }
+    }
+
+    /// The rectification error before and after (Monasse's RMS Sampson figures; for the
+    /// instrument's rows, the RMS vertical offset over √2, which is what they equal on rows).
+    fn errors(&self) -> (f64, f64) {
+        match &self.source {
+            Established::Sparse(s) => (
+                s.rectification.initial_error_px,
+                s.rectification.final_error_px,
+            ),
+            Established::Instrument { rectification, .. } => {
+                let a = &rectification.agreeing;
+                let dy2 = a
+                    .iter()
+                    .map(|c| (c.right[1] - c.left[1]).powi(2))
+                    .sum::<f64>()
+                    / a.len().max(1) as f64;
+                (
+                    (dy2 / 2.0).sqrt(),
+                    rectification.figures.row_residual_rms_px / std::f64::consts::SQRT_2,
+                )
+            }
+        }
+    }
+
+    fn sparse_report(&self, initial_error_px: f64, final_error_px: f64) -> SparseReport {
+        let (h_left, h_right, canvas) = (rows(&self.h_left), rows(&self.h_right), self.canvas);
+        match &self.source {
+            Established::Sparse(s) => SparseReport {
+                keypoints_left: s.keypoints_left,
+                keypoints_right: s.keypoints_right,
+                matches: s.matches.len(),
+                inliers: s.inliers.len(),
+                model: format!("{:?}", s.model).to_lowercase(),
+                fallback_reason: s.fallback_reason.clone(),
+                log10_nfa: s.log10_nfa,
+                threshold_px: s.threshold_px,
+                orsa_iterations: s.orsa_iterations,
+                initial_error_px,
+                final_error_px,
+                h_left,
+                h_right,
+                canvas,
+                timings: s.timings,
+            },
+            Established::Instrument {
+                rectification,
+                matches,
+                why,
+            } => SparseReport {
+                keypoints_left: matches.keypoints_left,
+                keypoints_right: matches.keypoints_right,
+                matches: matches.correspondences().len(),
+                inliers: rectification.agreeing.len(),
+                model: "instrument".to_owned(),
+                fallback_reason: Some(why.clone()),
+                log10_nfa: f64::NAN,
+                threshold_px: f64::NAN,
+                orsa_iterations: 0,
+                initial_error_px,
+                final_error_px,
+                h_left,
+                h_right,
+                canvas,
+                timings: matches.timings,
+            },
+        }
+    }
+}
+
+/// The canvas for the dense stage: the sparse stage's rectification, or — when it refuses the
+/// pair, or its canvas leaves the pair's correlated tiles more than
+/// `instrument.max_sparse_row_offset_px` off their rows — the instrument's
+/// ([`instrument_rectification`]) from the tilt axis, refined by the sparse stage's matches.
+///
+/// # Errors
+/// [`ReconstructError::Sparse`] for a pair the sparse stage refuses before any matching (sizes,
+/// parameters) or when the fallback is off; [`ReconstructError::Unrectifiable`] when the
+/// instrument's geometry cannot replace the sparse stage's either.
+pub fn rectify_for_dense(
+    left: &Image,
+    right: &Image,
+    geometry: &PairGeometry,
+    params: &SparseParams,
+) -> Result<CanvasGeometry, ReconstructError> {
+    let phi = geometry.tilt_axis_deg;
+    let inst = &params.instrument;
+    let matches = sparse_matches(left, right, params)?;
+    let why = match sparse_geometry(left, right, &matches, Some(phi), params) {
+        Ok(s) => match sparse_rows_off(left, right, &s, params) {
+            None => return Ok(CanvasGeometry::sparse(s)),
+            Some(why) => why,
+        },
+        Err(e) if !inst.enabled || matches!(e, SparseError::Params(_)) => return Err(e.into()),
+        Err(e) => e.to_string(),
+    };
+    match instrument_rectification(left, right, phi, &matches.correspondences(), inst) {
+        Ok(r) => Ok(CanvasGeometry {
+            h_left: r.h_left,
+            h_right: r.h_right,
+            canvas: r.canvas,
+            range: r.disparity_range,
+            source: Established::Instrument {
+                rectification: r,
+                matches,
+                why,
+            },
+        }),
+        Err(instrument) => Err(ReconstructError::Unrectifiable {
+            sparse: why,
+            instrument,
+        }),
+    }
+}
+
+/// Why an accepted sparse geometry is nevertheless wrong, if it is: the pair's correlated tiles
+/// lie more than `instrument.max_sparse_row_offset_px` (median) off their rows on its canvas —
+/// on repetitive specimens a consistent set of wrong matches can pass ORSA and the
+/// rectification's checks. `None` when it is right or the check cannot be made.
+fn sparse_rows_off(
+    left: &Image,
+    right: &Image,
+    s: &SparseResult,
+    params: &SparseParams,
+) -> Option<String> {
+    let inst = &params.instrument;
+    if !inst.enabled || inst.max_sparse_row_offset_px <= 0.0 {
+        return None;
+    }
+    let tiles = tile_measurements(left, right, inst).ok()?.measured;
+    if tiles.len() < inst.min_measurements {
+        return None;
+    }
+    let r = &s.rectification;
+    let off = median_row_offset(&tiles, &r.h_left, &r.h_right)?;
+    (off > inst.max_sparse_row_offset_px).then(|| {
+        format!(
+            "its rectification leaves the correlated tiles {off:.2} px (median) off their rows (limit {} px)",
+            inst.max_sparse_row_offset_px
+        )
     })
 }
 
@@ -611,7 +865,70 @@ mod tests {
             tilt_axis_deg: 0.0,
         };
         let err = reconstruct(&img, &img, &g, &ReconstructionParams::default()).unwrap_err();
-        assert!(matches!(err, ReconstructError::Sparse(_)), "{err}");
+        assert!(
+            matches!(
+                err,
+                ReconstructError::Unrectifiable {
+                    instrument: InstrumentError::NoCorrelation(_),
+                    ..
+                }
+            ),
+            "{err}"
+        );
         assert!(err.to_string().contains("texture"), "{err}");
+        let mut off = ReconstructionParams::default();
+        off.sparse.instrument.enabled = false;
+        let err = reconstruct(&img, &img, &g, &off).unwrap_err();
+        assert!(matches!(err, ReconstructError::Sparse(_)), "{err}");
+    }
+
+    /// A pair the sparse stage refuses (here: more inliers asked for than exist) is rectified
+    /// from the tilt axis; the report says so, and the relief keeps its sign.
+    #[test]
+    fn a_refused_sparse_stage_falls_back_to_the_instrument() {
+        let pair = crate::vision::sparse::tests::sem_pair(320, 256, -90.0, (-4.0, 4.0), 0.4, false);
+        let g = PairGeometry {
+            tilt_deg: 8.0,
+            pixel_size_um: 0.1,
+            tilt_axis_deg: -90.0,
+        };
+        let mut p = ReconstructionParams::default();
+        p.sparse.min_inliers = 100_000;
+        p.sparse.instrument.tile_px = 64;
+        let r = reconstruct(&pair.left, &pair.right, &g, &p).unwrap();
+        let geometry = &r.report.geometry;
+        assert_eq!(geometry.source, GeometrySource::Instrument);
+        assert!(
+            geometry
+                .sparse_refused
+                .as_deref()
+                .is_some_and(|w| w.contains("need 100000")),
+            "{geometry:?}"
+        );
+        let f = geometry.instrument.unwrap();
+        let rows = f.dense_rows.unwrap();
+        assert!(
+            rows.offset_px < 0.3 && rows.axis_error_deg.abs() < 1.0,
+            "{f:?}"
+        );
+        let at = |p: [f64; 2]| {
+            f64::from(r.height_um.get(
+                (p[0].round() as usize).min(319),
+                (p[1].round() as usize).min(255),
+            ))
+        };
+        assert!(
+            at(pair.top) > at(pair.flat) + 1.0,
+            "top {} flat {}",
+            at(pair.top),
+            at(pair.flat)
+        );
+        assert!(r.report.depth.valid_fraction > 0.8);
+        // With the fallback off, the same pair is refused.
+        p.sparse.instrument.enabled = false;
+        assert!(matches!(
+            reconstruct(&pair.left, &pair.right, &g, &p),
+            Err(ReconstructError::Sparse(_))
+        ));
     }
 }

@@ -15,6 +15,7 @@
 //! (any tilt axis) rectify too. Rotations compose as `R = R_x · R_y · R_z`: the in-plane
 //! rotation first, then the small corrections in the rectified frame.
 
+pub mod instrument;
 mod lm;
 pub mod warp;
 

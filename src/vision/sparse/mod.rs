@@ -36,6 +36,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::vision::Image;
+use crate::vision::rectify::instrument::InstrumentParams;
 use crate::vision::rectify::warp::{Warped, warp};
 use crate::vision::rectify::{
     Rectification, RectifyError, RectifyParams, epipolar_direction, rectify,
@@ -73,6 +74,10 @@ pub struct SparseParams {
     /// the keypoints scaled back (bounds its memory, ~120 bytes a pixel, on large micrographs);
     /// 0 = full resolution always.
     pub sift_max_megapixels: f64,
+    /// When the epipolar geometry cannot be established (or is implausible), rectify from the
+    /// tilt axis and the pair's correlation instead (the reconstruction's fallback, beyond the
+    /// paper; [`crate::vision::rectify::instrument`]).
+    pub instrument: InstrumentParams,
 }
 
 impl Default for SparseParams {
@@ -98,6 +103,7 @@ impl Default for SparseParams {
             min_inliers: 8,
             fallback_to_affine: true,
             sift_max_megapixels: 4.0,
+            instrument: InstrumentParams::default(),
         }
     }
 }
@@ -264,6 +270,51 @@ pub fn sparse_stage(
     tilt_axis_deg: Option<f64>,
     params: &SparseParams,
 ) -> Result<SparseResult, SparseError> {
+    let matches = sparse_matches(left, right, params)?;
+    sparse_geometry(left, right, &matches, tilt_axis_deg, params)
+}
+
+/// SIFT in both micrographs and their distinct putative matches: what the epipolar geometry is
+/// estimated from ([`sparse_geometry`]), and what a fallback can still use when it cannot be.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SparseMatches {
+    pub keypoints_left: usize,
+    pub keypoints_right: usize,
+    /// Putative matches before the distinct positions were taken (`descriptor matching`).
+    pub putative: usize,
+    left: Vec<Vector2<f64>>,
+    right: Vec<Vector2<f64>>,
+    sigmas: Vec<f64>,
+    /// SIFT and matching so far; `total_ms` counts from the start of the stage.
+    pub timings: Timings,
+    started: Instant,
+}
+
+impl SparseMatches {
+    /// The distinct putative matches, original pixels (unverified: many may be wrong).
+    #[must_use]
+    pub fn correspondences(&self) -> Vec<Correspondence> {
+        self.left
+            .iter()
+            .zip(&self.right)
+            .map(|(a, b)| Correspondence {
+                left: [a.x, a.y],
+                right: [b.x, b.y],
+            })
+            .collect()
+    }
+}
+
+/// The first half of [`sparse_stage`]: checks of the pair and the parameters, SIFT in both
+/// micrographs, ratio-test matching and the distinct positions.
+///
+/// # Errors
+/// [`SparseError`] for different sizes, tiny images or invalid parameters.
+pub fn sparse_matches(
+    left: &Image,
+    right: &Image,
+    params: &SparseParams,
+) -> Result<SparseMatches, SparseError> {
     let t_total = Instant::now();
     if left.dimensions() != right.dimensions() {
         return Err(SparseError::SizeMismatch {
@@ -289,7 +340,6 @@ pub fn sparse_stage(
         }
         .into());
     }
-    let need = params.min_inliers.max(params.orsa.model.sample_size() + 1);
 
     let t = Instant::now();
     let ((kl, tl), (kr, tr)) = rayon::join(
@@ -309,27 +359,57 @@ pub fn sparse_stage(
         sift_right_ms: tr,
         ..Timings::default()
     };
-    for (side, k) in [(Side::Left, &kl), (Side::Right, &kr)] {
-        if k.len() < need {
+    let t = Instant::now();
+    let matches = match_keypoints(&kl, &kr, &params.matching);
+    timings.matching_ms = ms(t);
+    let (pl, pr, sigmas) = distinct_positions(&kl, &kr, &matches);
+    Ok(SparseMatches {
+        keypoints_left: kl.len(),
+        keypoints_right: kr.len(),
+        putative: matches.len(),
+        left: pl,
+        right: pr,
+        sigmas,
+        timings,
+        started: t_total,
+    })
+}
+
+/// The second half of [`sparse_stage`]: ORSA on the matches, the refinement of its inliers and
+/// their rectification.
+///
+/// # Errors
+/// [`SparseError`] for blank images, too few matches or inliers, no meaningful model, or a
+/// rectification that fails its checks.
+pub fn sparse_geometry(
+    left: &Image,
+    right: &Image,
+    m: &SparseMatches,
+    tilt_axis_deg: Option<f64>,
+    params: &SparseParams,
+) -> Result<SparseResult, SparseError> {
+    let need = params.min_inliers.max(params.orsa.model.sample_size() + 1);
+    let mut timings = m.timings;
+    for (side, k) in [
+        (Side::Left, m.keypoints_left),
+        (Side::Right, m.keypoints_right),
+    ] {
+        if k < need {
             return Err(SparseError::NoTexture {
                 side,
-                keypoints: k.len(),
+                keypoints: k,
                 need,
             });
         }
     }
-
-    let t = Instant::now();
-    let matches = match_keypoints(&kl, &kr, &params.matching);
-    timings.matching_ms = ms(t);
-    if matches.len() < need {
+    if m.putative < need {
         return Err(SparseError::TooFewMatches {
-            found: matches.len(),
+            found: m.putative,
             need,
             stage: "descriptor matching",
         });
     }
-    let (pl, pr, sigmas) = distinct_positions(&kl, &kr, &matches);
+    let (pl, pr, sigmas) = (&m.left, &m.right, &m.sigmas);
     if pl.len() < need {
         return Err(SparseError::TooFewMatches {
             found: pl.len(),
@@ -340,9 +420,9 @@ pub fn sparse_stage(
 
     let size = left.dimensions();
     let matched = Matched {
-        left: &pl,
-        right: &pr,
-        sigmas: &sigmas,
+        left: pl,
+        right: pr,
+        sigmas,
     };
     let mut stage = Stage {
         images: (left, right),
@@ -367,7 +447,7 @@ pub fn sparse_stage(
         geometry = stage.epipolar_geometry(&matched, model);
     }
     let g = geometry?;
-    timings.total_ms = ms(t_total);
+    timings.total_ms = ms(m.started);
 
     let corr = |a: &Vector2<f64>, b: &Vector2<f64>| Correspondence {
         left: [a.x, a.y],
@@ -375,9 +455,9 @@ pub fn sparse_stage(
     };
     Ok(SparseResult {
         image_size: size,
-        keypoints_left: kl.len(),
-        keypoints_right: kr.len(),
-        matches: pl.iter().zip(&pr).map(|(a, b)| corr(a, b)).collect(),
+        keypoints_left: m.keypoints_left,
+        keypoints_right: m.keypoints_right,
+        matches: pl.iter().zip(pr).map(|(a, b)| corr(a, b)).collect(),
         inliers: g
             .left
             .iter()
@@ -614,7 +694,7 @@ fn sift_bounded(image: &Image, params: &SparseParams) -> Result<Vec<Keypoint>, S
 }
 
 /// The image at half the resolution: means of 2×2 blocks (the last row or column alone when odd).
-fn halve(img: &Image) -> Image {
+pub(crate) fn halve(img: &Image) -> Image {
     let (w, h) = img.dimensions();
     let (hw, hh) = (w.div_ceil(2), h.div_ceil(2));
     let mut out = Image::zeros(hw, hh);
