@@ -20,7 +20,7 @@ use super::Image;
 use super::datum::{Datum, apply_datum};
 use super::dense::tile::{Coverage, Rect, fits_budget};
 use super::dense::{
-    CanvasDisparity, DenseError, DenseParams, DenseStats, Unknown, dense_disparity_in_range,
+    CanvasDisparity, DenseError, DenseParams, DenseStats, Unknown, dense_disparity_of_warped,
     dense_disparity_tiled,
 };
 use super::depth::{DepthError, StereoGeometry, height_on_left_grid};
@@ -194,14 +194,8 @@ pub fn reconstruct_observed(
         let sparse_ms = ms(t);
         let t = Instant::now();
         progress(Stage::Dense);
-        let disp = dense_disparity_in_range(
-            &rect.left.image,
-            &rect.right.image,
-            Some(&rect.left.valid),
-            Some(&rect.right.valid),
-            &params.dense,
-            range,
-        )?;
+        // The rectified pair becomes the dense stage's working copy.
+        let disp = dense_disparity_of_warped(rect.left, rect.right, &params.dense, range)?;
         (rect.sparse, CanvasDisparity::from(disp), sparse_ms, ms(t))
     } else {
         // Each tile warps its own rectangle: the rectified pair is never whole in memory.

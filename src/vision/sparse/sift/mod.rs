@@ -343,6 +343,29 @@ mod tests {
         );
     }
 
+    /// Buffers that served a larger and then a smaller image give the keypoints that fresh ones
+    /// give, with and without the keypoint cap.
+    #[test]
+    fn reused_buffers_give_the_keypoints_of_fresh_ones() {
+        let (large, small) = (blobs(200, 150, 5), blobs(130, 97, 6));
+        let mut buffers = ScaleSpaceBuffers::default();
+        for params in [
+            SiftParams::default(),
+            SiftParams {
+                delta_min: 1.0,
+                sigma_min: 1.6,
+                max_keypoints: 40,
+                ..SiftParams::default()
+            },
+        ] {
+            for img in [&large, &small, &large] {
+                let fresh = sift(img, &params).unwrap();
+                assert!(fresh.len() > 20, "{} keypoints", fresh.len());
+                assert_eq!(sift_with(img, &params, &mut buffers).unwrap(), fresh);
+            }
+        }
+    }
+
     #[test]
     fn rejects_unsupported_layout() {
         let p = SiftParams {
