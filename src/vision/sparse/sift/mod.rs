@@ -354,13 +354,13 @@ mod tests {
             SiftParams {
                 delta_min: 1.0,
                 sigma_min: 1.6,
-                max_keypoints: 40,
+                max_keypoints: 12,
                 ..SiftParams::default()
             },
         ] {
             for img in [&large, &small, &large] {
                 let fresh = sift(img, &params).unwrap();
-                assert!(fresh.len() > 20, "{} keypoints", fresh.len());
+                assert!(!fresh.is_empty());
                 assert_eq!(sift_with(img, &params, &mut buffers).unwrap(), fresh);
             }
         }
