@@ -22,7 +22,7 @@ use super::Image;
 use super::datum::{Datum, apply_datum};
 use super::dense::tile::{Coverage, Rect, fits_budget};
 use super::dense::{
-    CanvasDisparity, DenseError, DenseParams, DenseStats, Unknown, dense_disparity_in_range,
+    CanvasDisparity, DenseError, DenseParams, DenseStats, Unknown, dense_disparity_of_warped,
     dense_disparity_tiled,
 };
 use super::depth::{DepthError, StereoGeometry, height_on_left_grid};
@@ -239,14 +239,8 @@ pub fn reconstruct_observed(
         let sparse_ms = ms(t);
         let t = Instant::now();
         progress(Stage::Dense);
-        let disp = dense_disparity_in_range(
-            &wl.image,
-            &wr.image,
-            Some(&wl.valid),
-            Some(&wr.valid),
-            &params.dense,
-            range,
-        )?;
+        // The rectified pair becomes the dense stage's working copy.
+        let disp = dense_disparity_of_warped(wl, wr, &params.dense, range)?;
         let row_offset = match established.source {
             Established::Instrument { .. } => {
                 dense_rows(&disp.vertical, &disp.disparity, &disp.unknown)

@@ -45,6 +45,7 @@ use self::refine::{RefinedFlow, upsample_flow};
 use self::sift_flow::{Engine, EngineRun, FlowStats, LevelReport};
 use crate::vision::Image;
 use crate::vision::filter::bilateral_grid::{GridInfo, bilateral_filter};
+use crate::vision::rectify::warp::Warped;
 
 /// Timings of the dense stage, milliseconds.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Default)]
@@ -136,22 +137,21 @@ fn ms(t: Instant) -> f64 {
 }
 
 /// Combined validity: the mask (if any) and a finite sample.
-fn validity(img: &Image, mask: Option<&[bool]>) -> Result<Vec<bool>, DenseError> {
-    if let Some(m) = mask
-        && m.len() != img.len()
-    {
-        return Err(DenseError::MaskSize {
+fn validity(img: &Image, mask: Option<Vec<bool>>) -> Result<Vec<bool>, DenseError> {
+    match mask {
+        Some(m) if m.len() != img.len() => Err(DenseError::MaskSize {
             width: img.width(),
             height: img.height(),
             len: m.len(),
-        });
+        }),
+        Some(mut m) => {
+            for (m, v) in m.iter_mut().zip(img.data()) {
+                *m = v.is_finite() && *m;
+            }
+            Ok(m)
+        }
+        None => Ok(img.data().iter().map(|v| v.is_finite()).collect()),
     }
-    Ok(img
-        .data()
-        .iter()
-        .enumerate()
-        .map(|(p, v)| v.is_finite() && mask.is_none_or(|m| m[p]))
-        .collect())
 }
 
 /// Dense disparity of a rectified pair.
@@ -193,13 +193,52 @@ pub fn dense_disparity_in_range(
     params: &DenseParams,
     range: Option<(f64, f64)>,
 ) -> Result<Disparity, DenseError> {
-    let (params, top_shift) = centre_search_on_sparse_range(params, range, left_rect.dimensions());
+    // The stage's working copies: it fills their unknown samples.
+    let left = (left_rect.clone(), valid_left.map(<[bool]>::to_vec));
+    let right = (right_rect.clone(), valid_right.map(<[bool]>::to_vec));
+    dense_disparity_of(left, right, params, range)
+}
+
+/// [`dense_disparity_in_range`] of a rectified pair it takes (e.g. [`warp`]'s), which becomes
+/// its working copy: the pair is not held twice while the stage runs.
+///
+/// [`warp`]: crate::vision::rectify::warp::warp
+///
+/// # Errors
+/// As [`dense_disparity`].
+pub fn dense_disparity_of_warped(
+    left: Warped,
+    right: Warped,
+    params: &DenseParams,
+    range: Option<(f64, f64)>,
+) -> Result<Disparity, DenseError> {
+    dense_disparity_of(
+        (left.image, Some(left.valid)),
+        (right.image, Some(right.valid)),
+        params,
+        range,
+    )
+}
+
+/// The dense stage on images and masks of its own.
+fn dense_disparity_of(
+    left: (Image, Option<Vec<bool>>),
+    right: (Image, Option<Vec<bool>>),
+    params: &DenseParams,
+    range: Option<(f64, f64)>,
+) -> Result<Disparity, DenseError> {
+    let (params, top_shift) = centre_search_on_sparse_range(params, range, left.0.dimensions());
     let t0 = Instant::now();
-    let inputs = Inputs::checked(left_rect, right_rect, valid_left, valid_right, &params)?;
+    let inputs = Inputs::checked(left, right, &params)?;
     let tm = Instant::now();
     let mut matched = sift_flow_matching(&inputs, &params, top_shift);
     let matching_ms = ms(tm);
-    let margin = margin_at_full_resolution(&matched.fwd, matched.finest, inputs.w, inputs.h);
+    // The matcher's margin at its level; brought to full resolution after the refinement,
+    // whose buffers are the largest of the stage.
+    let level_margin = (
+        std::mem::take(&mut matched.fwd.margin),
+        (matched.fwd.width, matched.fwd.height),
+    );
     let tra = Instant::now();
     let reassigned_fraction = reassign_beside_discontinuities(&inputs, &mut matched, &params);
     let reassign_ms = ms(tra);
@@ -212,6 +251,7 @@ pub fn dense_disparity_in_range(
     let finest = matched.finest;
     let (fwd, bwd) = refine_to_full_resolution(&inputs, matched, &check, &params);
     let refine_ms = ms(tr);
+    let margin = margin_at_full_resolution(level_margin, finest, inputs.w, inputs.h);
     let tc = Instant::now();
     let consistent = left_right_consistency(&inputs, (fwd, bwd), &margin, check, &params);
     let consistency_ms = ms(tc);
@@ -331,34 +371,34 @@ struct Inputs {
 }
 
 impl Inputs {
-    /// Checks sizes, masks and parameters.
+    /// Checks sizes, masks and parameters; fills the images' unknown samples in place.
     fn checked(
-        left_rect: &Image,
-        right_rect: &Image,
-        valid_left: Option<&[bool]>,
-        valid_right: Option<&[bool]>,
+        (mut a, valid_left): (Image, Option<Vec<bool>>),
+        (mut b, valid_right): (Image, Option<Vec<bool>>),
         params: &DenseParams,
     ) -> Result<Self, DenseError> {
-        let (w, h) = left_rect.dimensions();
-        if right_rect.dimensions() != (w, h) {
+        let (w, h) = a.dimensions();
+        if b.dimensions() != (w, h) {
             return Err(DenseError::SizeMismatch {
                 left_width: w,
                 left_height: h,
-                right_width: right_rect.width(),
-                right_height: right_rect.height(),
+                right_width: b.width(),
+                right_height: b.height(),
             });
         }
         params.validate()?;
         sift_flow::check_size(w, h, params.flow.levels)?;
-        let va = validity(left_rect, valid_left)?;
-        let vb = validity(right_rect, valid_right)?;
+        let va = validity(&a, valid_left)?;
+        let vb = validity(&b, valid_right)?;
         let n_valid = va.iter().filter(|&&v| v).count();
         if n_valid == 0 {
             return Err(DenseError::NoValidPixels);
         }
+        sift_flow::fill_non_finite_in_place(&mut a);
+        sift_flow::fill_non_finite_in_place(&mut b);
         Ok(Self {
-            a: sift_flow::fill_non_finite(left_rect),
-            b: sift_flow::fill_non_finite(right_rect),
+            a,
+            b,
             va,
             vb,
             n_valid,
@@ -399,10 +439,14 @@ fn sift_flow_matching(inputs: &Inputs, params: &DenseParams, top_shift: f32) -> 
     }
 }
 
-/// The matcher's margin (how unambiguous its label is) at full resolution.
-fn margin_at_full_resolution(fwd: &EngineRun, finest: usize, w: usize, h: usize) -> Vec<f32> {
-    let mut margin = fwd.margin.clone();
-    let (mut mw, mut mh) = (fwd.width, fwd.height);
+/// The matcher's margin (how unambiguous its label is), `(margin, size)` at level `finest`,
+/// at full resolution.
+fn margin_at_full_resolution(
+    (mut margin, (mut mw, mut mh)): (Vec<f32>, (usize, usize)),
+    finest: usize,
+    w: usize,
+    h: usize,
+) -> Vec<f32> {
     for l in (0..finest).rev() {
         let (mut wf, mut hf) = (w, h);
         for _ in 0..l {

@@ -15,10 +15,12 @@
 //! A rotated or sheared rectification leaves up to half the canvas outside the left micrograph
 //! ([`Coverage`]): tiles are cut down to the columns it covers, with their overlap, and strips
 //! are made as tall as the budget then allows, so that time follows the micrograph's pixels.
+//!
+//! [`dense_disparity_in_range`]: super::dense_disparity_in_range
 
 use rayon::prelude::*;
 
-use super::{DenseError, DenseParams, DenseStats, Disparity, dense_disparity_in_range};
+use super::{DenseError, DenseParams, DenseStats, Disparity, dense_disparity_of_warped};
 use crate::vision::Image;
 use crate::vision::rectify::warp::Warped;
 
@@ -434,6 +436,8 @@ fn axis_weight(x: usize, (c0, c1): (usize, usize), n: usize, blend: usize) -> u3
 ///
 /// # Errors
 /// As [`dense_disparity_in_range`]; [`DenseError::NoValidPixels`] when no tile has a valid pixel.
+///
+/// [`dense_disparity_in_range`]: super::dense_disparity_in_range
 pub fn dense_disparity_tiled(
     canvas: (usize, usize),
     coverage: &Coverage,
@@ -449,15 +453,7 @@ pub fn dense_disparity_tiled(
             width,
             height,
         });
-        return dense_disparity_in_range(
-            &l.image,
-            &r.image,
-            Some(&l.valid),
-            Some(&r.valid),
-            params,
-            range,
-        )
-        .map(CanvasDisparity::from);
+        return dense_disparity_of_warped(l, r, params, range).map(CanvasDisparity::from);
     }
     // The whole canvas's pyramid depth and search centre, for every tile.
     let (centred, top_shift) = super::centre_search_on_sparse_range(params, range, canvas);
@@ -479,20 +475,13 @@ pub fn dense_disparity_tiled(
         let p = tile.padded;
         let (l, r) = source(p);
         let n_valid_core = count_in(&l.valid, p, intersection(p, tile.core));
-        let d = match dense_disparity_in_range(
-            &l.image,
-            &r.image,
-            Some(&l.valid),
-            Some(&r.valid),
-            &centred,
-            range,
-        ) {
+        // The tile's pair becomes the dense stage's working copy.
+        let d = match dense_disparity_of_warped(l, r, &centred, range) {
             Ok(d) => d,
             // A tile wholly outside both micrographs (a corner of a rotated canvas).
             Err(DenseError::NoValidPixels) => continue,
             Err(e) => return Err(e),
         };
-        drop((l, r));
         let core = tile.core;
         let wy: Vec<u32> = (p.y..p.y + p.height)
             .map(|y| axis_weight(y, (core.y, core.y + core.height), height, plan.blend.1))

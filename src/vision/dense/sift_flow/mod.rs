@@ -743,8 +743,15 @@ pub(crate) fn to_level(
 /// Replaces non-finite samples by the nearest finite one on the same row (or
 /// the image mean when a row has none), so that no false edge enters a descriptor.
 pub(crate) fn fill_non_finite(img: &Image) -> Image {
+    let mut out = img.clone();
+    fill_non_finite_in_place(&mut out);
+    out
+}
+
+/// [`fill_non_finite`] in place: a sample is filled from finite ones only, which stay as they are.
+pub(crate) fn fill_non_finite_in_place(img: &mut Image) {
     if img.data().iter().all(|v| v.is_finite()) {
-        return img.clone();
+        return;
     }
     let (sum, n) = img
         .data()
@@ -752,40 +759,72 @@ pub(crate) fn fill_non_finite(img: &Image) -> Image {
         .filter(|v| v.is_finite())
         .fold((0f64, 0usize), |(s, n), &v| (s + f64::from(v), n + 1));
     let mean = if n == 0 { 0.0 } else { (sum / n as f64) as f32 };
-    let mut out = img.clone();
     let w = img.width();
     let mut left = vec![None; w];
     for y in 0..img.height() {
-        let src = img.row(y);
+        let row = img.row_mut(y);
         let mut last = None;
         for x in 0..w {
-            if src[x].is_finite() {
+            if row[x].is_finite() {
                 last = Some(x);
             }
             left[x] = last;
         }
-        let row = out.row_mut(y);
         let mut next = None;
         for x in (0..w).rev() {
-            if src[x].is_finite() {
+            if row[x].is_finite() {
                 next = Some(x);
                 continue;
             }
             row[x] = match (left[x], next) {
-                (Some(l), Some(r)) => src[if x - l <= r - x { l } else { r }],
-                (Some(l), None) => src[l],
-                (None, Some(r)) => src[r],
+                (Some(l), Some(r)) => row[if x - l <= r - x { l } else { r }],
+                (Some(l), None) => row[l],
+                (None, Some(r)) => row[r],
                 (None, None) => mean,
             };
         }
     }
-    out
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::vision::Preset;
+
+    /// Filling in place reads finite samples only: the nearest on the row (the left one on a
+    /// tie), the mean of the image on a row without any, as a search from the source does.
+    #[test]
+    fn filling_in_place_takes_the_nearest_finite_sample_of_the_row() {
+        let (w, h) = (7, 4);
+        let img = Image::from_fn(w, h, |x, y| match (x, y) {
+            (0 | 3 | 4, 0) | (1..=5, 1) | (_, 2) | (6, 3) => f32::NAN,
+            _ => (10 * y + x) as f32,
+        });
+        let finite: Vec<f32> = img
+            .data()
+            .iter()
+            .copied()
+            .filter(|v| v.is_finite())
+            .collect();
+        let mean = finite.iter().map(|&v| f64::from(v)).sum::<f64>() / finite.len() as f64;
+        let reference = Image::from_fn(w, h, |x, y| {
+            let row = img.row(y);
+            if row[x].is_finite() {
+                return row[x];
+            }
+            (1..w)
+                .flat_map(|d| [x.checked_sub(d), Some(x + d)])
+                .flatten()
+                .find(|&i| i < w && row[i].is_finite())
+                .map_or(mean as f32, |i| row[i])
+        });
+        let filled = fill_non_finite(&img);
+        assert_eq!(filled.data(), reference.data());
+        assert_eq!(filled.row(0), &[1.0, 1.0, 2.0, 2.0, 5.0, 5.0, 6.0]);
+        let mut in_place = img.clone();
+        fill_non_finite_in_place(&mut in_place);
+        assert_eq!(in_place, filled);
+    }
 
     #[test]
     fn fields_extend_from_the_nearest_swept_pixel() {

@@ -20,7 +20,7 @@ pub const DESCRIPTOR_LEN: usize = 128;
 /// trilinear weights (IPOL eq. 31–33). Bins are laid out `[x bin][y bin][orientation]`.
 #[must_use]
 pub fn describe(
-    grad: &GradField,
+    grad: &GradField<'_>,
     e: &Extremum,
     theta: f64,
     params: &SiftParams,
@@ -149,6 +149,7 @@ fn normalise_and_quantise(hist: &mut [f32; DESCRIPTOR_LEN]) -> [u8; DESCRIPTOR_L
 mod tests {
     use super::*;
     use crate::vision::Image;
+    use crate::vision::sparse::sift::orientation::with_field;
 
     fn extremum(x: f64, y: f64, sigma: f64) -> Extremum {
         Extremum {
@@ -194,13 +195,10 @@ mod tests {
         let rot = Image::from_fn(n, n, |x, y| f(y as f64 - c, -(x as f64 - c)));
         let p = SiftParams::default();
         let e = extremum(c, c, 2.0);
-        let a = describe(&GradField::new(&img), &e, 0.3, &p).unwrap();
-        let b = describe(
-            &GradField::new(&rot),
-            &e,
-            0.3 + std::f64::consts::FRAC_PI_2,
-            &p,
-        )
+        let a = with_field(&img, |g| describe(g, &e, 0.3, &p)).unwrap();
+        let b = with_field(&rot, |g| {
+            describe(g, &e, 0.3 + std::f64::consts::FRAC_PI_2, &p)
+        })
         .unwrap();
         let dist: f64 = a
             .iter()
@@ -215,7 +213,7 @@ mod tests {
             norm.sqrt()
         );
         // And a different orientation gives a clearly different descriptor.
-        let c2 = describe(&GradField::new(&img), &e, 1.5, &p).unwrap();
+        let c2 = with_field(&img, |g| describe(g, &e, 1.5, &p)).unwrap();
         let d2: f64 = a
             .iter()
             .zip(&c2)
@@ -228,12 +226,12 @@ mod tests {
     fn patch_leaving_the_image_gives_none() {
         let img = Image::filled(30, 30, 0.5);
         assert!(
-            describe(
-                &GradField::new(&img),
+            with_field(&img, |g| describe(
+                g,
                 &extremum(5.0, 15.0, 2.0),
                 0.0,
                 &SiftParams::default()
-            )
+            ))
             .is_none()
         );
     }

@@ -5,7 +5,7 @@
 use rayon::prelude::*;
 
 use super::SiftParams;
-use super::scale_space::ScaleSpace;
+use super::scale_space::OctaveView;
 
 /// A refined DoG extremum, before orientation.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -33,41 +33,33 @@ const MAX_INTERP_STEPS: usize = 5;
 /// Offsets below this in every coordinate end the refinement (IPOL: 0.6).
 const MAX_OFFSET: f64 = 0.6;
 
-/// All keypoints of the scale space passing the contrast and edge tests.
+/// The keypoints of octave `o` passing the contrast and edge tests, by scale slot, row and
+/// column of the sample they were found at.
 ///
 /// The DoG threshold is `params.c_dog` scaled to `n_spo` as in IPOL eq. 21:
 /// `C_DoG · (2^(1/n_spo) − 1) / (2^(1/3) − 1)`, so the default 0.04/3 holds for 3 scales per octave.
 #[must_use]
-pub fn detect(ss: &ScaleSpace, params: &SiftParams) -> Vec<Extremum> {
+pub fn detect_octave(o: usize, oct: &OctaveView<'_>, params: &SiftParams) -> Vec<Extremum> {
     let n = params.n_spo as f64;
     let c_dog = params.c_dog * ((1.0 / n).exp2() - 1.0) / ((1.0f64 / 3.0).exp2() - 1.0);
     let edge_max = (params.c_edge + 1.0).powi(2) / params.c_edge;
-
-    let mut jobs = Vec::new();
-    for (o, oct) in ss.octaves.iter().enumerate() {
-        let h = oct.dog[0].height();
-        for s in 1..=params.n_spo {
-            for y in 1..h.saturating_sub(1) {
-                jobs.push((o, s, y));
-            }
-        }
-    }
+    let (w, h) = (oct.width(), oct.height());
+    let jobs: Vec<(usize, usize)> = (1..=params.n_spo)
+        .flat_map(|s| (1..h.saturating_sub(1)).map(move |y| (s, y)))
+        .collect();
     jobs.into_par_iter()
-        .flat_map_iter(|(o, s, y)| {
-            let oct = &ss.octaves[o];
-            let (below, here, above) = (&oct.dog[s - 1], &oct.dog[s], &oct.dog[s + 1]);
-            let w = here.width();
+        .flat_map_iter(|(s, y)| {
             let mut found = Vec::new();
             let pre = (0.8 * c_dog) as f32;
             for x in 1..w - 1 {
-                let v = here.get(x, y);
+                let v = oct.dog(s, x, y);
                 if v.abs() <= pre {
                     continue;
                 }
-                if !is_strict_extremum(v, [below, here, above], x, y) {
+                if !is_strict_extremum(v, oct, s, x, y) {
                     continue;
                 }
-                if let Some(e) = refine(ss, params, o, s, x, y, c_dog, edge_max) {
+                if let Some(e) = refine(oct, params, o, s, x, y, c_dog, edge_max) {
                     found.push(e);
                 }
             }
@@ -77,16 +69,17 @@ pub fn detect(ss: &ScaleSpace, params: &SiftParams) -> Vec<Extremum> {
 }
 
 /// `v` is strictly larger (or strictly smaller) than its 26 neighbours.
-fn is_strict_extremum(v: f32, layers: [&crate::vision::Image; 3], x: usize, y: usize) -> bool {
+/// `v = w_s(x, y)`; its neighbours are those of `w_{s−1}`, `w_s` and `w_{s+1}`.
+fn is_strict_extremum(v: f32, oct: &OctaveView<'_>, s: usize, x: usize, y: usize) -> bool {
     let mut is_max = true;
     let mut is_min = true;
-    for (l, img) in layers.iter().enumerate() {
+    for l in 0..3 {
         for yy in y - 1..=y + 1 {
             for xx in x - 1..=x + 1 {
                 if l == 1 && xx == x && yy == y {
                     continue;
                 }
-                let u = img.get(xx, yy);
+                let u = oct.dog(s + l - 1, xx, yy);
                 is_max &= v > u;
                 is_min &= v < u;
                 if !is_max && !is_min {
@@ -102,7 +95,7 @@ fn is_strict_extremum(v: f32, layers: [&crate::vision::Image; 3], x: usize, y: u
 /// edge test tr(H)²/det(H) < (C_edge + 1)²/C_edge on the spatial Hessian (Lowe eq. 12–13).
 #[allow(clippy::too_many_arguments)]
 fn refine(
-    ss: &ScaleSpace,
+    oct: &OctaveView<'_>,
     params: &SiftParams,
     o: usize,
     s0: usize,
@@ -111,15 +104,14 @@ fn refine(
     c_dog: f64,
     edge_max: f64,
 ) -> Option<Extremum> {
-    let oct = &ss.octaves[o];
-    let (w, h) = oct.dog[0].dimensions();
+    let (w, h) = (oct.width(), oct.height());
     let (mut s, mut x, mut y) = (s0, x0, y0);
     for _ in 0..MAX_INTERP_STEPS {
         let d = |ds: isize, dx: isize, dy: isize| -> f64 {
             let ss_ = (s as isize + ds) as usize;
             let xx = (x as isize + dx) as usize;
             let yy = (y as isize + dy) as usize;
-            f64::from(oct.dog[ss_].get(xx, yy))
+            f64::from(oct.dog(ss_, xx, yy))
         };
         let v = d(0, 0, 0);
         // Gradient and Hessian by central differences, variables ordered (s, x, y).
@@ -146,7 +138,7 @@ fn refine(
             if det <= 0.0 || (hxx + hyy).powi(2) / det >= edge_max {
                 return None;
             }
-            let delta = oct.delta;
+            let delta = oct.geometry.delta;
             let sigma_oct = params.sigma_min / params.delta_min
                 * ((s as f64 + alpha[0]) / params.n_spo as f64).exp2();
             let x_oct = x as f64 + alpha[1];

@@ -15,6 +15,8 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 pub use descriptor::DESCRIPTOR_LEN;
+use scale_space::ScaleSpace;
+pub use scale_space::ScaleSpaceBuffers;
 
 use crate::vision::Image;
 
@@ -172,14 +174,28 @@ impl SiftParams {
 /// # Errors
 /// [`SiftParamsError`] for invalid parameters.
 pub fn sift(image: &Image, params: &SiftParams) -> Result<Vec<Keypoint>, SiftParamsError> {
+    sift_with(image, params, &mut ScaleSpaceBuffers::default())
+}
+
+/// [`sift`] with the scale space's working memory in `buffers`, which keep it for the next
+/// image: the same keypoints as with fresh buffers.
+///
+/// # Errors
+/// [`SiftParamsError`] for invalid parameters.
+pub fn sift_with(
+    image: &Image,
+    params: &SiftParams,
+    buffers: &mut ScaleSpaceBuffers,
+) -> Result<Vec<Keypoint>, SiftParamsError> {
     params.validate()?;
-    let mut ss = scale_space::ScaleSpace::build(image, params);
-    let mut extrema = detector::detect(&ss, params);
-    // The differences served the detection only: their memory (5 images of
-    // the 2× upsampled first octave, 98 MB at 1280×960) goes to the gradient
-    // fields below.
-    for octave in &mut ss.octaves {
-        octave.dog = Vec::new();
+    let mut ss = ScaleSpace::new(image.dimensions(), params, buffers);
+    // Octave by octave in the same planes: detection reads each octave while it is whole.
+    let mut extrema = Vec::new();
+    for o in 0..ss.octaves.len() {
+        ss.build_octave(o, image, params);
+        ss.with_octave(o, |oct| {
+            extrema.extend(detector::detect_octave(o, oct, params));
+        });
     }
     if params.max_keypoints > 0 && extrema.len() > params.max_keypoints {
         // Keep the strongest; stable sort on a total order keeps the result deterministic.
@@ -192,42 +208,48 @@ pub fn sift(image: &Image, params: &SiftParams) -> Result<Vec<Keypoint>, SiftPar
                 .then(a.x_oct.total_cmp(&b.x_oct))
         });
     }
-    // Gradients of every image that holds a keypoint, once.
-    let mut used: Vec<(usize, usize)> = extrema.iter().map(|e| (e.octave, e.slot)).collect();
-    used.sort_unstable();
-    used.dedup();
-    let fields: Vec<((usize, usize), orientation::GradField)> = used
-        .par_iter()
-        .map(|&(o, s)| ((o, s), orientation::GradField::new(&ss.octaves[o].gauss[s])))
-        .collect();
-    // The fields hold all that orientation and description read.
-    drop(ss);
-    let field = |o: usize, s: usize| -> &orientation::GradField {
-        let i = fields
-            .binary_search_by(|(k, _)| k.cmp(&(o, s)))
-            .expect("a gradient field for every used image");
-        &fields[i].1
-    };
-    let keypoints = extrema
-        .par_iter()
-        .flat_map_iter(|e| {
-            let grad = field(e.octave, e.slot);
-            orientation::orientations(grad, e, params)
-                .into_iter()
-                .filter_map(|theta| {
-                    descriptor::describe(grad, e, theta, params).map(|descriptor| Keypoint {
-                        x: e.x,
-                        y: e.y,
-                        sigma: e.sigma,
-                        theta,
-                        response: e.response,
-                        descriptor,
-                    })
-                })
-                .collect::<Vec<_>>()
+    // The keypoints of one image (octave and slot) at a time: its gradient field, computed
+    // once into two planes that every image reuses, serves their orientations and descriptors.
+    let key = |i: &usize| (extrema[*i].octave, extrema[*i].slot);
+    let mut by_image: Vec<usize> = (0..extrema.len()).collect();
+    by_image.sort_by_key(key);
+    let mut described: Vec<Vec<Keypoint>> = vec![Vec::new(); extrema.len()];
+    for group in by_image.chunk_by(|a, b| key(a) == key(b)) {
+        let (o, s) = key(&group[0]);
+        let size = (ss.octaves[o].width, ss.octaves[o].height);
+        let (img, mag, ori) = ss.kept_slot_and_two_planes(o, s);
+        let grad = orientation::GradField::new(img, size, mag, ori);
+        let keypoints: Vec<(usize, Vec<Keypoint>)> = group
+            .par_iter()
+            .map(|&i| (i, describe(&grad, &extrema[i], params)))
+            .collect();
+        for (i, k) in keypoints {
+            described[i] = k;
+        }
+    }
+    Ok(described.into_iter().flatten().collect())
+}
+
+/// The keypoints of one extremum: one per dominant orientation whose descriptor patch lies
+/// in the image.
+fn describe(
+    grad: &orientation::GradField<'_>,
+    e: &detector::Extremum,
+    params: &SiftParams,
+) -> Vec<Keypoint> {
+    orientation::orientations(grad, e, params)
+        .into_iter()
+        .filter_map(|theta| {
+            descriptor::describe(grad, e, theta, params).map(|descriptor| Keypoint {
+                x: e.x,
+                y: e.y,
+                sigma: e.sigma,
+                theta,
+                response: e.response,
+                descriptor,
+            })
         })
-        .collect();
-    Ok(keypoints)
+        .collect()
 }
 
 #[cfg(test)]
@@ -319,6 +341,29 @@ mod tests {
             "{found} of {}",
             inside.len()
         );
+    }
+
+    /// Buffers that served a larger and then a smaller image give the keypoints that fresh ones
+    /// give, with and without the keypoint cap.
+    #[test]
+    fn reused_buffers_give_the_keypoints_of_fresh_ones() {
+        let (large, small) = (blobs(200, 150, 5), blobs(130, 97, 6));
+        let mut buffers = ScaleSpaceBuffers::default();
+        for params in [
+            SiftParams::default(),
+            SiftParams {
+                delta_min: 1.0,
+                sigma_min: 1.6,
+                max_keypoints: 12,
+                ..SiftParams::default()
+            },
+        ] {
+            for img in [&large, &small, &large] {
+                let fresh = sift(img, &params).unwrap();
+                assert!(!fresh.is_empty());
+                assert_eq!(sift_with(img, &params, &mut buffers).unwrap(), fresh);
+            }
+        }
     }
 
     #[test]
