@@ -157,7 +157,7 @@ impl CrossGrid {
                         continue;
                     }
                     let wy = 1.0 - dy.abs();
-                    for x in 0..w {
+                    for (x, &(x0, tx)) in columns.iter().enumerate() {
                         let p = y * w + x;
                         let v = &src[p];
                         if v.iter().all(|&b| b == 0.0) {
@@ -165,7 +165,6 @@ impl CrossGrid {
                             // at unusable pixels: the fill of a rotated canvas).
                             continue;
                         }
-                        let (x0, tx) = columns[x];
                         let fz = self.fz[p];
                         let z0 = fz as usize; // positive: truncation is the floor
                         e.include(x0, z0);
@@ -302,6 +301,8 @@ struct Extent {
 }
 
 impl Extent {
+    /// No cell: reversed ranges, the start of [`Extent::include`]'s minima and maxima.
+    #[allow(clippy::reversed_empty_ranges)]
     const EMPTY: Self = Self {
         x: usize::MAX..0,
         z: usize::MAX..0,
