@@ -159,7 +159,8 @@ impl Sampled<'_> {
         if !(x >= 0.0 && y >= 0.0 && x <= (w - 1) as f32 && y <= (h - 1) as f32) {
             return None;
         }
-        let (x0, y0) = (x.floor() as usize, y.floor() as usize);
+        // Non-negative (tested above): truncation is the floor, without a libm call.
+        let (x0, y0) = (x as usize, y as usize);
         let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));
         if let Some(m) = self.valid
             && !(m[y0 * w + x0] && m[y0 * w + x1] && m[y1 * w + x0] && m[y1 * w + x1])
@@ -209,6 +210,7 @@ fn refine_level(
     params: &RefineParams,
     iterations: usize,
     max_step: f32,
+    with_ncc: bool,
 ) -> RefinedFlow {
     let (w, h) = a.dimensions();
     let (u0, v0) = (&u_start[..], &v_start[..]);
@@ -267,6 +269,8 @@ fn refine_level(
             params.window_sigma,
             params.range_sigma,
             sums,
+            // Only the usable pixels' means are read.
+            Some(&usable),
         ))
     } else {
         None
@@ -312,12 +316,13 @@ fn refine_level(
     let (u0, v0) = (&u0, &v0);
     let mut u = u0.clone();
     let mut v = v0.clone();
-    let warped = |u: &[f32], v: &[f32], p: usize| -> Option<[f32; 3]> {
+    // Pixel `p` = (x, y) warped by its flow (by rows: no division per pixel).
+    let warped = |u: &[f32], v: &[f32], x: usize, y: usize| -> Option<[f32; 3]> {
+        let p = y * w + x;
         if !usable[p] {
             return None;
         }
-        let (x, y) = ((p % w) as f32, (p / w) as f32);
-        sb.at(x + u[p], y + v[p])
+        sb.at(x as f32 + u[p], y as f32 + v[p])
     };
     let mut clamped = vec![false; w * h];
     // Every product is written before it is read.
@@ -332,22 +337,22 @@ fn refine_level(
     let mut grid = Vec::new();
     for _ in 0..iterations {
         // Per pixel: the Gauss–Newton products with its own warp.
-        products.par_iter_mut().enumerate().for_each(|(p, out)| {
-            *out = {
-                let Some([bw, bx, by]) = warped(&u, &v, p) else {
+        products.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+            for (x, out) in row.iter_mut().enumerate() {
+                let Some([bw, bx, by]) = warped(&u, &v, x, y) else {
                     *out = [0.0; 6];
-                    return;
+                    continue;
                 };
-                let (gax, gay) = gradient_at(na.data(), w, h, p % w, p / w);
+                let (gax, gay) = gradient_at(na.data(), w, h, x, y);
                 let gx = 0.5 * (gax + bx);
                 let gy = if params.vertical {
                     0.5 * (gay + by)
                 } else {
                     0.0
                 };
-                let e = bw - na.data()[p];
-                [gx * gx, gx * gy, gy * gy, gx * e, gy * e, 1.0]
-            };
+                let e = bw - na.data()[y * w + x];
+                *out = [gx * gx, gx * gy, gy * gy, gx * e, gy * e, 1.0];
+            }
         });
         match &xb {
             // The steps below read the sums of usable pixels only.
@@ -392,19 +397,29 @@ fn refine_level(
             });
     }
     // Quality of the final match: NCC of the normalised images over the window,
-    // from the sums of [aa, bb, ab, 1].
+    // from the sums of [aa, bb, ab, 1]. A coarser level's is not used.
     drop((scratch, grid));
+    if !with_ncc {
+        return RefinedFlow {
+            u,
+            v,
+            ncc: Vec::new(),
+            clamped,
+        };
+    }
     work.resize(8 * n, 0.0);
     let (sums, scratch) = work.split_at_mut(4 * n);
     let (sums, scratch) = (sums.as_chunks_mut::<4>().0, scratch.as_chunks_mut::<4>().0);
-    sums.par_iter_mut().enumerate().for_each(|(p, s)| {
-        *s = match warped(&u, &v, p) {
-            Some([bw, _, _]) => {
-                let av = na.data()[p];
-                [av * av, bw * bw, av * bw, 1.0]
-            }
-            None => [0.0; 4],
-        };
+    sums.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+        for (x, s) in row.iter_mut().enumerate() {
+            *s = match warped(&u, &v, x, y) {
+                Some([bw, _, _]) => {
+                    let av = na.data()[y * w + x];
+                    [av * av, bw * bw, av * bw, 1.0]
+                }
+                None => [0.0; 4],
+            };
+        }
     });
     // The Gaussian window here even with `range_sigma`: as good a confidence
     // (simulated scenes) for less time.
@@ -457,7 +472,7 @@ pub fn upsample_flow(
             y as f32 * fy_scale
         }
         .min((hc - 1) as f32);
-        let y0 = fy.floor() as usize;
+        let y0 = fy as usize; // non-negative: truncation is the floor
         let y1 = (y0 + 1).min(hc - 1);
         let ty = fy - y0 as f32;
         for (x, o) in row.iter_mut().enumerate() {
@@ -467,7 +482,7 @@ pub fn upsample_flow(
                 x as f32 * fx_scale
             }
             .min((wc - 1) as f32);
-            let x0 = fx.floor() as usize;
+            let x0 = fx as usize; // non-negative: truncation is the floor
             let x1 = (x0 + 1).min(wc - 1);
             let tx = fx - x0 as f32;
             let top = coarse[y0 * wc + x0] * (1.0 - tx) + coarse[y0 * wc + x1] * tx;
@@ -577,6 +592,8 @@ pub fn refine_flow_to_level(
             },
             // A coarse level may move a little more: its error doubles on the way up.
             if l > 0 { max_step.max(1.0) } else { max_step },
+            // Only the last level's NCC is kept.
+            l == stop,
         ));
     }
     result.expect("level `stop` always runs")

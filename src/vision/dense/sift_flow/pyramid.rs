@@ -127,12 +127,12 @@ pub fn upsample_offsets(coarse: &[f32], wc: usize, hc: usize, wf: usize, hf: usi
     let mut out = vec![0i32; wf * hf];
     out.par_chunks_mut(wf).enumerate().for_each(|(y, row)| {
         let fy = (y as f32 / 2.0).min((hc - 1) as f32);
-        let y0 = fy.floor() as usize;
+        let y0 = fy as usize; // non-negative: truncation is the floor
         let y1 = (y0 + 1).min(hc - 1);
         let ty = fy - y0 as f32;
         for (x, o) in row.iter_mut().enumerate() {
             let fx = (x as f32 / 2.0).min((wc - 1) as f32);
-            let x0 = fx.floor() as usize;
+            let x0 = fx as usize; // non-negative: truncation is the floor
             let x1 = (x0 + 1).min(wc - 1);
             let tx = fx - x0 as f32;
             let top = coarse[y0 * wc + x0] * (1.0 - tx) + coarse[y0 * wc + x1] * tx;
