@@ -701,15 +701,14 @@ fn left_right_consistency(
                 *c = ambiguity[p] * agreement[p];
             }
         });
-    if params.support.enabled
-        && let Some(judged) = support::support_test(
+    if params.support.enabled {
+        let judged = support::support_test(
             (&inputs.a, &inputs.b),
             (va, vb),
             &raw,
             &params.support,
             crate::vision::pipeline::matcher_window_sigma(params) as f32,
-        )
-    {
+        );
         raw.data_mut()
             .par_iter_mut()
             .zip(confidence.data_mut().par_iter_mut())

@@ -1,44 +1,62 @@
 //! Whether the micrographs support a match, pixel by pixel (beyond the paper): where they
 //! cannot tell, the disparity is unknown rather than invented by the matcher's smoothness.
 //!
-//! Two tests on the rectified pair (parallax along +x), beside the left–right check of
-//! [`super::consistency`]:
-//! Both judge the matcher's own Gaussian window (σ of the intensity refinement, or the
-//! descriptor's extent), which is what decides a match:
-//! 1. **texture**: the Cramér–Rao bound of the disparity over the window
-//!    ([`crate::vision::precision`]: `σ_d² = 2σ² / (N · ḡ²)`, `N = 4πσ_w²`), with the
-//!    signal-to-noise ratio of the gradient energy along x measured by the correlation of
-//!    both images' gradients at the match (their noise is independent, their texture common),
-//!    so that neither the noise's level nor its correlation after resampling has to be known;
-//!    above `max_bound_px` the window has no texture along the parallax that stands out of
-//!    the noise. The texture must hold throughout the window (every pixel within `2σ_w`
-//!    passes): beside a featureless area a window textured only at its edge takes the
+//! Three tests on the rectified pair (parallax along +x), beside the left–right check of
+//! [`super::consistency`], all over the matcher's own Gaussian window (σ_w of the intensity
+//! refinement, or the descriptor's extent), which is what decides a match. They compare the
+//! gradients along x of both micrographs at the match, after a light Gaussian pre-smoothing
+//! (`band_sigma`): their noise is independent and their texture common, so their correlation
+//! `ρ` over the window measures the texture against the noise without knowing the noise's
+//! level. Real micrographs carry most of their noise at the finest scale and their texture a
+//! little above it; the pre-smoothing keeps the texture and drops most of the noise.
+//! 1. **texture**: `ρ` must stand out of its spread on noise alone by `min_significance`
+//!    standard deviations of it (`√(A/N)`, `N = 4πσ_w²` the window's pixels and `A` the
+//!    correlation area of the filtered noise), and the Cramér–Rao bound of the disparity
+//!    ([`crate::vision::precision`]: `σ_d² = 2σ² / (N ḡ²)`) that the texture implies must not
+//!    exceed `max_bound_px`: `1 / σ_d² ≥ N s c / 2` in either band (pre-smoothed or not), with
+//!    `s = ρ / (1 − ρ)` the band's signal-to-noise ratio and `c` its filter's gain on white
+//!    noise. Optionally (`wider_window`) a wider window may show the texture instead;
+//! 2. **where the texture lies**: the centroid of the window's texture energy (`g_a g_b`)
+//!    must lie within `max_texture_offset · σ_w` of the pixel (a pixel at the edge of a
+//!    uniformly textured half-plane sees it at `0.8 σ_w`), and within `step_texture_offset ·
+//!    σ_w` where the window straddles a step of the disparity (its scatter about a plane above
+//!    `max_step_px`): beside a featureless area a window textured only at its rim takes the
 //!    disparity of whatever lies there (a raised feature's), not its own;
-//! 2. **distinctiveness**: the window's mean squared difference between the left image and
-//!    the right one at the match, against the same at offsets of 2 to `reach_px` pixels along
-//!    the row; when another offset comes within `min_distinctiveness` standard deviations of
-//!    the noise's share of that difference (`2σ² · √(2/N)`, σ the noise floor that
-//!    [`noise_sigma`] estimates), the matching cost has no unique minimum (repetitive or flat
-//!    texture) and the match is ambiguous.
+//! 3. **distinctiveness**: the window's mean squared difference of both micrographs'
+//!    (pre-smoothed) gradients at the match, against the same at offsets of 2 to `reach_px`
+//!    pixels along the row; when an offset beyond a rise of that cost comes back within
+//!    `min_distinctiveness` standard deviations of the match's (`c₀ · √(A/N)`, `c₀` what the
+//!    match leaves unexplained), the cost has no unique minimum (repetitive texture) and the
+//!    match is ambiguous.
 
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::vision::Image;
 use crate::vision::filter::blur::blur_plane;
-use crate::vision::precision::noise_sigma;
 
 /// Parameters of the support test (`[reconstruction.dense.support]`).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct SupportParams {
-    /// Leave unknown the pixels the micrographs do not support (opt-in: on real pairs it still
-    /// leaves too much unknown, see README).
+    /// Leave unknown the pixels the micrographs do not support (opt-in: on real pairs it still leaves too much unknown, see README).
     pub enabled: bool,
-    /// σ of the Gaussian window both tests judge, pixels; 0: the matcher's own window.
+    /// σ of the Gaussian window the tests judge, pixels; 0: the matcher's own window.
     pub window_sigma: f32,
-    /// Largest Cramér–Rao bound of the disparity (texture along the parallax against the noise floor), pixels.
+    /// σ of the Gaussian pre-smoothing of both micrographs before their gradients are compared, pixels; 0: none.
+    pub band_sigma: f32,
+    /// Least correlation of both micrographs' gradients at the match, in standard deviations of its spread on noise alone.
+    pub min_significance: f32,
+    /// Largest Cramér–Rao bound of the disparity (texture along the parallax against the noise), pixels.
     pub max_bound_px: f32,
+    /// Largest distance of the window's texture centroid from the pixel, in window σ.
+    pub max_texture_offset: f32,
+    /// Scatter of the disparity about a plane over the window above which the window straddles a step, pixels.
+    pub max_step_px: f32,
+    /// Largest distance of the texture centroid from the pixel beside a step, in window σ.
+    pub step_texture_offset: f32,
+    /// The texture may also hold over a window this many times wider (the disparity smooth across it); 1: only the matcher's.
+    pub wider_window: f32,
     /// Offsets along the row that compete with the match, up to this many pixels (0: no distinctiveness test).
     pub reach_px: usize,
     /// Least excess of a competing offset's mean squared difference over the match's, in standard deviations of the noise's share.
@@ -50,7 +68,13 @@ impl Default for SupportParams {
         Self {
             enabled: false,
             window_sigma: 0.0,
-            max_bound_px: 0.2,
+            band_sigma: 1.0,
+            min_significance: 4.0,
+            max_bound_px: 0.3,
+            max_texture_offset: 1.0,
+            max_step_px: 0.5,
+            step_texture_offset: 0.25,
+            wider_window: 1.0,
             reach_px: 16,
             min_distinctiveness: 4.0,
         }
@@ -62,13 +86,26 @@ impl SupportParams {
     #[must_use]
     pub fn invalid_field(&self) -> Option<&'static str> {
         let sigma_ok = |s: f32| s.is_finite() && (s == 0.0 || (0.5..=32.0).contains(&s));
+        let non_negative = |v: f32| v.is_finite() && v >= 0.0;
         if !sigma_ok(self.window_sigma) {
             Some("support.window_sigma")
+        } else if !(non_negative(self.band_sigma) && self.band_sigma <= 8.0) {
+            Some("support.band_sigma")
+        } else if !non_negative(self.min_significance) {
+            Some("support.min_significance")
         } else if !(self.max_bound_px.is_finite() && self.max_bound_px > 0.0) {
             Some("support.max_bound_px")
+        } else if !(self.max_texture_offset.is_finite() && self.max_texture_offset > 0.0) {
+            Some("support.max_texture_offset")
+        } else if !(self.max_step_px.is_finite() && self.max_step_px > 0.0) {
+            Some("support.max_step_px")
+        } else if !(self.step_texture_offset.is_finite() && self.step_texture_offset > 0.0) {
+            Some("support.step_texture_offset")
+        } else if !(self.wider_window.is_finite() && (1.0..=8.0).contains(&self.wider_window)) {
+            Some("support.wider_window")
         } else if self.reach_px > 256 {
             Some("support.reach_px")
-        } else if !(self.min_distinctiveness.is_finite() && self.min_distinctiveness >= 0.0) {
+        } else if !non_negative(self.min_distinctiveness) {
             Some("support.min_distinctiveness")
         } else {
             None
@@ -147,25 +184,43 @@ fn window_mean(values: &[f32], mask: &[f32], w: usize, h: usize, sigma: f32) -> 
         .collect()
 }
 
-/// Per pixel, whether a `mark`ed pixel lies within `r` pixels (a square), in two passes of
-/// running counts.
-fn near(mark: &[bool], w: usize, h: usize, r: usize) -> Vec<bool> {
-    let rows: Vec<bool> = mark
-        .par_chunks(w)
-        .flat_map_iter(|row| {
-            let mut prefix = vec![0u32; w + 1];
-            for (x, &m) in row.iter().enumerate() {
-                prefix[x + 1] = prefix[x] + u32::from(m);
-            }
-            (0..w).map(move |x| prefix[(x + r + 1).min(w)] > prefix[x.saturating_sub(r)])
-        })
-        .collect();
-    let mut out = vec![false; w * h];
-    out.par_iter_mut().enumerate().for_each(|(q, o)| {
-        let (x, y) = (q % w, q / w);
-        *o = (y.saturating_sub(r)..(y + r + 1).min(h)).any(|yy| rows[yy * w + x]);
-    });
-    out
+/// The band the gradients are compared in: Gaussian pre-smoothing of σ `band` (none at 0),
+/// then the central difference along x. Returns `(c, A)`: the filter's gain on white noise of
+/// unit variance (the variance of its output) and the correlation area `Σ_d r(d)²` of its output
+/// (`r` the normalised autocorrelation), so that the correlation of two such independent noise
+/// fields over a window of `N` effective pixels spreads by `√(A / N)`.
+fn band_gain(band: f32) -> (f32, f32) {
+    let taps: Vec<f64> = if band > 0.0 {
+        let s = f64::from(band);
+        #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
+        let r = (3.0 * s).ceil() as i64;
+        let t: Vec<f64> = (-r..=r)
+            .map(|k| (-(k * k) as f64 / (2.0 * s * s)).exp())
+            .collect();
+        let sum: f64 = t.iter().sum();
+        t.into_iter().map(|v| v / sum).collect()
+    } else {
+        vec![1.0]
+    };
+    // Along x the smoothing and the difference [½, 0, −½]; along y the smoothing alone.
+    let mut dx = vec![0.0; taps.len() + 2];
+    for (i, t) in taps.iter().enumerate() {
+        dx[i] += 0.5 * t;
+        dx[i + 2] -= 0.5 * t;
+    }
+    let auto = |k: &[f64]| -> (f64, f64) {
+        let r: Vec<f64> = (0..k.len())
+            .map(|d| k.iter().zip(&k[d..]).map(|(a, b)| a * b).sum())
+            .collect();
+        let area = r.iter().enumerate().map(|(d, v)| {
+            let s = (v / r[0]).powi(2);
+            if d == 0 { s } else { 2.0 * s }
+        });
+        (r[0], area.sum())
+    };
+    let ((cx, ax), (cy, ay)) = (auto(&dx), auto(&taps));
+    #[allow(clippy::cast_possible_truncation)]
+    ((cx * cy) as f32, (ax * ay) as f32)
 }
 
 /// The offsets a match competes with, both signs, up to `reach`.
@@ -178,11 +233,58 @@ fn offsets(reach: usize) -> Vec<f32> {
     s.iter().flat_map(|&s| [s as f32, -(s as f32)]).collect()
 }
 
+/// `image` smoothed by a Gaussian of σ `band` over its `valid` pixels only (normalised
+/// convolution: the canvas's blank border does not bleed in as an edge); unchanged at 0.
+fn smoothed(image: &Image, valid: &[bool], band: f32) -> Vec<f32> {
+    if band <= 0.0 {
+        return image.data().to_vec();
+    }
+    let (w, h) = image.dimensions();
+    let mask: Vec<f32> = valid.iter().map(|&v| f32::from(u8::from(v))).collect();
+    window_mean(image.data(), &mask, w, h, band)
+}
+
+/// Per pixel, the standard deviation of the disparity `d` (`NaN` unknown) about its
+/// least-squares plane over a Gaussian window of σ `sigma`: large where the window straddles
+/// a step, small on a slope. `NaN` where the window holds (almost) no disparity.
+fn step_scatter(d: &[f32], w: usize, h: usize, sigma: f32) -> Vec<f32> {
+    let (cx, cy) = ((w / 2) as f32, (h / 2) as f32);
+    // The moments m, m d, m d², m X, m X d, m X², m Y, m Y d, m Y² (X, Y from the centre).
+    let moments: Vec<[f32; 9]> = d
+        .par_iter()
+        .enumerate()
+        .map(|(q, &v)| {
+            if !v.is_finite() {
+                return [0.0; 9];
+            }
+            let (x, y) = ((q % w) as f32 - cx, (q / w) as f32 - cy);
+            [1.0, v, v * v, x, x * v, x * x, y, y * v, y * y]
+        })
+        .collect();
+    let blurred = crate::vision::filter::blur::blur(&moments, w, h, sigma);
+    blurred
+        .par_iter()
+        .map(|s| {
+            let m = s[0];
+            if m <= 1e-3 {
+                return f32::NAN;
+            }
+            let mean = |k: usize| s[k] / m;
+            let var_d = mean(2) - mean(1) * mean(1);
+            let (var_x, cov_x) = (mean(5) - mean(3) * mean(3), mean(4) - mean(3) * mean(1));
+            let (var_y, cov_y) = (mean(8) - mean(6) * mean(6), mean(7) - mean(6) * mean(1));
+            let along = |var: f32, cov: f32| if var > 1e-3 { cov * cov / var } else { 0.0 };
+            (var_d - along(var_x, cov_x) - along(var_y, cov_y))
+                .max(0.0)
+                .sqrt()
+        })
+        .collect()
+}
+
 /// The support test of the matches `disparity` (left canvas, `NaN` unknown) of the rectified
 /// pair `(a, b)` with validity `(va, vb)`, over a window of σ `sigma` pixels (the matcher's,
 /// unless `params.window_sigma` names one): per pixel [`Unknown::NoTexture`],
-/// [`Unknown::Ambiguous`] or [`Unknown::Measured`] (supported, or no match to judge). `None`
-/// when the noise floor cannot be measured (then nothing is judged).
+/// [`Unknown::Ambiguous`] or [`Unknown::Measured`] (supported, or no match to judge).
 #[must_use]
 pub fn support_test(
     (a, b): (&Image, &Image),
@@ -190,138 +292,220 @@ pub fn support_test(
     disparity: &Image,
     params: &SupportParams,
     sigma: f32,
-) -> Option<Vec<Unknown>> {
+) -> Vec<Unknown> {
     let sigma = if params.window_sigma > 0.0 {
         params.window_sigma
     } else {
         sigma.max(0.5)
     };
     let (w, h) = a.dimensions();
-    let (ad, bd) = (a.data(), b.data());
-    // The squared difference of the two images at the match and at an offset along the row.
     let du = disparity.data();
-    let matched = |s: f32| -> (Vec<f32>, Vec<f32>) {
+    // The gradients along x of both images, as they are and pre-smoothed (the band).
+    let grad = |d: &[f32], v: &[bool], q: usize| -> Option<f32> {
+        let x = q % w;
+        (x > 0 && x + 1 < w && v[q - 1] && v[q] && v[q + 1])
+            .then(|| 0.5 * (d[q + 1] - d[q - 1]))
+            .filter(|g| g.is_finite())
+    };
+    // The right image's gradient at the match shifted by `s` along the row.
+    let at_match = |sb: &[f32], q: usize, s: f32| -> Option<f32> {
+        let xr = (q % w) as f32 + du[q] + s;
+        if !(1.0..=(w - 2) as f32).contains(&xr) {
+            return None;
+        }
+        let x0 = xr.floor() as usize;
+        let row = q - q % w;
+        let (g0, g1) = (grad(sb, vb, row + x0)?, grad(sb, vb, row + x0 + 1)?);
+        Some(g0 + (xr - x0 as f32) * (g1 - g0))
+    };
+    // Per pixel g_a g_b, g_a², g_b² and whether both gradients exist.
+    type Planes = (Vec<f32>, (Vec<f32>, (Vec<f32>, Vec<f32>)));
+    let products = |sa: &[f32], sb: &[f32]| -> Planes {
         (0..w * h)
             .into_par_iter()
             .map(|q| {
-                let d = du[q];
-                if !va[q] || !d.is_finite() {
-                    return (0.0, 0.0);
-                }
-                let xr = (q % w) as f32 + d + s;
-                if xr < 0.0 || xr > (w - 1) as f32 {
-                    return (0.0, 0.0);
-                }
-                let x0 = xr.floor() as usize;
-                let x1 = (x0 + 1).min(w - 1);
-                let row = q - q % w;
-                if !(vb[row + x0] && vb[row + x1]) {
-                    return (0.0, 0.0);
-                }
-                let t = xr - x0 as f32;
-                let v = bd[row + x0] + t * (bd[row + x1] - bd[row + x0]);
-                let e = ad[q] - v;
-                (e * e, 1.0)
+                let none = (0.0, (0.0, (0.0, 0.0)));
+                let Some(ga) = grad(sa, va, q).filter(|_| du[q].is_finite()) else {
+                    return none;
+                };
+                let Some(gb) = at_match(sb, q, 0.0) else {
+                    return none;
+                };
+                (ga * gb, (ga * ga, (gb * gb, 1.0)))
             })
             .unzip()
     };
-    let (e0, m0) = matched(0.0);
-    // The noise floor ([`noise_sigma`], Immerkær) scales the distinctiveness test.
-    let noise = [noise_sigma(a, Some(va))?, noise_sigma(b, Some(vb))?];
-    let noise_var = (0.5 * (noise[0] * noise[0] + noise[1] * noise[1])) as f32;
-    // 1. Texture: the gradients along x of both images at the match. Their noise is
-    // independent and their texture common, so over the window the correlation
-    // ρ = ⟨g_a g_b⟩ / √(⟨g_a²⟩⟨g_b²⟩) is s / (1 + s) for a signal-to-noise ratio s of the
-    // gradient energy, whatever the noise's level or its correlation after resampling; with
-    // the noise's gradient variance σ²/2 the bound is σ_d² = 2σ² / (N s σ²/2) = 4 / (N s).
-    let grad = |d: &[f32], v: &[bool], q: usize| -> Option<f32> {
-        let x = q % w;
-        (x > 0 && x + 1 < w && v[q - 1] && v[q] && v[q + 1]).then(|| 0.5 * (d[q + 1] - d[q - 1]))
+    // 1. Texture: over a window the correlation ρ = ⟨g_a g_b⟩ / √(⟨g_a²⟩⟨g_b²⟩) of the two
+    // gradients at the match is s / (1 + s) for a signal-to-noise ratio s of the band's
+    // gradient energy (their noise independent, their texture common), whatever the noise's
+    // level.
+    let correlation = |(gab, (gaa, (gbb, gm))): &Planes, sigma: f32| -> Vec<f32> {
+        let (mab, (maa, mbb)) = rayon::join(
+            || window_mean(gab, gm, w, h, sigma),
+            || {
+                rayon::join(
+                    || window_mean(gaa, gm, w, h, sigma),
+                    || window_mean(gbb, gm, w, h, sigma),
+                )
+            },
+        );
+        (0..w * h)
+            .into_par_iter()
+            .map(|q| mab[q] / (maa[q] * mbb[q]).sqrt())
+            .collect()
     };
-    type Planes = (Vec<f32>, (Vec<f32>, (Vec<f32>, Vec<f32>)));
-    let (gab, (gaa, (gbb, gm))): Planes = (0..w * h)
-        .into_par_iter()
-        .map(|q| {
-            let none = (0.0, (0.0, (0.0, 0.0)));
-            let d = du[q];
-            let Some(ga) = grad(ad, va, q).filter(|_| d.is_finite()) else {
-                return none;
-            };
-            let xr = (q % w) as f32 + d;
-            if xr < 1.0 || xr > (w - 2) as f32 {
-                return none;
-            }
-            let x0 = xr.floor() as usize;
-            let row = q - q % w;
-            let (Some(g0), Some(g1)) = (grad(bd, vb, row + x0), grad(bd, vb, row + x0 + 1)) else {
-                return none;
-            };
-            let gb = g0 + (xr - x0 as f32) * (g1 - g0);
-            (ga * gb, (ga * ga, (gb * gb, 1.0)))
-        })
-        .unzip();
-    let (mab, (maa, mbb)) = rayon::join(
-        || window_mean(&gab, &gm, w, h, sigma),
-        || {
-            rayon::join(
-                || window_mean(&gaa, &gm, w, h, sigma),
-                || window_mean(&gbb, &gm, w, h, sigma),
-            )
-        },
+    let (sa, sb) = rayon::join(
+        || smoothed(a, va, params.band_sigma),
+        || smoothed(b, vb, params.band_sigma),
     );
-    let n_eff = 4.0 * std::f32::consts::PI * sigma * sigma;
+    let band = products(&sa, &sb);
+    let raw = (params.band_sigma > 0.0).then(|| products(a.data(), b.data()));
+    let (gain_band, area_band) = band_gain(params.band_sigma);
+    let (gain_raw, _) = band_gain(0.0);
     let max_var = params.max_bound_px * params.max_bound_px;
-    let textured: Vec<bool> = (0..w * h)
-        .into_par_iter()
-        .map(|q| {
-            let rho = mab[q] / (maa[q] * mbb[q]).sqrt();
-            // s = ρ / (1 − ρ); 4 / (N s) ≤ max²  ⇔  4 (1 − ρ) ≤ N ρ max².
-            rho.is_finite() && rho > 0.0 && 4.0 * (1.0 - rho) <= n_eff * rho * max_var
-        })
-        .collect();
-    #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
-    let reach = (2.0 * sigma).ceil() as usize;
-    let flat: Vec<bool> = textured.iter().zip(va).map(|(t, v)| *v && !t).collect();
-    let textured: Vec<bool> = near(&flat, w, h, reach)
-        .into_iter()
-        .zip(&textured)
-        .map(|(n, t)| *t && !n)
-        .collect();
-    // 2. Distinctiveness: the match's window against competing offsets'.
-    let at_match = window_mean(&e0, &m0, w, h, sigma);
-    let mut least_excess = vec![f32::INFINITY; w * h];
-    for s in offsets(params.reach_px) {
-        let (e, m) = matched(s);
-        let c = window_mean(&e, &m, w, h, sigma);
-        least_excess
-            .par_iter_mut()
-            .zip(&c)
-            .zip(&at_match)
-            .for_each(|((l, &c), &c0)| {
-                if c.is_finite() && c0.is_finite() {
-                    *l = l.min(c - c0);
-                }
-            });
-    }
-    // The noise's own mean squared difference between the two images is 2σ²; its window
-    // mean varies by about 2σ² · √(2/N).
-    let min_excess = params.min_distinctiveness * 2.0 * noise_var * (2.0 / n_eff).sqrt();
-    Some(
+    // The information 1/σ_d² = N s c / 2 of a band whose gradients correlate by ρ over N
+    // pixels; the images hold at least as much as either band.
+    let information = |rho: f32, gain: f32, n: f32| -> f32 {
+        if rho.is_finite() && rho > 0.0 {
+            n * gain * rho / (2.0 * (1.0 - rho).max(1e-6))
+        } else {
+            0.0
+        }
+    };
+    // Whether a window of σ `s` shows texture that stands out of the noise and bounds the
+    // disparity within `max_bound_px`.
+    let textured_at = |s: f32| -> Vec<bool> {
+        let n = 4.0 * std::f32::consts::PI * s * s;
+        let min_rho = params.min_significance * (area_band / n).sqrt();
+        let (rho_band, rho_raw) = rayon::join(
+            || correlation(&band, s),
+            || raw.as_ref().map(|r| correlation(r, s)),
+        );
         (0..w * h)
             .into_par_iter()
             .map(|q| {
-                if !va[q] || !du[q].is_finite() {
-                    Unknown::Measured
-                } else if !textured[q] {
-                    Unknown::NoTexture
-                } else if least_excess[q] < min_excess {
-                    Unknown::Ambiguous
-                } else {
-                    Unknown::Measured
-                }
+                let rho = rho_band[q];
+                let info = information(rho, gain_band, n).max(
+                    rho_raw
+                        .as_ref()
+                        .map_or(0.0, |r| information(r[q], gain_raw, n)),
+                );
+                rho.is_finite() && rho >= min_rho && info * max_var >= 1.0
             })
-            .collect(),
-    )
+            .collect()
+    };
+    let mut textured = textured_at(sigma);
+    if params.wider_window > 1.0 {
+        let wide = textured_at(sigma * params.wider_window);
+        textured
+            .par_iter_mut()
+            .zip(&wide)
+            .for_each(|(t, w)| *t |= w);
+    }
+    // 2. Where the texture lies: the window's centroid of the band's texture energy g_a g_b
+    // (signed: the noise's products average out instead of pulling the centroid to the
+    // pixel), relative to the canvas centre to keep the sums small.
+    let (cx, cy) = ((w / 2) as f32, (h / 2) as f32);
+    let energy = &band.0;
+    let at_x: Vec<f32> = energy
+        .par_iter()
+        .enumerate()
+        .map(|(q, e)| e * ((q % w) as f32 - cx))
+        .collect();
+    let at_y: Vec<f32> = energy
+        .par_iter()
+        .enumerate()
+        .map(|(q, e)| e * ((q / w) as f32 - cy))
+        .collect();
+    let (me, (mx, my)) = rayon::join(
+        || blur_plane(energy, w, h, sigma),
+        || {
+            rayon::join(
+                || blur_plane(&at_x, w, h, sigma),
+                || blur_plane(&at_y, w, h, sigma),
+            )
+        },
+    );
+    // Beside a step of the disparity (its window's scatter about a plane above
+    // `max_step_px`) the matcher's window straddles two surfaces and lends the textured
+    // one's disparity to a featureless neighbour: there the texture must be the pixel's own.
+    let step = step_scatter(du, w, h, sigma);
+    let max_offset = params.max_texture_offset * sigma;
+    let own_offset = params.step_texture_offset * sigma;
+    textured.par_iter_mut().enumerate().for_each(|(q, t)| {
+        let (ox, oy) = (
+            mx[q] / me[q] - ((q % w) as f32 - cx),
+            my[q] / me[q] - ((q / w) as f32 - cy),
+        );
+        let allowed = if step[q] > params.max_step_px {
+            own_offset
+        } else {
+            max_offset
+        };
+        *t &= me[q] > 0.0 && ox * ox + oy * oy <= allowed * allowed;
+    });
+    // 3. Distinctiveness: the window's mean squared difference of the band's gradients at
+    // the match against the same at competing offsets. Gradients, not intensities: a change
+    // of brightness between the tilts, over a shading gradient, would otherwise favour an
+    // offset by itself. What the match leaves unexplained (noise, and the differences of two
+    // views) makes the match's mean c₀; on such a residual another offset's mean differs
+    // from it by about c₀ · √(A/N).
+    let difference = |s: f32| -> (Vec<f32>, Vec<f32>) {
+        (0..w * h)
+            .into_par_iter()
+            .map(|q| {
+                let pair = grad(&sa, va, q)
+                    .filter(|_| du[q].is_finite())
+                    .zip(at_match(&sb, q, s));
+                pair.map_or((0.0, 0.0), |(ga, gb)| ((ga - gb) * (ga - gb), 1.0))
+            })
+            .unzip()
+    };
+    let (e0, m0) = difference(0.0);
+    let c0 = window_mean(&e0, &m0, w, h, sigma);
+    let n_eff = 4.0 * std::f32::consts::PI * sigma * sigma;
+    let spread = (area_band / n_eff).sqrt();
+    let min_excess: Vec<f32> = c0
+        .par_iter()
+        .map(|c| params.min_distinctiveness * c * spread)
+        .collect();
+    // An offset competes only beyond a rise of the cost on its side: a cost that stays low
+    // from the match out to it is a broad minimum, which the texture test's bound judges.
+    let mut rose = [vec![false; w * h], vec![false; w * h]];
+    let mut ambiguous = vec![false; w * h];
+    for s in offsets(params.reach_px) {
+        let (e, m) = difference(s);
+        let c = window_mean(&e, &m, w, h, sigma);
+        let side = &mut rose[usize::from(s < 0.0)];
+        ambiguous
+            .par_iter_mut()
+            .zip(side.par_iter_mut())
+            .enumerate()
+            .for_each(|(q, (amb, rose))| {
+                let (c, c0) = (c[q], c0[q]);
+                if c.is_finite() && c0.is_finite() {
+                    if c - c0 >= min_excess[q] {
+                        *rose = true;
+                    } else if *rose {
+                        *amb = true;
+                    }
+                }
+            });
+    }
+    (0..w * h)
+        .into_par_iter()
+        .map(|q| {
+            if !va[q] || !du[q].is_finite() {
+                Unknown::Measured
+            } else if !textured[q] {
+                Unknown::NoTexture
+            } else if ambiguous[q] {
+                Unknown::Ambiguous
+            } else {
+                Unknown::Measured
+            }
+        })
+        .collect()
 }
 
 #[cfg(test)]
@@ -367,8 +551,7 @@ mod tests {
             &disparity,
             &SupportParams::default(),
             3.0,
-        )
-        .unwrap();
+        );
         let at = |x: usize| r[20 * 120 + x];
         assert_eq!(at(30), Unknown::Measured);
         assert_eq!(at(80), Unknown::NoTexture);
@@ -391,26 +574,15 @@ mod tests {
             &disparity,
             &SupportParams::default(),
             3.0,
-        )
-        .unwrap();
+        );
         assert_eq!(r[20 * w + 50], Unknown::Ambiguous);
         // Without competing offsets the same pixel passes.
         let none = SupportParams {
             reach_px: 0,
             ..SupportParams::default()
         };
-        let r = support_test((&a, &b), (&valid, &valid), &disparity, &none, 3.0).unwrap();
+        let r = support_test((&a, &b), (&valid, &valid), &disparity, &none, 3.0);
         assert_eq!(r[20 * w + 50], Unknown::Measured);
-    }
-
-    #[test]
-    fn near_marks_the_square_around_each_mark() {
-        let mut mark = vec![false; 7 * 5];
-        mark[2 * 7 + 3] = true;
-        let n = near(&mark, 7, 5, 1);
-        let count = n.iter().filter(|&&b| b).count();
-        assert_eq!(count, 9);
-        assert!(n[7 + 2] && n[3 * 7 + 4] && !n[3 * 7 + 5] && !n[0]);
     }
 
     /// A flat floor beside a textured block: the floor pixels whose window (σ 3) reaches the
@@ -445,13 +617,90 @@ mod tests {
             &disparity,
             &SupportParams::default(),
             3.0,
-        )
-        .unwrap();
+        );
         let row = &r[15 * w..16 * w];
         assert_eq!(row[30], Unknown::Measured);
         for (x, u) in row.iter().enumerate().take(90).skip(56) {
             assert_eq!(*u, Unknown::NoTexture, "x = {x}");
         }
+    }
+
+    /// Roughly Gaussian deviates of standard deviation `sd` (sum of three uniforms).
+    fn gaussian(state: &mut u64, sd: f32) -> f32 {
+        (uniform(state) + uniform(state) + uniform(state) - 1.5) * 2.0 * sd
+    }
+
+    /// Noise alone in both images, at any disparity: no pixel is supported.
+    #[test]
+    fn a_featureless_pair_has_no_texture_anywhere() {
+        let (w, h) = (160, 80);
+        let mut k = 0x0bad_cafe_u64;
+        let a = Image::from_fn(w, h, |_, _| 0.4 + gaussian(&mut k, 0.02));
+        let b = Image::from_fn(w, h, |_, _| 0.4 + gaussian(&mut k, 0.02));
+        let valid = vec![true; w * h];
+        let disparity = Image::filled(w, h, 1.7);
+        let r = support_test(
+            (&a, &b),
+            (&valid, &valid),
+            &disparity,
+            &SupportParams::default(),
+            6.0,
+        );
+        let supported = r.iter().filter(|&&u| u == Unknown::Measured).count();
+        assert!(supported == 0, "{supported} of {} supported", w * h);
+        assert_eq!(r[40 * w + 80], Unknown::NoTexture);
+    }
+
+    /// A weak texture whose pixel-scale gradients are about as strong as the noise (as on
+    /// the substrate of a real micrograph) but which the window still measures: mostly
+    /// supported (86 % today; at half this contrast only a few per cent, see README).
+    #[test]
+    fn a_weak_real_texture_under_realistic_noise_is_measured() {
+        let (w, h) = (160, 80);
+        let tex = Texture::new(11);
+        let d = 2.4;
+        let mut k = 0x7777_u64;
+        let contrast = 0.12;
+        let a = Image::from_fn(w, h, |x, y| {
+            0.4 + contrast * tex.at(x as f64, y as f64) as f32 + gaussian(&mut k, 0.02)
+        });
+        let b = Image::from_fn(w, h, |x, y| {
+            0.4 + contrast * tex.at(x as f64 - d, y as f64) as f32 + gaussian(&mut k, 0.02)
+        });
+        let valid = vec![true; w * h];
+        let disparity = Image::filled(w, h, d as f32);
+        let r = support_test(
+            (&a, &b),
+            (&valid, &valid),
+            &disparity,
+            &SupportParams::default(),
+            6.0,
+        );
+        let inner: Vec<Unknown> = (20..h - 20)
+            .flat_map(|y| (20..w - 20).map(move |x| (x, y)))
+            .map(|(x, y)| r[y * w + x])
+            .collect();
+        let count = |c: Unknown| inner.iter().filter(|&&u| u == c).count();
+        let measured = count(Unknown::Measured);
+        assert!(
+            measured as f64 >= 0.8 * inner.len() as f64,
+            "{measured} of {} measured, {} no texture, {} ambiguous",
+            inner.len(),
+            count(Unknown::NoTexture),
+            count(Unknown::Ambiguous)
+        );
+    }
+
+    #[test]
+    fn the_band_gain_of_the_bare_difference_is_a_half() {
+        let (c, area) = band_gain(0.0);
+        assert!(
+            (c - 0.5).abs() < 1e-6 && (area - 1.5).abs() < 1e-6,
+            "{c} {area}"
+        );
+        // Smoothing lowers the noise's gain and widens its correlation.
+        let (c1, a1) = band_gain(1.0);
+        assert!(c1 < 0.1 && a1 > 2.0, "{c1} {a1}");
     }
 
     #[test]
