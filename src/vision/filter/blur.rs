@@ -52,43 +52,58 @@ pub fn gaussian_blur(image: &Image, sigma: f64) -> Image {
     if sigma <= 0.0 || image.is_empty() {
         return image.clone();
     }
+    let (w, h) = image.dimensions();
+    let mut tmp = vec![0.0; w * h];
+    let mut out = Image::zeros(w, h);
+    gaussian_blur_into(image.data(), (w, h), sigma, &mut tmp, out.data_mut());
+    out
+}
+
+/// [`gaussian_blur`] of the `w × h` plane `src` into `out`, with `tmp` for the horizontal
+/// pass, whatever both held before: callers that own their planes (the SIFT scale space)
+/// blur without allocating. `sigma ≤ 0` copies.
+pub(crate) fn gaussian_blur_into(
+    src: &[f32],
+    (w, h): (usize, usize),
+    sigma: f64,
+    tmp: &mut [f32],
+    out: &mut [f32],
+) {
+    if sigma <= 0.0 || w * h == 0 {
+        out.copy_from_slice(src);
+        return;
+    }
     let kernel = gaussian_kernel(sigma);
     let r = kernel.len() / 2;
-    let (w, h) = image.dimensions();
-
     // Horizontal pass: pad each row by mirroring, then a straight dot product.
-    let mut tmp = Image::zeros(w, h);
-    tmp.data_mut().par_chunks_mut(w).enumerate().for_each_init(
+    tmp.fill(0.0);
+    tmp.par_chunks_mut(w).enumerate().for_each_init(
         || vec![0.0f32; w + 2 * r],
-        |padded, (y, out)| {
-            let row = image.row(y);
+        |padded, (y, o)| {
+            let row = &src[y * w..(y + 1) * w];
             padded[r..r + w].copy_from_slice(row);
             for i in (0..r).chain(r + w..w + 2 * r) {
                 padded[i] = row[mirror(i as isize - r as isize, w)];
             }
             // Tap by tap over the whole row: the inner loop vectorises.
             for (k, &g) in kernel.iter().enumerate() {
-                for (o, &v) in out.iter_mut().zip(&padded[k..k + w]) {
+                for (o, &v) in o.iter_mut().zip(&padded[k..k + w]) {
                     *o += g * v;
                 }
             }
         },
     );
-
     // Vertical pass: accumulate whole rows so the inner loop runs along x (vectorises).
-    let mut out = Image::zeros(w, h);
-    out.data_mut()
-        .par_chunks_mut(w)
-        .enumerate()
-        .for_each(|(y, orow)| {
-            for (k, &g) in kernel.iter().enumerate() {
-                let sy = mirror(y as isize + k as isize - r as isize, h);
-                for (o, &v) in orow.iter_mut().zip(tmp.row(sy)) {
-                    *o += g * v;
-                }
+    let tmp = &*tmp;
+    out.fill(0.0);
+    out.par_chunks_mut(w).enumerate().for_each(|(y, orow)| {
+        for (k, &g) in kernel.iter().enumerate() {
+            let sy = mirror(y as isize + k as isize - r as isize, h);
+            for (o, &v) in orow.iter_mut().zip(&tmp[sy * w..(sy + 1) * w]) {
+                *o += g * v;
             }
-        });
-    out
+        }
+    });
 }
 
 /// Normalised Gaussian taps `exp(−k²/2σ²)` for `k = −r..=r`, `r = ⌈3σ⌉`.
@@ -319,6 +334,19 @@ pub fn normalise_contrast(img: &Image, presmooth: f32, sigma: f32) -> Image {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn blurring_into_used_planes_equals_the_gaussian_blur_to_the_bit() {
+        let img = Image::from_fn(37, 23, |x, y| ((x * 7 + y * 13) % 17) as f32 / 17.0);
+        for sigma in [0.0, 0.7, 1.52, 3.1, 9.0] {
+            let want = gaussian_blur(&img, sigma);
+            let mut tmp = vec![f32::NAN; img.len()];
+            let mut out = vec![f32::NAN; img.len()];
+            gaussian_blur_into(img.data(), img.dimensions(), sigma, &mut tmp, &mut out);
+            let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+            assert_eq!(bits(&out), bits(want.data()), "σ {sigma}");
+        }
+    }
 
     /// The Gaussian blur by its definition: a double sum over the window.
     fn naive_blur(src: &[f32], w: usize, h: usize, sigma: f32) -> Vec<f32> {
