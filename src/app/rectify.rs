@@ -162,6 +162,7 @@ pub fn rectification_json(
         "right_shift_px": rec.right_shift_px,
         "fundamental_model": r.model,
         "fallback_reason": r.fallback_reason,
+        "second_attempt": r.second_attempt,
         "F": matrix_rows(&r.f),
         "log10_NFA": r.log10_nfa,
         // Far below f64's range on good pairs (10^-3000): written as a power of ten.

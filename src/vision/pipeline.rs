@@ -36,8 +36,7 @@ use super::rectify::instrument::{
 };
 use super::rectify::warp::{warp, warp_rect};
 use super::sparse::{
-    Correspondence, SparseError, SparseMatches, SparseParams, SparseResult, sparse_geometry,
-    sparse_matches,
+    Correspondence, SparseError, SparseMatches, SparseParams, SparseResult, sparse_attempts,
 };
 use crate::progress::{Observer, Stage, unobserved};
 
@@ -92,6 +91,8 @@ pub struct SparseReport {
     pub inliers: usize,
     pub model: String,
     pub fallback_reason: Option<String>,
+    /// Why SIFT ran a second time on a feature-poor pair, and what it found.
+    pub second_attempt: Option<String>,
     pub log10_nfa: f64,
     pub threshold_px: f64,
     pub orsa_iterations: usize,
@@ -456,6 +457,7 @@ impl CanvasGeometry {
                 inliers: s.inliers.len(),
                 model: format!("{:?}", s.model).to_lowercase(),
                 fallback_reason: s.fallback_reason.clone(),
+                second_attempt: s.second_attempt.clone(),
                 log10_nfa: s.log10_nfa,
                 threshold_px: s.threshold_px,
                 orsa_iterations: s.orsa_iterations,
@@ -477,6 +479,7 @@ impl CanvasGeometry {
                 inliers: rectification.agreeing.len(),
                 model: "instrument".to_owned(),
                 fallback_reason: Some(why.clone()),
+                second_attempt: None,
                 log10_nfa: f64::NAN,
                 threshold_px: f64::NAN,
                 orsa_iterations: 0,
@@ -508,8 +511,8 @@ pub fn rectify_for_dense(
 ) -> Result<CanvasGeometry, ReconstructError> {
     let phi = geometry.tilt_axis_deg;
     let inst = &params.instrument;
-    let matches = sparse_matches(left, right, params)?;
-    let why = match sparse_geometry(left, right, &matches, Some(phi), params) {
+    let (matches, geometry) = sparse_attempts(left, right, Some(phi), params)?;
+    let why = match geometry {
         Ok(s) => match sparse_rows_off(left, right, &s, params) {
             None => return Ok(CanvasGeometry::sparse(s)),
             Some(why) => why,

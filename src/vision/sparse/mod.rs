@@ -74,6 +74,10 @@ pub struct SparseParams {
     /// the keypoints scaled back (bounds its memory, ~120 bytes a pixel, on large micrographs);
     /// 0 = full resolution always.
     pub sift_max_megapixels: f64,
+    /// When the epipolar geometry cannot be established, SIFT both micrographs again for a
+    /// feature-poor pair ([`feature_poor_sift`]: the DoG threshold scaled to each micrograph's
+    /// contrast, an upsampled first octave) and try once more (default true; beyond the paper).
+    pub second_attempt: bool,
     /// When the epipolar geometry cannot be established (or is implausible), rectify from the
     /// tilt axis and the pair's correlation instead (the reconstruction's fallback, beyond the
     /// paper; [`crate::vision::rectify::instrument`]).
@@ -103,6 +107,7 @@ impl Default for SparseParams {
             min_inliers: 8,
             fallback_to_affine: true,
             sift_max_megapixels: 4.0,
+            second_attempt: true,
             instrument: InstrumentParams::default(),
         }
     }
@@ -233,6 +238,9 @@ pub struct SparseResult {
     pub model: FundamentalModel,
     /// Why the requested projective model was abandoned for the affine one, if it was.
     pub fallback_reason: Option<String>,
+    /// Why the first SIFT found too little and what the second attempt changed, when the
+    /// geometry comes from the second attempt ([`SparseParams::second_attempt`]).
+    pub second_attempt: Option<String>,
     /// The ORSA fundamental matrix, `x_rightᵀ F x_left = 0`.
     pub f: Matrix3<f64>,
     pub log10_nfa: f64,
@@ -270,8 +278,99 @@ pub fn sparse_stage(
     tilt_axis_deg: Option<f64>,
     params: &SparseParams,
 ) -> Result<SparseResult, SparseError> {
-    let matches = sparse_matches(left, right, params)?;
-    sparse_geometry(left, right, &matches, tilt_axis_deg, params)
+    sparse_attempts(left, right, tilt_axis_deg, params)?.1
+}
+
+/// [`sparse_matches`] then [`sparse_geometry`]; when the geometry is refused and
+/// [`SparseParams::second_attempt`] is on, both again with [`feature_poor_sift`]. The matches
+/// returned are those of the attempt that gave the geometry, else the more numerous ones (for
+/// a fallback), with the first attempt's refusal.
+///
+/// # Errors
+/// The outer error for a pair refused before any matching (sizes, parameters).
+pub fn sparse_attempts(
+    left: &Image,
+    right: &Image,
+    tilt_axis_deg: Option<f64>,
+    params: &SparseParams,
+) -> Result<(SparseMatches, Result<SparseResult, SparseError>), SparseError> {
+    let first = sparse_matches(left, right, params)?;
+    let refused = match sparse_geometry(left, right, &first, tilt_axis_deg, params) {
+        Ok(s) => return Ok((first, Ok(s))),
+        Err(e @ SparseError::Params(_)) => return Ok((first, Err(e))),
+        Err(e) if !params.second_attempt => return Ok((first, Err(e))),
+        Err(e) => e,
+    };
+    let sift = [left, right].map(|img| feature_poor_sift(&params.sift, img));
+    let second = sparse_matches_with(left, right, params, &sift)?;
+    match sparse_geometry(left, right, &second, tilt_axis_deg, params) {
+        Ok(mut s) => {
+            s.second_attempt = Some(format!(
+                "{refused}; SIFT again with the DoG threshold at {:.2e} / {:.2e} (scaled to each \
+                 micrograph's contrast) and an upsampled first octave: {} / {} keypoints, {} matches",
+                sift[0].c_dog,
+                sift[1].c_dog,
+                second.keypoints_left,
+                second.keypoints_right,
+                second.putative
+            ));
+            s.timings.total_ms = ms(first.started);
+            Ok((second, Ok(s)))
+        }
+        Err(_) if second.putative > first.putative => Ok((second, Err(refused))),
+        Err(_) => Ok((first, Err(refused))),
+    }
+}
+
+/// The percentile interval over which a micrograph's contrast is measured for
+/// [`feature_poor_sift`]: robust to a few saturated or dead pixels.
+const CONTRAST_PERCENTILES: (f64, f64) = (0.005, 0.995);
+
+/// SIFT parameters for the second attempt on a feature-poor micrograph: Lowe's threshold is for
+/// an image spanning `[0, 1]`, so it is scaled by the micrograph's contrast (its 0.5–99.5
+/// percentile range, at most 1), and the first octave is upsampled ×2 (`δ_min` 0.5, `σ_min`
+/// 0.8: IPOL's defaults), which finds the small-scale keypoints of fine texture.
+#[must_use]
+pub fn feature_poor_sift(sift: &SiftParams, image: &Image) -> SiftParams {
+    let contrast = percentile_range(image, CONTRAST_PERCENTILES).clamp(0.01, 1.0);
+    SiftParams {
+        c_dog: sift.c_dog * contrast,
+        delta_min: sift.delta_min.min(0.5),
+        sigma_min: sift.sigma_min.min(0.8),
+        ..sift.clone()
+    }
+}
+
+/// The difference of two percentiles of the finite samples of `img`, from a 4096-bin
+/// histogram of `[0, 1]`; 1 when it has none.
+fn percentile_range(img: &Image, (lo, hi): (f64, f64)) -> f64 {
+    const BINS: usize = 4096;
+    let mut hist = vec![0usize; BINS];
+    let mut n = 0usize;
+    for &v in img.data().iter().filter(|v| v.is_finite()) {
+        // Samples are in [0, 1]: a bin index.
+        #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
+        let b = ((v.clamp(0.0, 1.0) * BINS as f32) as usize).min(BINS - 1);
+        hist[b] += 1;
+        n += 1;
+    }
+    if n == 0 {
+        return 1.0;
+    }
+    let at = |q: f64| {
+        // A rank among n samples.
+        #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
+        let rank = ((q * n as f64) as usize).min(n - 1);
+        let mut seen = 0;
+        for (b, &c) in hist.iter().enumerate() {
+            seen += c;
+            if seen > rank {
+                return (b as f64 + 0.5) / BINS as f64;
+            }
+        }
+        1.0
+    };
+    at(hi) - at(lo)
 }
 
 /// SIFT in both micrographs and their distinct putative matches: what the epipolar geometry is
@@ -315,6 +414,21 @@ pub fn sparse_matches(
     right: &Image,
     params: &SparseParams,
 ) -> Result<SparseMatches, SparseError> {
+    sparse_matches_with(
+        left,
+        right,
+        params,
+        &[params.sift.clone(), params.sift.clone()],
+    )
+}
+
+/// [`sparse_matches`] with SIFT parameters per micrograph (left, right).
+fn sparse_matches_with(
+    left: &Image,
+    right: &Image,
+    params: &SparseParams,
+    sift: &[SiftParams; 2],
+) -> Result<SparseMatches, SparseError> {
     let t_total = Instant::now();
     if left.dimensions() != right.dimensions() {
         return Err(SparseError::SizeMismatch {
@@ -331,7 +445,9 @@ pub fn sparse_matches(
             });
         }
     }
-    params.sift.validate()?;
+    for p in sift {
+        p.validate()?;
+    }
     if !(params.sift_max_megapixels >= 0.0 && params.sift_max_megapixels.is_finite()) {
         return Err(SiftParamsError::OutOfRange {
             name: "sift_max_megapixels",
@@ -345,11 +461,17 @@ pub fn sparse_matches(
     let ((kl, tl), (kr, tr)) = rayon::join(
         || {
             let t = Instant::now();
-            (sift_bounded(left, params), ms(t))
+            (
+                sift_bounded(left, &sift[0], params.sift_max_megapixels),
+                ms(t),
+            )
         },
         || {
             let t = Instant::now();
-            (sift_bounded(right, params), ms(t))
+            (
+                sift_bounded(right, &sift[1], params.sift_max_megapixels),
+                ms(t),
+            )
         },
     );
     let (kl, kr) = (kl?, kr?);
@@ -468,6 +590,7 @@ pub fn sparse_geometry(
         orsa_inliers: g.orsa.inliers.len(),
         model,
         fallback_reason,
+        second_attempt: None,
         f: g.orsa.f,
         log10_nfa: g.orsa.log10_nfa,
         threshold_px: g.orsa.threshold_px,
@@ -669,12 +792,16 @@ fn distinct_positions(
 /// SIFT of `image` on a copy halved (2×2 means) until it has at most `sift_max_megapixels`: the
 /// keypoints' positions and scales in `image`'s pixels. The sub-pixel refinement of the inliers
 /// and the rectification then work on the full-resolution positions.
-fn sift_bounded(image: &Image, params: &SparseParams) -> Result<Vec<Keypoint>, SiftParamsError> {
+fn sift_bounded(
+    image: &Image,
+    params: &SiftParams,
+    max_megapixels: f64,
+) -> Result<Vec<Keypoint>, SiftParamsError> {
     // A count of pixels: a few million.
     #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
-    let limit = (params.sift_max_megapixels * 1e6) as usize;
+    let limit = (max_megapixels * 1e6) as usize;
     if limit == 0 || image.len() <= limit {
-        return sift(image, &params.sift);
+        return sift(image, params);
     }
     let mut small = halve(image);
     let mut k = 2.0;
@@ -682,7 +809,7 @@ fn sift_bounded(image: &Image, params: &SparseParams) -> Result<Vec<Keypoint>, S
         small = halve(&small);
         k *= 2.0;
     }
-    let mut keypoints = sift(&small, &params.sift)?;
+    let mut keypoints = sift(&small, params)?;
     // Pixel i of the copy averages pixels k·i … k·i + k − 1: its centre is k·i + (k − 1)/2.
     let offset = (k - 1.0) / 2.0;
     for kp in &mut keypoints {
@@ -930,6 +1057,45 @@ pub(crate) mod tests {
         a.timings = Timings::default();
         b.timings = Timings::default();
         assert_eq!(a, b);
+    }
+
+    /// A micrograph of 3 % contrast (a low-contrast specimen, a low beam current): Lowe's
+    /// threshold, meant for images spanning [0, 1], finds too little; the second attempt,
+    /// its threshold scaled to the contrast, rectifies the pair.
+    #[test]
+    fn a_low_contrast_pair_is_rectified_by_the_second_attempt() {
+        let pair = sem_pair(320, 240, -90.0, (-4.0, 4.0), 0.4, false);
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+        let (w, h) = pair.left.dimensions();
+        let mut faint = |img: &Image| {
+            let noise: Vec<f32> = (0..w * h)
+                .map(|_| rng.random_range(-0.0015..0.0015))
+                .collect();
+            Image::from_fn(w, h, |x, y| {
+                0.5 + 0.03 * (img.get(x, y) - 0.5) + noise[y * w + x]
+            })
+        };
+        let (left, right) = (faint(&pair.left), faint(&pair.right));
+        let c = feature_poor_sift(&SiftParams::default(), &left);
+        assert!(
+            (0.015..0.032).contains(&(c.c_dog / SiftParams::default().c_dog)),
+            "threshold scaled by the contrast: {}",
+            c.c_dog
+        );
+        let mut p = SparseParams {
+            second_attempt: false,
+            ..SparseParams::default()
+        };
+        let first = sparse_stage(&left, &right, Some(-90.0), &p).unwrap_err();
+        p.second_attempt = true;
+        let r = sparse_stage(&left, &right, Some(-90.0), &p).unwrap();
+        let why = r.second_attempt.as_deref().unwrap();
+        assert!(why.starts_with(&first.to_string()), "{why}");
+        let (median, _) = dy_stats(&r, &pair.truth);
+        assert!(median < 0.2, "rows off by {median} px");
+        // A pair the first attempt rectifies is left alone.
+        let r = sparse_stage(&pair.left, &pair.right, Some(-90.0), &p).unwrap();
+        assert_eq!(r.second_attempt, None);
     }
 
     #[test]
