@@ -31,7 +31,7 @@ use super::params::ReconstructionParams;
 use super::precision::{self, Precision};
 use super::rectify::RectifyError;
 use super::rectify::instrument::{
-    InstrumentError, InstrumentFigures, InstrumentRectification, dense_rows,
+    InstrumentError, InstrumentFigures, InstrumentRectification, dense_rows, dense_rows_of_samples,
     instrument_rectification, median_row_offset, tile_measurements, verify_dense_rows,
 };
 use super::rectify::warp::{warp, warp_rect};
@@ -270,8 +270,12 @@ pub fn reconstruct_observed(
         };
         let coverage = left_coverage(left.dimensions(), &h_left, canvas);
         let disp = dense_disparity_tiled(canvas, &coverage, source, &params.dense, range)?;
-        // Tiles keep no vertical flow: the instrument's rows rest on the tiles' check alone.
-        (disp, None, sparse_ms, ms(t))
+        // Tiles keep no vertical flow, only samples of it for this check.
+        let row_offset = match established.source {
+            Established::Instrument { .. } => dense_rows_of_samples(&disp.row_samples, canvas),
+            Established::Sparse(_) => None,
+        };
+        (disp, row_offset, sparse_ms, ms(t))
     };
     // The instrument's rows are verified by the dense stage: what vertical flow is left.
     let mut instrument_figures = None;

@@ -395,7 +395,44 @@ pub struct CanvasDisparity {
     pub filled: Vec<bool>,
     /// Per pixel, why its disparity is unknown or interpolated ([`Disparity::unknown`]).
     pub unknown: Vec<super::Unknown>,
+    /// `(x, y, disparity, vertical flow)` of measured pixels, canvas pixels, at most about
+    /// [`ROW_SAMPLES`]: what the check of the instrument's rows needs
+    /// ([`crate::vision::rectify::instrument::dense_rows_of_samples`]) when the vertical flow
+    /// itself is not kept (tiles); empty when the disparity came from one untiled run.
+    pub row_samples: Vec<[f32; 4]>,
     pub stats: DenseStats,
+}
+
+/// About this many row samples at most ([`CanvasDisparity::row_samples`]).
+pub const ROW_SAMPLES: usize = 200_000;
+
+/// Appends the row samples of a tile's disparity `d`, matched on the canvas rectangle `at`,
+/// within `core`: measured pixels at every `step`-th canvas pixel (`width` wide).
+fn push_row_samples(
+    out: &mut Vec<[f32; 4]>,
+    d: &Disparity,
+    at: Rect,
+    core: Rect,
+    (width, step): (usize, usize),
+) {
+    for y in core.y..core.y + core.height {
+        for x in core.x..core.x + core.width {
+            if (y * width + x) % step != 0 {
+                continue;
+            }
+            let q = (y - at.y) * at.width + (x - at.x);
+            if d.unknown[q] == super::Unknown::Measured {
+                // Canvas coordinates: far below f32's exact-integer limit.
+                #[allow(clippy::cast_precision_loss)]
+                out.push([
+                    x as f32,
+                    y as f32,
+                    d.disparity.data()[q],
+                    d.vertical.data()[q],
+                ]);
+            }
+        }
+    }
 }
 
 impl From<Disparity> for CanvasDisparity {
@@ -405,6 +442,7 @@ impl From<Disparity> for CanvasDisparity {
             confidence: d.confidence,
             filled: d.filled,
             unknown: d.unknown,
+            row_samples: Vec::new(),
             stats: d.stats,
         }
     }
@@ -470,6 +508,8 @@ pub fn dense_disparity_tiled(
     let mut weight_sum = vec![0u16; width * height];
     let mut filled = vec![false; width * height];
     let mut unknown = vec![super::Unknown::NotSeen; width * height];
+    let mut row_samples = Vec::new();
+    let sample_step = (width * height / ROW_SAMPLES).max(1);
     let mut merged = StatsMerge::default();
     for tile in &plan.tiles {
         let p = tile.padded;
@@ -483,6 +523,13 @@ pub fn dense_disparity_tiled(
             Err(e) => return Err(e),
         };
         let core = tile.core;
+        push_row_samples(
+            &mut row_samples,
+            &d,
+            p,
+            intersection(p, core),
+            (width, sample_step),
+        );
         let wy: Vec<u32> = (p.y..p.y + p.height)
             .map(|y| axis_weight(y, (core.y, core.y + core.height), height, plan.blend.1))
             .collect();
@@ -543,6 +590,7 @@ pub fn dense_disparity_tiled(
         confidence,
         filled,
         unknown,
+        row_samples,
         stats,
     })
 }
@@ -756,6 +804,48 @@ mod tests {
         assert_eq!(c.rows[0], (0, 0));
         assert_eq!(c.columns(0, 5), None);
         assert_eq!(Coverage::full((w, h)).columns(3, 9), Some((0, w)));
+    }
+
+    /// The row samples a tiled run keeps give the instrument's row check what the untiled run's
+    /// whole vertical flow gives: a right image 0.6 px too low shows as 0.6 px of offset.
+    #[test]
+    fn tiles_keep_enough_vertical_flow_to_check_the_rows() {
+        use crate::vision::rectify::instrument::{dense_rows, dense_rows_of_samples};
+        let (w, h) = (256, 640);
+        let all = Coverage::full((w, h));
+        let range = Some((3.0, 9.0));
+        for dy in [0.0, 0.6] {
+            let pair = render(w, h, Texture::new(5), &dome(w, h, 3.0, 6.0, 0.9), dy, 0.0);
+            let source = |r: Rect| {
+                let warped = |img: &Image| {
+                    let image = Image::from_fn(r.width, r.height, |x, y| img.get(r.x + x, r.y + y));
+                    let valid = vec![true; image.len()];
+                    Warped { image, valid }
+                };
+                (warped(&pair.left), warped(&pair.right))
+            };
+            let tiled = dense_disparity_tiled((w, h), &all, source, &params(1), range).unwrap();
+            assert!(tiled.stats.tiles >= 3);
+            assert!(
+                tiled.row_samples.len() > 10_000,
+                "{}",
+                tiled.row_samples.len()
+            );
+            let rows = dense_rows_of_samples(&tiled.row_samples, (w, h)).unwrap();
+            let (l, r) = source(Rect {
+                x: 0,
+                y: 0,
+                width: w,
+                height: h,
+            });
+            let whole = super::super::dense_disparity_of_warped(l, r, &params(0), range).unwrap();
+            let reference = dense_rows(&whole.vertical, &whole.disparity, &whole.unknown).unwrap();
+            assert!(
+                (rows.offset_px - dy).abs() < 0.15
+                    && (rows.offset_px - reference.offset_px).abs() < 0.1,
+                "dy {dy}: tiled {rows:?}, untiled {reference:?}"
+            );
+        }
     }
 
     /// Forced into tiles by a tiny budget, a dome's disparity across the seams agrees with the

@@ -129,8 +129,7 @@ pub struct InstrumentFigures {
     pub scale: f64,
     /// RMS vertical residual of the agreeing tiles and matches on the canvas, pixels.
     pub row_residual_rms_px: f64,
-    /// The dense stage's check of the rows (after it ran; `None` when the canvas was matched in
-    /// tiles, which keep no vertical flow).
+    /// The dense stage's check of the rows (after it ran; `None` with too few measured pixels).
     pub dense_rows: Option<DenseRows>,
 }
 
@@ -567,6 +566,32 @@ pub fn dense_rows(vertical: &Image, disparity: &Image, unknown: &[Unknown]) -> O
             })
         })
         .collect();
+    fit_dense_rows(&samples)
+}
+
+/// [`DenseRows`] from samples `(x, y, disparity, vertical flow)` of measured pixels on a
+/// `canvas`-sized canvas (a tiled dense stage keeps only these,
+/// [`crate::vision::dense::tile::CanvasDisparity::row_samples`]); `None` as [`dense_rows`].
+#[must_use]
+pub fn dense_rows_of_samples(samples: &[[f32; 4]], canvas: (usize, usize)) -> Option<DenseRows> {
+    let (sx, sy) = (canvas.0.max(2) as f64 / 2.0, canvas.1.max(2) as f64 / 2.0);
+    let samples: Vec<[f64; 4]> = samples
+        .iter()
+        .filter(|s| s[2].is_finite() && s[3].is_finite())
+        .map(|s| {
+            [
+                f64::from(s[0]) / sx - 1.0,
+                f64::from(s[1]) / sy - 1.0,
+                f64::from(s[2]),
+                f64::from(s[3]),
+            ]
+        })
+        .collect();
+    fit_dense_rows(&samples)
+}
+
+/// The trimmed least-squares fit of [`DenseRows`] to samples `(x, y, d, v)`, `x, y` in `[−1, 1]`.
+fn fit_dense_rows(samples: &[[f64; 4]]) -> Option<DenseRows> {
     if samples.len() < 100 {
         return None;
     }
@@ -599,7 +624,7 @@ pub fn dense_rows(vertical: &Image, disparity: &Image, unknown: &[Unknown]) -> O
         keep = res.iter().map(|r| *r <= limit).collect();
     }
     let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
-    for s in &samples {
+    for s in samples {
         for i in 0..2 {
             lo[i] = lo[i].min(s[i]);
             hi[i] = hi[i].max(s[i]);
