@@ -200,6 +200,10 @@ pub enum RectifyError {
     },
 }
 
+/// What [`RectifyError::Implausible`] names when too few or too clustered inliers leave the
+/// rectified rows uncertain (a lack of evidence, unlike a large residual).
+pub const ROW_UNCERTAINTY: &str = "uncertainty of the rectified rows at the image corners (px, 1σ)";
+
 fn rot_x(a: f64) -> Matrix3<f64> {
     let (s, c) = a.sin_cos();
     Matrix3::new(1.0, 0.0, 0.0, 0.0, c, -s, 0.0, s, c)
@@ -605,7 +609,7 @@ pub fn rectify(
     let predicted_error_px =
         predicted_error(&frame, &q, left, right, &prior).unwrap_or(f64::INFINITY);
     check(
-        "uncertainty of the rectified rows at the image corners (px, 1σ)",
+        ROW_UNCERTAINTY,
         predicted_error_px,
         params.max_predicted_error_px,
     )?;

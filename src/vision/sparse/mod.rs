@@ -39,7 +39,7 @@ use crate::vision::Image;
 use crate::vision::rectify::instrument::InstrumentParams;
 use crate::vision::rectify::warp::{Warped, warp};
 use crate::vision::rectify::{
-    Rectification, RectifyError, RectifyParams, epipolar_direction, rectify,
+    ROW_UNCERTAINTY, Rectification, RectifyError, RectifyParams, epipolar_direction, rectify,
 };
 use crate::vision::sparse::fundamental::FundamentalModel;
 use crate::vision::sparse::matching::{MatchParams, match_keypoints};
@@ -74,7 +74,7 @@ pub struct SparseParams {
     /// the keypoints scaled back (bounds its memory, ~120 bytes a pixel, on large micrographs);
     /// 0 = full resolution always.
     pub sift_max_megapixels: f64,
-    /// When the epipolar geometry cannot be established, SIFT both micrographs again for a
+    /// When the matches are too few for an epipolar geometry, SIFT both micrographs again for a
     /// feature-poor pair ([`feature_poor_sift`]: the DoG threshold scaled to each micrograph's
     /// contrast, an upsampled first octave) and try once more (default true; beyond the paper).
     pub second_attempt: bool,
@@ -191,6 +191,26 @@ pub enum SparseError {
     Params(#[from] SiftParamsError),
 }
 
+impl SparseError {
+    /// Whether the refusal is for too little evidence (too few keypoints, matches or inliers,
+    /// no meaningful model, uncertain rows), which more keypoints can remedy; a geometry that
+    /// contradicts its own matches or the tilt axis is not, and is refused as it is.
+    #[must_use]
+    pub fn is_lack_of_evidence(&self) -> bool {
+        match self {
+            Self::NoTexture { .. } | Self::TooFewMatches { .. } | Self::NotMeaningful { .. } => {
+                true
+            }
+            Self::Rectify(RectifyError::TooFewMatches { .. }) => true,
+            Self::Rectify(RectifyError::Implausible { what, .. }) => *what == ROW_UNCERTAINTY,
+            Self::SizeMismatch { .. }
+            | Self::ImageTooSmall { .. }
+            | Self::Rectify(_)
+            | Self::Params(_) => false,
+        }
+    }
+}
+
 /// One correspondence in original pixel coordinates.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Correspondence {
@@ -281,8 +301,9 @@ pub fn sparse_stage(
     sparse_attempts(left, right, tilt_axis_deg, params)?.1
 }
 
-/// [`sparse_matches`] then [`sparse_geometry`]; when the geometry is refused and
-/// [`SparseParams::second_attempt`] is on, both again with [`feature_poor_sift`]. The matches
+/// [`sparse_matches`] then [`sparse_geometry`]; when the geometry is refused for lack of
+/// evidence ([`SparseError::is_lack_of_evidence`]) and [`SparseParams::second_attempt`] is on,
+/// both again with [`feature_poor_sift`]. The matches
 /// returned are those of the attempt that gave the geometry, else the more numerous ones (for
 /// a fallback), with the first attempt's refusal.
 ///
@@ -297,8 +318,9 @@ pub fn sparse_attempts(
     let first = sparse_matches(left, right, params)?;
     let refused = match sparse_geometry(left, right, &first, tilt_axis_deg, params) {
         Ok(s) => return Ok((first, Ok(s))),
-        Err(e @ SparseError::Params(_)) => return Ok((first, Err(e))),
-        Err(e) if !params.second_attempt => return Ok((first, Err(e))),
+        Err(e) if !params.second_attempt || !e.is_lack_of_evidence() => {
+            return Ok((first, Err(e)));
+        }
         Err(e) => e,
     };
     let sift = [left, right].map(|img| feature_poor_sift(&params.sift, img));
