@@ -8,10 +8,13 @@
 //! coverage of visible pixels [≥ 95 %]; RMSE after removing the best-fit plane
 //! of the error, relative to the true height range [≤ 5 %]; median of that
 //! residual and its fraction above 1 px, in disparity pixels [≤ 0.2 px, ≤ 3 %];
-//! the height scale, the slope of estimated against true height [1 ± 3 %];
+//! the height scale, the slope of estimated against true height [1 ± 3 %], and the same
+//! slope before the bilateral filter (`unfiltered`: the matcher's share of a compression);
 //! the unknown fraction (visible pixels without a height) and, on scenes with a
-//! featureless support, the share of the support left unknown and the fraction
-//! of its *reported* heights more than 1 px of disparity off [≤ 1 %].
+//! featureless support, the share of the support left unknown, the fraction
+//! of its *reported* heights more than 1 px of disparity off [≤ 1 %], and the coverage
+//! of the visible pixels off the support, on which the coverage target is judged there
+//! (the support's heights should be unknown: the micrographs cannot tell them).
 //! A case the sparse stage refuses is a row of its own (`REFUSED`), not a failure
 //! of the run.
 //!
@@ -90,10 +93,20 @@ pub struct SimFigures {
     pub median_px: f64,
     /// Fraction of pixels whose |residual| exceeds one disparity pixel.
     pub over_1px: f64,
-    /// Slope of the estimated height against the true one (plane removed).
+    /// Slope of the estimated height against the true one (plane removed): least squares of
+    /// `estimated = s · true + a + b·x + c·y` over the visible pixels with a height.
     pub height_scale: f64,
+    /// The same slope of the measured disparity before the bilateral filter
+    /// ([`sdsem::vision::dense::Disparity::raw`]), over the visible pixels it covers: what the
+    /// matcher loses, apart from what the filter does.
+    pub height_scale_unfiltered: f64,
     /// Fraction of pixels visible in both micrographs left without a height.
     pub unknown: f64,
+    /// On a featureless support: the fraction of the visible pixels *off* the support that
+    /// got a height. The issue asks for heights where the micrographs can tell and unknown
+    /// where they cannot, so the coverage target is judged on this figure there, and the
+    /// support's unknown share is reported apart ([`SupportFigures::unknown`]).
+    pub coverage_off_support: Option<f64>,
     /// On a featureless support (scenes `bare`, `calgrid`): what was reported there.
     pub support: Option<SupportFigures>,
     pub sparse_ms: f64,
@@ -115,6 +128,16 @@ pub struct SupportFigures {
     pub unknown: f64,
     /// Fraction of the support's reported heights whose residual exceeds one disparity pixel.
     pub reported_over_1px: f64,
+}
+
+impl SimFigures {
+    /// The coverage the target is judged on: off the featureless support where the scene has
+    /// one (the support's pixels should be unknown, see [`SupportFigures`]), else of every
+    /// visible pixel.
+    #[must_use]
+    pub fn judged_coverage(&self) -> f64 {
+        self.coverage_off_support.unwrap_or(self.coverage)
+    }
 }
 
 /// Errors of the flow on the rectified canvas against the exact correspondences.
@@ -573,6 +596,34 @@ pub fn evaluate_case(
     });
     // Height scale: estimated = s · true + plane.
     let height_scale = fit(&rows, &est).map_or(f64::NAN, |c| c[3]);
+    let height_scale_unfiltered = {
+        let raw = height_on_left_grid(
+            &disp.raw,
+            &rect.h_left,
+            &rect.h_right,
+            &geometry,
+            case.width,
+            case.height,
+        )?;
+        let (raw_rows, raw_est): (Vec<_>, Vec<f64>) = (0..truth.len())
+            .filter(|&p| visible[p] && truth[p].is_finite() && raw.data()[p].is_finite())
+            .map(|p| {
+                (
+                    ((p % w) as f64, (p / w) as f64, vec![f64::from(truth[p])]),
+                    f64::from(raw.data()[p]),
+                )
+            })
+            .unzip();
+        fit(&raw_rows, &raw_est).map_or(f64::NAN, |c| c[3])
+    };
+    let coverage_off_support = featureless_support(case.kind).then(|| {
+        let off = |p: usize| visible[p] && truth[p].is_finite() && truth[p].abs() >= 1e-3;
+        let n_off = (0..truth.len()).filter(|&p| off(p)).count();
+        let known = (0..truth.len())
+            .filter(|&p| off(p) && heights.data()[p].is_finite())
+            .count();
+        known as f64 / n_off.max(1) as f64
+    });
     if let Some(dir) = dump {
         let label = format!(
             "{}_{}_{}x{}",
@@ -642,7 +693,9 @@ pub fn evaluate_case(
         median_px,
         over_1px,
         height_scale,
+        height_scale_unfiltered,
         unknown: 1.0 - coverage,
+        coverage_off_support,
         support,
         sparse_ms,
         dense_ms,
@@ -728,12 +781,13 @@ pub struct Targets {
 }
 
 impl Targets {
-    /// Coverage ≥ 95 %, RMSE ≤ 5 % of the range, median ≤ 0.2 px, ≤ 3 %
-    /// above 1 px, height scale within 3 % of 1.
+    /// Coverage ≥ 95 % (off a featureless support where the scene has one:
+    /// [`SimFigures::coverage_off_support`]), RMSE ≤ 5 % of the range, median ≤ 0.2 px,
+    /// ≤ 3 % above 1 px, height scale within 3 % of 1.
     #[must_use]
     pub fn of(f: &SimFigures) -> Self {
         Self {
-            coverage: f.coverage >= 0.95,
+            coverage: f.judged_coverage() >= 0.95,
             rmse: f.rmse_relative <= 0.05,
             median: f.median_px <= 0.2,
             over_1px: f.over_1px <= 0.03,
@@ -764,7 +818,7 @@ pub fn format_row(f: &SimFigures) -> String {
         }
     }
     format!(
-        "{:<8} {:<9} {:>4}x{:<4} θ {:>4.1}° φ {:>5.1}° | geometry: {} (rows {}) | cover {:>5.1} % unknown {:>4.1} %{} | range {:>6.2} µm RMSE {:>5.3} µm ({:>4.1} %, floor {}) | median {:.3} px >1px {:>4.1} % | scale {:.3} | canvas raw {:.3} filtered {:.3} (bias {:+.3}) v {:.3} px | rect {:>5.0} ms dense {:>5.0} ms | {}",
+        "{:<8} {:<9} {:>4}x{:<4} θ {:>4.1}° φ {:>5.1}° | geometry: {} (rows {}) | cover {:>5.1} % unknown {:>4.1} %{} | range {:>6.2} µm RMSE {:>5.3} µm ({:>4.1} %, floor {}) | median {:.3} px >1px {:>4.1} % | scale {:.3} (unfiltered {:.3}) | canvas raw {:.3} filtered {:.3} (bias {:+.3}) v {:.3} px | rect {:>5.0} ms dense {:>5.0} ms | {}",
         format!("{:?}", f.mode).to_lowercase(),
         f.case.kind.name(),
         f.case.width,
@@ -779,10 +833,11 @@ pub fn format_row(f: &SimFigures) -> String {
         100.0 * f.coverage,
         100.0 * f.unknown,
         f.support.map_or_else(String::new, |s| format!(
-            " (support {:.0} % of view: unknown {:.1} %, reported >1px {:.2} %)",
+            " (support {:.0} % of view: unknown {:.1} %, reported >1px {:.2} %; off it cover {:.1} %)",
             100.0 * s.share,
             100.0 * s.unknown,
-            100.0 * s.reported_over_1px
+            100.0 * s.reported_over_1px,
+            100.0 * f.coverage_off_support.unwrap_or(f.coverage)
         )),
         f.height_range_um,
         f.rmse_um,
@@ -792,6 +847,7 @@ pub fn format_row(f: &SimFigures) -> String {
         f.median_px,
         100.0 * f.over_1px,
         f.height_scale,
+        f.height_scale_unfiltered,
         f.canvas_error_px.raw_median,
         f.canvas_error_px.filtered_median,
         f.canvas_error_px.filtered_mean,
@@ -951,11 +1007,11 @@ fn summary(rows: &[SimFigures], mode: Preset) -> Option<String> {
     });
     Some(
         format!(
-            "{:<8} {n} cases, all targets met by {}: coverage ≥ 95 % {}/{n} (worst {:.1} %), RMSE ≤ 5 % {}/{n} (worst {:.1} %), median ≤ 0.2 px {}/{n} (worst {:.3}), >1 px ≤ 3 % {}/{n} (worst {:.1} %), scale 1 ± 3 % {}/{n} (worst {:.3})",
+            "{:<8} {n} cases, all targets met by {}: coverage ≥ 95 % (off featureless supports) {}/{n} (worst {:.1} %), RMSE ≤ 5 % {}/{n} (worst {:.1} %), median ≤ 0.2 px {}/{n} (worst {:.3}), >1 px ≤ 3 % {}/{n} (worst {:.1} %), scale 1 ± 3 % {}/{n} (worst {:.3})",
             format!("{mode:?}").to_lowercase(),
             count(&|t| t.all()),
             count(&|t| t.coverage),
-            100.0 * worst(&|f| f.coverage, false),
+            100.0 * worst(&|f| f.judged_coverage(), false),
             count(&|t| t.rmse),
             100.0 * worst(&|f| f.rmse_relative, true),
             count(&|t| t.median),
@@ -1083,7 +1139,7 @@ pub fn run(opts: &super::EvalOptions, args: &DenseEvalArgs) -> anyhow::Result<()
         );
     } else {
         println!(
-            "rectification: {}; targets: coverage ≥ 95 %, RMSE ≤ 5 % of range, median ≤ 0.2 px, >1 px ≤ 3 %, scale 1 ± 3 %",
+            "rectification: {}; targets: coverage ≥ 95 % (off a featureless support), RMSE ≤ 5 % of range, median ≤ 0.2 px, >1 px ≤ 3 %, scale 1 ± 3 %",
             match rectifier {
                 Rectifier::Sparse => "sparse stage (whole pipeline)",
                 Rectifier::Truth => "exact, from the simulator's geometry (dense stage alone)",
