@@ -42,6 +42,10 @@ pub fn left_right_check(
 #[must_use]
 pub fn left_right_residual(u: &Image, v: &Image, ur: &Image, vr: &Image) -> Image {
     let (w, h) = u.dimensions();
+    assert!(
+        v.dimensions() == (w, h) && ur.dimensions() == vr.dimensions(),
+        "fields of one size each"
+    );
     let mut residual = Image::filled(w, h, f32::NAN);
     residual
         .data_mut()
@@ -52,14 +56,51 @@ pub fn left_right_residual(u: &Image, v: &Image, ur: &Image, vr: &Image) -> Imag
                 let (du, dv) = (u.get(x, y), v.get(x, y));
                 let qx = f64::from(x as f32 + du);
                 let qy = f64::from(y as f32 + dv);
-                if let (Some(bu), Some(bv)) =
-                    (ur.sample_bilinear(qx, qy), vr.sample_bilinear(qx, qy))
-                {
-                    *r = (du + bu).hypot(dv + bv);
+                if let Some((bu, bv)) = sample_both(ur, vr, qx, qy) {
+                    *r = length(du + bu, dv + bv);
                 }
             }
         });
     residual
+}
+
+/// [`Image::sample_bilinear`] of two images of one size at the same point, the weights found
+/// once; the same arithmetic, so the same values.
+#[inline]
+fn sample_both(a: &Image, b: &Image, x: f64, y: f64) -> Option<(f32, f32)> {
+    let (w, h) = a.dimensions();
+    if !(x >= 0.0 && y >= 0.0 && x <= (w - 1) as f64 && y <= (h - 1) as f64) {
+        return None;
+    }
+    // Non-negative and bounded by the checks above: truncation is the floor.
+    #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
+    let (x0, y0) = (x as usize, y as usize);
+    let x1 = (x0 + 1).min(w - 1);
+    let y1 = (y0 + 1).min(h - 1);
+    #[allow(clippy::cast_possible_truncation)]
+    let (fx, fy) = ((x - x0 as f64) as f32, (y - y0 as f64) as f32);
+    let at = |img: &Image| {
+        let top = img.get(x0, y0) * (1.0 - fx) + img.get(x1, y0) * fx;
+        let bottom = img.get(x0, y1) * (1.0 - fx) + img.get(x1, y1) * fx;
+        top * (1.0 - fy) + bottom * fy
+    };
+    Some((at(a), at(b)))
+}
+
+/// `a.hypot(b)` without the library call: the squares of two `f32` are exact in `f64` and
+/// their sum's root rounds as the C library's `hypotf` does (glibc ≥ 2.35 computes it so);
+/// non-finite input takes the library's path.
+#[inline]
+fn length(a: f32, b: f32) -> f32 {
+    if a.is_finite() && b.is_finite() {
+        let (a, b) = (f64::from(a), f64::from(b));
+        // The root of a sum of two f32 squares is within the f32 range or infinite, as hypotf's.
+        #[allow(clippy::cast_possible_truncation)]
+        let r = (a * a + b * b).sqrt() as f32;
+        r
+    } else {
+        a.hypot(b)
+    }
 }
 
 /// Per pixel of a [`Consistency::residual`]: whether it fails a left–right
@@ -73,7 +114,7 @@ pub fn reject_beyond(
 ) -> Vec<bool> {
     residual
         .data()
-        .iter()
+        .par_iter()
         .enumerate()
         .map(|(p, &r)| {
             let tol = match smooth {
@@ -125,6 +166,48 @@ pub fn matcher_level_rejects(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The shortcuts of the residual are the library's functions, bit for bit.
+    #[test]
+    fn residual_shortcuts_equal_the_library_functions() {
+        let mut s = 0x9e37_79b9_7f4a_7c15u64;
+        let mut next = move || {
+            s ^= s << 13;
+            s ^= s >> 7;
+            s ^= s << 17;
+            s
+        };
+        for i in 0..200_000 {
+            let r = next();
+            #[allow(clippy::cast_possible_truncation)]
+            let (a, b) = if i % 2 == 0 {
+                (f32::from_bits((r >> 32) as u32), f32::from_bits(r as u32))
+            } else {
+                (
+                    ((r >> 40) as f32 / 16_777_216.0 - 0.5) * 8.0,
+                    ((r & 0xff_ffff) as f32 / 16_777_216.0 - 0.5) * 8.0,
+                )
+            };
+            let (want, got) = (a.hypot(b), length(a, b));
+            assert!(
+                want.to_bits() == got.to_bits() || (want.is_nan() && got.is_nan()),
+                "hypot({a:e}, {b:e}) = {want:e}, not {got:e}"
+            );
+        }
+        let a = Image::from_fn(7, 5, |x, y| (x * x) as f32 * 0.37 - y as f32 * 1.3);
+        let b = Image::from_fn(7, 5, |x, y| (x + 3 * y) as f32 * -0.71);
+        for i in 0..2000 {
+            let r = next();
+            let x = (r >> 40) as f64 / 16_777_216.0 * 8.0 - 0.5 + f64::from(i % 3);
+            let y = (r & 0xff_ffff) as f64 / 16_777_216.0 * 6.0 - 0.5;
+            let want = a.sample_bilinear(x, y).zip(b.sample_bilinear(x, y));
+            assert_eq!(
+                want.map(|(p, q)| (p.to_bits(), q.to_bits())),
+                sample_both(&a, &b, x, y).map(|(p, q)| (p.to_bits(), q.to_bits())),
+                "at ({x}, {y})"
+            );
+        }
+    }
 
     /// Away from discontinuities a vertical disagreement of a few labels
     /// passes and a horizontal one beyond the wide tolerance fails; beside

@@ -503,13 +503,16 @@ fn left_right_check_at_matcher_level(
     let scale = (1u32 << finest) as f32;
     let f = 1usize << finest;
     let (cw, ch) = (fwd.width, fwd.height);
+    // Row by row: each canvas row repeats one level row, pixel `x` its `x / f`.
     let to_canvas = |level: &[bool]| -> Vec<bool> {
-        (0..w * h)
-            .map(|p| {
-                let (x, y) = (((p % w) / f).min(cw - 1), ((p / w) / f).min(ch - 1));
-                level[y * cw + x]
-            })
-            .collect()
+        let mut out = vec![false; w * h];
+        out.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+            let src = &level[(y / f).min(ch - 1) * cw..][..cw];
+            for (x, o) in row.iter_mut().enumerate() {
+                *o = src[(x / f).min(cw - 1)];
+            }
+        });
+        out
     };
     let smooth_of = |field: &[f32]| -> Option<Vec<bool>> {
         (params.lr_tolerance_smooth > params.lr_tolerance).then(|| {
@@ -634,7 +637,7 @@ fn left_right_consistency(
     let flow_stats = FlowStats::of(&u, &v);
     let alpha = params.flow.alpha.max(1e-6);
     let ambiguity: Vec<f32> = margin
-        .iter()
+        .par_iter()
         .zip(&ncc)
         .zip(&clamped)
         .map(|((&m, &c), &cl)| {
@@ -655,7 +658,7 @@ fn left_right_consistency(
             let tol = params.lr_tolerance.max(1e-3);
             let agreement: Vec<f32> = residual
                 .data()
-                .iter()
+                .par_iter()
                 .map(|&r| {
                     if r.is_finite() {
                         (-(r / tol).powi(2)).exp()
@@ -666,7 +669,7 @@ fn left_right_consistency(
                 .collect();
             let refined = reject_beyond(&residual, tolerances, check.smooth.as_deref());
             let rejected = match &rejected_by_matching {
-                Some(m) => refined.iter().zip(m).map(|(a, b)| *a || *b).collect(),
+                Some(m) => refined.par_iter().zip(m).map(|(a, b)| *a || *b).collect(),
                 None => refined,
             };
             (rejected, agreement)
@@ -685,8 +688,11 @@ fn left_right_consistency(
             let x = (p % w) as f32 + *d;
             let y = (p / w) as f32 + v.data()[p];
             let lands = x >= 0.0 && y >= 0.0 && x <= (w - 1) as f32 && y <= (h - 1) as f32 && {
-                // Nearest right pixel must be a real one.
-                let q = (y.round() as usize) * w + x.round() as usize;
+                // Nearest right pixel must be a real one. `round` of a non-negative `f32`:
+                // the sum with ½ is exact in `f64`, its truncation the rounding (half away from
+                // zero), without the library call.
+                let round = |t: f32| (f64::from(t) + 0.5) as usize;
+                let q = round(y) * w + round(x);
                 vb[q]
             };
             if !va[p] || rejected[p] || !lands {
