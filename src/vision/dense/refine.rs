@@ -472,6 +472,19 @@ fn refine_level(
     RefinedFlow { u, v, ncc, clamped }
 }
 
+/// Gives the pages of freed buffers back to the system before the full-resolution level, the
+/// refinement's largest: glibc keeps much of the matcher's freed memory resident in its
+/// arenas, where the level's buffers, mapped afresh, do not reuse it (the 1280x960 pair's peak
+/// resident memory 326 -> 301-311 MiB, the same CPU time within the noise).
+fn release_free_memory() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: malloc_trim only walks and releases glibc's own free chunks; it takes the
+    // arenas' locks and touches no memory in use.
+    unsafe {
+        libc::malloc_trim(0);
+    }
+}
+
 /// Bilinear upsampling of a flow component from `wc × hc` to `wf × hf`,
 /// values scaled by `sx` (the grid's scale factor along the component).
 #[must_use]
@@ -610,6 +623,9 @@ pub fn refine_flow_to_level(
             v = upsample_flow(&pv, wc, hc, wf, hf, 2.0);
         }
         let max_step = params.max_step / (1u32 << l) as f32;
+        if l == 0 {
+            release_free_memory();
+        }
         result = Some(refine_level(
             ia,
             ib,

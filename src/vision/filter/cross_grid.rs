@@ -231,6 +231,19 @@ impl CrossGrid {
         produce: &(impl Fn(usize, &mut [[f32; C]]) + Sync),
         grid: &mut Vec<f32>,
     ) {
+        let run = self
+            .ny
+            .div_ceil(XB_RUNS_PER_THREAD * rayon::current_num_threads());
+        self.splat_rows_in_runs(produce, grid, run);
+    }
+
+    /// [`CrossGrid::splat_rows`] in runs of `run` grid rows.
+    fn splat_rows_in_runs<const C: usize>(
+        &self,
+        produce: &(impl Fn(usize, &mut [[f32; C]]) + Sync),
+        grid: &mut Vec<f32>,
+        run: usize,
+    ) {
         let (w, nx, ny, nz) = (self.w, self.nx, self.ny, self.nz);
         let slab = nx * nz;
         grid.clear();
@@ -239,9 +252,7 @@ impl CrossGrid {
         grid.resize(slab * ny * C, 0.0);
         let cell = self.cell;
         let pad = XB_PAD as f32;
-        let run = ny
-            .div_ceil(XB_RUNS_PER_THREAD * rayon::current_num_threads())
-            .max(1);
+        let run = run.max(1);
         // The pixel rows run `i` shares with run `i − 1`, produced once.
         let shared: Vec<(std::ops::Range<usize>, Vec<[f32; C]>)> = (0..ny.div_ceil(run))
             .into_par_iter()
@@ -812,15 +823,33 @@ mod tests {
                 }
             })
             .collect();
+        let bits =
+            |v: &[[f32; 3]]| -> Vec<u32> { v.iter().flatten().map(|x| x.to_bits()).collect() };
         for (sigma_s, sigma_r) in [(2.0f32, 0.3f32), (4.0, 1.5)] {
             let g = CrossGrid::new(&key, w, h, sigma_s, sigma_r);
             let mut fast = vals.clone();
             g.sums(&mut fast, &mut Vec::new(), None);
             let slow = reference_sums(&g, &vals);
-            let bits =
-                |v: &[[f32; 3]]| -> Vec<u32> { v.iter().flatten().map(|x| x.to_bits()).collect() };
             assert_eq!(bits(&fast), bits(&slow), "σs {sigma_s} σr {sigma_r}");
             assert!(fast.iter().any(|v| v[0] != 0.0));
+            // However the grid rows are cut into runs (the rows two runs share produced once).
+            for run in [1, 2, 3, 7, g.ny] {
+                let mut grid = Vec::new();
+                g.splat_rows_in_runs(
+                    &|y, row: &mut [[f32; 3]]| row.copy_from_slice(&vals[y * w..(y + 1) * w]),
+                    &mut grid,
+                    run,
+                );
+                let mut out = vals.clone();
+                for (y, row) in out.chunks_mut(w).enumerate() {
+                    g.slice_row(&grid, y, None, row, false);
+                }
+                assert_eq!(
+                    bits(&out),
+                    bits(&slow),
+                    "σs {sigma_s} σr {sigma_r}, runs of {run}"
+                );
+            }
         }
     }
 }
