@@ -843,7 +843,9 @@ mod tests {
             &dense,
         );
         assert!(
-            stats.measured * 20 <= stats.examined,
+            // At `min_ncc` 0.5 the strip's rims, where the window reaches the visible floor,
+            // may pass (11 % here); its interior stays unknown.
+            stats.measured * 8 <= stats.examined,
             "{} of {} hidden pixels measured",
             stats.measured,
             stats.examined
