@@ -19,6 +19,7 @@ use sdsem::app::reconstruct::load_pair;
 use sdsem::vision::Image;
 use sdsem::vision::Preset;
 use sdsem::vision::ReconstructionParams;
+use sdsem::vision::dense::Unknown;
 use sdsem::vision::geometry::Figures;
 use sdsem::vision::pipeline::{ReconReport, reconstruct};
 
@@ -39,6 +40,11 @@ pub struct PairFigures {
     /// Fraction of pot_03's pixels whose height was interpolated, not
     /// measured (confidence 0; `fill_max_gap`, off by default).
     pub interpolated: f64,
+    /// Fraction of pot_03's pixels left unknown because both directions of matching disagree
+    /// (reason `left-right`: steep flanks, occlusions, mismatches).
+    pub left_right: f64,
+    /// Fraction of pot_03's pixels outside what both micrographs see (reason `not-seen`).
+    pub not_seen: f64,
     pub report: ReconReport,
     pub wall_ms: f64,
 }
@@ -138,12 +144,17 @@ pub fn reconstruct_series(
             .count();
         let interpolated: Vec<bool> = recon.confidence.data().iter().map(|&c| c == 0.0).collect();
         let n_interpolated = interpolated.iter().filter(|&&i| i).count();
+        let share = |why: Unknown| {
+            recon.unknown.iter().filter(|&&u| u == why).count() as f64 / recon.unknown.len() as f64
+        };
         out.push((
             PairFigures {
                 right: (*right).to_owned(),
                 tilt_deg: pair.geometry.tilt_deg,
                 coverage: known as f64 / recon.height_um.len() as f64,
                 interpolated: n_interpolated as f64 / recon.height_um.len() as f64,
+                left_right: share(Unknown::LeftRight),
+                not_seen: share(Unknown::NotSeen),
                 report: recon.report,
                 wall_ms: t.elapsed().as_secs_f64() * 1e3,
             },
@@ -171,7 +182,7 @@ pub fn run(opts: &super::EvalOptions, mode: Option<Preset>, set: &[String]) -> a
                 let t = &f.report.timings;
                 let d = &f.report.dense.timings;
                 println!(
-                    "{m:<8} {LEFT} + {} (θ {:.0}°) | cover {:>5.1} %{} | heights {:>6.2} … {:>6.2} µm | inliers {} rect err {:.2} px | sparse {:>5.0} ms dense {:>5.0} ms (BP {:.0}, re-assign {:.0}, refine {:.0}, LR {:.0}, filter {:.0}) depth {:>4.0} ms | {:.1} s wall",
+                    "{m:<8} {LEFT} + {} (θ {:.0}°) | cover {:>5.1} %{} (unknown: left-right {:.1} %, not seen {:.1} %) | heights {:>6.2} … {:>6.2} µm | inliers {} rect err {:.2} px | sparse {:>5.0} ms dense {:>5.0} ms (BP {:.0}, re-assign {:.0}, refine {:.0}, LR {:.0}, filter {:.0}) depth {:>4.0} ms | {:.1} s wall",
                     f.right,
                     f.tilt_deg,
                     100.0 * f.coverage,
@@ -180,6 +191,8 @@ pub fn run(opts: &super::EvalOptions, mode: Option<Preset>, set: &[String]) -> a
                     } else {
                         String::new()
                     },
+                    100.0 * f.left_right,
+                    100.0 * f.not_seen,
                     f.report.depth.height_p01_um,
                     f.report.depth.height_p99_um,
                     f.report.sparse.inliers,

@@ -23,6 +23,7 @@ mod params;
 pub mod reassign;
 pub mod refine;
 pub mod sift_flow;
+pub mod slanted;
 pub mod support;
 pub mod tile;
 
@@ -676,6 +677,7 @@ fn left_right_consistency(
         }
         None => (vec![false; w * h], vec![1.0; w * h]),
     };
+    let start = params.slanted.enabled.then(|| u.data().to_vec());
     let mut raw = u;
     let mut confidence = Image::zeros(w, h);
     let mut unknown = vec![Unknown::Measured; w * h];
@@ -707,6 +709,17 @@ fn left_right_consistency(
                 *c = ambiguity[p] * agreement[p];
             }
         });
+    if let Some(start) = &start {
+        let backward = bwd.as_ref().map(|b| &b.u[..]);
+        let out = (&mut raw, &mut confidence, &mut unknown[..]);
+        slanted::measure_steep(
+            (&inputs.a, &inputs.b),
+            (va, vb),
+            (start, &v, backward),
+            out,
+            params,
+        );
+    }
     if params.support.enabled {
         let judged = support::support_test(
             (&inputs.a, &inputs.b),

@@ -6,6 +6,7 @@ use serde::{Deserialize, Serialize};
 use super::DenseError;
 use super::reassign::ReassignParams;
 use super::sift_flow::FlowParams;
+use super::slanted::SlantedParams;
 use super::support::SupportParams;
 use crate::vision::Preset;
 use crate::vision::filter::bilateral_grid::BilateralParams;
@@ -40,6 +41,8 @@ pub struct DenseParams {
     pub bilateral: BilateralParams,
     /// Leave unknown what the micrographs cannot tell: texture, distinctiveness (opt-in, `enabled = true`).
     pub support: SupportParams,
+    /// Measure the flanks the left–right check rejects again with slanted windows (opt-in, `enabled = true`).
+    pub slanted: SlantedParams,
     /// Peak memory of the stage, MiB: a larger rectified canvas is matched in overlapping tiles; 0 = never tile.
     pub memory_budget_mib: usize,
 }
@@ -67,6 +70,7 @@ impl DenseParams {
             reassign: ReassignParams::default(),
             bilateral: BilateralParams::default(),
             support: SupportParams::default(),
+            slanted: SlantedParams::default(),
             memory_budget_mib: 1024,
         };
         match preset {
@@ -116,6 +120,9 @@ impl DenseParams {
             return bad(name, "out of its range (see the parameter table)");
         }
         if let Some(name) = self.support.invalid_field() {
+            return bad(name, "out of its range (see the parameter table)");
+        }
+        if let Some(name) = self.slanted.invalid_field() {
             return bad(name, "out of its range (see the parameter table)");
         }
         Ok(())
