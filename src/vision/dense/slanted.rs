@@ -450,6 +450,25 @@ impl Context<'_> {
         out
     }
 
+    /// [`gauss_newton`] with this pass's window and parameters.
+    fn refine(
+        &self,
+        (src, dst): (&View, &View),
+        at: (usize, usize, f32),
+        start: Plane,
+    ) -> Option<Plane> {
+        let params = self.params;
+        gauss_newton(
+            src,
+            dst,
+            &self.taps,
+            at,
+            start,
+            params.iterations,
+            params.max_slope,
+        )
+    }
+
     /// The slanted measurement of left pixel `p` from the candidates, if it passes.
     fn measure(&self, p: usize, candidates: &[Plane], ends: &Ends) -> Option<Measured> {
         let (x, y) = (p % self.w, p / self.w);
@@ -462,25 +481,9 @@ impl Context<'_> {
             .filter_map(|&c| ncc(ca, cb, &self.taps, at, c).map(|s| (s, c)))
             .max_by(|l, r| l.0.total_cmp(&r.0))?
             .1;
-        let coarse = gauss_newton(
-            ca,
-            cb,
-            &self.taps,
-            at,
-            best,
-            params.iterations,
-            params.max_slope,
-        )?;
+        let coarse = self.refine((ca, cb), at, best)?;
         let (fa, fb) = (&self.fine.0, &self.fine.1);
-        let plane = gauss_newton(
-            fa,
-            fb,
-            &self.taps,
-            at,
-            coarse,
-            params.iterations,
-            params.max_slope,
-        )?;
+        let plane = self.refine((fa, fb), at, coarse)?;
         let score = ncc(fa, fb, &self.taps, at, plane)?;
         if score < params.min_ncc {
             return None;
@@ -540,15 +543,7 @@ impl Context<'_> {
         let back_at = (qx, qy, y as f32 - qy as f32);
         let params = self.params;
         let (fa, fb) = (&self.fine.1, &self.fine.0);
-        let back = gauss_newton(
-            fa,
-            fb,
-            &self.taps,
-            back_at,
-            start,
-            params.iterations,
-            params.max_slope,
-        )?;
+        let back = self.refine((fa, fb), back_at, start)?;
         let score = ncc(fa, fb, &self.taps, back_at, back)?;
         if score < params.min_ncc {
             return by_field;
