@@ -208,6 +208,24 @@ fn window_taps(sigma: f32) -> Vec<(f32, f32, f32)> {
     taps
 }
 
+/// The taps of the slanted window at `(x₀, y₀)` (rows offset by `v`) that both `src` and `dst`
+/// hold under `plane`: `(δx, δy, weight, A, B, B_x)`.
+fn window<'a>(
+    src: &'a View,
+    dst: &'a View,
+    taps: &'a [(f32, f32, f32)],
+    (x0, y0, v): (usize, usize, f32),
+    plane: Plane,
+) -> impl Iterator<Item = (f32, f32, f32, f32, f32, f32)> + 'a {
+    taps.iter().filter_map(move |&(dx, dy, w)| {
+        #[allow(clippy::cast_possible_truncation)]
+        let av = src.at(x0 as isize + dx as isize, y0 as isize + dy as isize)?;
+        let xr = x0 as f32 + dx + plane.d + plane.a * dx + plane.b * dy;
+        let (bv, bx) = dst.sample(xr, y0 as f32 + dy + v)?;
+        Some((dx, dy, w, av, bv, bx))
+    })
+}
+
 /// The slanted window of `src` at pixel `(x₀, y₀)` against `dst` under `plane` (rows offset by
 /// `v`): the normalised cross-correlation, `None` where less than half the window's weight
 /// has data on both sides.
@@ -218,19 +236,9 @@ fn ncc(
     at: (usize, usize, f32),
     plane: Plane,
 ) -> Option<f32> {
-    let (x0, y0, v) = at;
     let (mut s1, mut sa, mut sb, mut saa, mut sbb, mut sab) = (0.0f32, 0.0, 0.0, 0.0, 0.0, 0.0);
-    let mut total = 0.0f32;
-    for &(dx, dy, w) in taps {
-        total += w;
-        #[allow(clippy::cast_possible_truncation)]
-        let Some(av) = src.at(x0 as isize + dx as isize, y0 as isize + dy as isize) else {
-            continue;
-        };
-        let xr = x0 as f32 + dx + plane.d + plane.a * dx + plane.b * dy;
-        let Some((bv, _)) = dst.sample(xr, y0 as f32 + dy + v) else {
-            continue;
-        };
+    let total: f32 = taps.iter().map(|t| t.2).sum();
+    for (_, _, w, av, bv, _) in window(src, dst, taps, at, plane) {
         s1 += w;
         sa += w * av;
         sb += w * bv;
@@ -260,22 +268,13 @@ fn gauss_newton(
     max_slope: f32,
 ) -> Option<Plane> {
     use nalgebra::{Matrix4, Vector4};
-    let (x0, y0, v) = at;
+    let total: f64 = taps.iter().map(|t| f64::from(t.2)).sum();
     let mut beta = 0.0f64;
     for _ in 0..iterations {
         let mut hm = Matrix4::<f64>::zeros();
         let mut g = Vector4::<f64>::zeros();
-        let (mut s1, mut total) = (0.0f64, 0.0f64);
-        for &(dx, dy, w) in taps {
-            total += f64::from(w);
-            #[allow(clippy::cast_possible_truncation)]
-            let Some(av) = src.at(x0 as isize + dx as isize, y0 as isize + dy as isize) else {
-                continue;
-            };
-            let xr = x0 as f32 + dx + plane.d + plane.a * dx + plane.b * dy;
-            let Some((bv, bx)) = dst.sample(xr, y0 as f32 + dy + v) else {
-                continue;
-            };
+        let mut s1 = 0.0f64;
+        for (dx, dy, w, av, bv, bx) in window(src, dst, taps, at, plane) {
             let w = f64::from(w);
             let bx = f64::from(bx);
             let j = Vector4::new(bx, bx * f64::from(dx), bx * f64::from(dy), 1.0);
