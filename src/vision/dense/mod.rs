@@ -46,6 +46,7 @@ use self::refine::{RefinedFlow, upsample_flow};
 use self::sift_flow::{Engine, EngineRun, FlowStats, LevelReport};
 use crate::vision::Image;
 use crate::vision::filter::bilateral_grid::{GridInfo, bilateral_filter};
+use crate::vision::filter::detail;
 use crate::vision::rectify::warp::Warped;
 
 /// Timings of the dense stage, milliseconds.
@@ -257,8 +258,7 @@ fn dense_disparity_of(
     let consistent = left_right_consistency(&inputs, (fwd, bwd), &margin, check, &params);
     let consistency_ms = ms(tc);
     let tf = Instant::now();
-    let filtered =
-        bilateral_filtering(&consistent.raw, &consistent.confidence, &inputs.va, &params);
+    let filtered = bilateral_filtering(&consistent.raw, &consistent.confidence, &inputs, &params);
     let filter_ms = ms(tf);
 
     let mut unknown = consistent.unknown;
@@ -764,15 +764,17 @@ struct Filtered {
 }
 
 /// The bilateral-grid filter of the disparity (paper §2.4), after the optional fill of short
-/// gaps along the rows; measured pixels weigh by their confidence, fills hardly at all.
+/// gaps along the rows; measured pixels weigh by their confidence, fills hardly at all. Then,
+/// optionally, the measured relief that stands out of the predicted noise is put back
+/// ([`detail`](crate::vision::filter::detail)).
 fn bilateral_filtering(
     raw: &Image,
     confidence: &Image,
-    va: &[bool],
+    inputs: &Inputs,
     params: &DenseParams,
 ) -> Filtered {
     let mut to_filter = raw.clone();
-    let filled = fill_row_gaps(&mut to_filter, va, params.fill_max_gap);
+    let filled = fill_row_gaps(&mut to_filter, &inputs.va, params.fill_max_gap);
     let weights = params.weighted_filter.then(|| {
         let mut wt = confidence.clone();
         for (c, _) in wt.data_mut().iter_mut().zip(&filled).filter(|(_, f)| **f) {
@@ -780,7 +782,24 @@ fn bilateral_filtering(
         }
         wt
     });
-    let (disparity, grid) = bilateral_filter(&to_filter, weights.as_ref(), &params.bilateral);
+    let (mut disparity, grid) = bilateral_filter(&to_filter, weights.as_ref(), &params.bilateral);
+    if params.detail.enabled {
+        let window = crate::vision::pipeline::matcher_window_sigma(params) as f32;
+        let pair = (&inputs.a, &inputs.b);
+        if let Some(noise) =
+            detail::disparity_noise_variance(pair, (&inputs.va, &inputs.vb), window)
+        {
+            let measured: Vec<bool> = filled.iter().map(|f| !f).collect();
+            let d = &params.detail;
+            disparity = detail::restore_detail(
+                (&to_filter, &disparity),
+                &noise,
+                &measured,
+                params.bilateral.sigma_s,
+                (d.noise_scale, d.max_px),
+            );
+        }
+    }
     Filtered {
         disparity,
         known: to_filter.data().iter().filter(|d| d.is_finite()).count(),

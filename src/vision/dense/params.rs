@@ -10,6 +10,7 @@ use super::slanted::SlantedParams;
 use super::support::SupportParams;
 use crate::vision::Preset;
 use crate::vision::filter::bilateral_grid::BilateralParams;
+use crate::vision::filter::detail::DetailParams;
 
 /// Parameters of the dense stage. One line each: effect, then the paper preset's value where
 /// it differs from the improved default.
@@ -39,6 +40,8 @@ pub struct DenseParams {
     pub reassign: ReassignParams,
     /// The bilateral grid filter of the disparity (Paris & Durand 2009).
     pub bilateral: BilateralParams,
+    /// Put back the relief the bilateral filter removed where it stands out of the predicted noise (opt-in, `enabled = true`).
+    pub detail: DetailParams,
     /// Leave unknown what the micrographs cannot tell: texture, distinctiveness (opt-in, `enabled = true`).
     pub support: SupportParams,
     /// Measure the flanks the left–right check rejects again with slanted windows (opt-in, `enabled = true`).
@@ -69,6 +72,7 @@ impl DenseParams {
             weighted_filter: true,
             reassign: ReassignParams::default(),
             bilateral: BilateralParams::default(),
+            detail: DetailParams::default(),
             support: SupportParams::default(),
             slanted: SlantedParams::default(),
             memory_budget_mib: 1024,
@@ -89,6 +93,10 @@ impl DenseParams {
                 support: SupportParams {
                     enabled: false,
                     ..SupportParams::default()
+                },
+                detail: DetailParams {
+                    enabled: false,
+                    ..DetailParams::default()
                 },
                 ..improved
             },
@@ -120,6 +128,9 @@ impl DenseParams {
             return bad(name, "out of its range (see the parameter table)");
         }
         if let Some(name) = self.support.invalid_field() {
+            return bad(name, "out of its range (see the parameter table)");
+        }
+        if let Some(name) = self.detail.invalid_field() {
             return bad(name, "out of its range (see the parameter table)");
         }
         if let Some(name) = self.slanted.invalid_field() {

@@ -3,3 +3,4 @@
 pub mod bilateral_grid;
 pub mod blur;
 pub mod cross_grid;
+pub mod detail;
