@@ -10,7 +10,8 @@
 //! 6. `left_right_consistency` of the refined fields, the support test ([`support`]: texture
 //!    along the parallax against the noise floor, distinctiveness of the match) and the
 //!    per-pixel confidence, with the reason of every unknown pixel;
-//! 7. `bilateral_filtering` ([`fill`], then the bilateral grid).
+//! 7. `bilateral_filtering` ([`fill`], then the bilateral grid, then optionally the detail
+//!    restoration of [`detail`]).
 //!
 //! Which of them act is the parameters' choice ([`DenseParams`]); the paper preset runs 2 at
 //! full resolution with integer flow, and 7 unweighted.
