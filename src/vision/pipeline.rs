@@ -76,6 +76,7 @@ error_from!(ReconstructError {
 /// Wall time of each stage, ms.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Serialize)]
 pub struct StageTimings {
+    /// The sparse stage and rectification, with the precision prediction run beside them.
     pub sparse_ms: f64,
     pub dense_ms: f64,
     pub depth_ms: f64,
@@ -225,7 +226,27 @@ pub fn reconstruct_observed(
 
     let t = Instant::now();
     progress(Stage::Sparse);
-    let established = rectify_for_dense(left, right, geometry, &params.sparse)?;
+    let stereo = StereoGeometry {
+        tilt_deg: geometry.tilt_deg,
+        pixel_size_um: geometry.pixel_size_um,
+        tilt_axis_deg: geometry.tilt_axis_deg,
+    };
+    // The precision needs the micrographs alone: predicted beside the sparse stage, whose
+    // serial parts (matching, ORSA, rectification) leave a core free, and whose buffers are
+    // small (SIFT runs on at most `sift_max_megapixels`).
+    let (established, precision) = rayon::join(
+        || rectify_for_dense(left, right, geometry, &params.sparse),
+        || {
+            precision::predict(
+                left,
+                right,
+                geometry.tilt_axis_deg,
+                matcher_window_sigma(&params.dense),
+                stereo.um_per_px(),
+            )
+        },
+    );
+    let established = established?;
     let range = established.range;
     let canvas = established.canvas;
     let (h_left, h_right) = (established.h_left, established.h_right);
@@ -299,17 +320,12 @@ pub fn reconstruct_observed(
 
     let t = Instant::now();
     progress(Stage::Depth);
-    let stereo = StereoGeometry {
-        tilt_deg: geometry.tilt_deg,
-        pixel_size_um: geometry.pixel_size_um,
-        tilt_axis_deg: geometry.tilt_axis_deg,
-    };
     let (w, h) = left.dimensions();
     let mut height_um = height_on_left_grid(&disp.disparity, &h_left, &h_right, &stereo, w, h)?;
     let datum = apply_datum(&mut height_um, params.datum, geometry.pixel_size_um);
     let confidence = left_grid_confidence(&disp.confidence, &disp.filled, &height_um, &h_left);
     let unknown = left_grid_unknown(&disp.unknown, canvas, &height_um, &confidence, &h_left);
-    // The canvas maps (up to twice the micrograph's pixels) go before the precision's planes.
+    // The canvas maps (up to twice the micrograph's pixels) go as soon as they are read.
     let dense_stats = disp.stats;
     drop((disp.disparity, disp.confidence, disp.filled, disp.unknown));
     let depth = depth_report(&height_um, &stereo);
@@ -317,13 +333,6 @@ pub fn reconstruct_observed(
         return Err(ReconstructError::NoOverlap);
     }
     let depth_ms = ms(t);
-    let precision = precision::predict(
-        left,
-        right,
-        geometry.tilt_axis_deg,
-        matcher_window_sigma(&params.dense),
-        depth.um_per_disparity_px,
-    );
 
     let map = |hm: &Matrix3<f64>, p: [f64; 2]| {
         let q = hm * Vector3::new(p[0], p[1], 1.0);
@@ -764,26 +773,37 @@ fn rows(m: &Matrix3<f64>) -> [[f64; 3]; 3] {
 fn depth_report(height: &Image, g: &StereoGeometry) -> DepthReport {
     let mut finite: Vec<f32> = height
         .data()
-        .iter()
+        .par_iter()
         .copied()
         .filter(|v| v.is_finite())
         .collect();
-    finite.sort_by(f32::total_cmp);
-    let pick = |q: f64| -> f64 {
-        if finite.is_empty() {
-            f64::NAN
-        } else {
-            #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
-            let i = ((finite.len() - 1) as f64 * q).round() as usize;
-            f64::from(finite[i])
-        }
-    };
+    let (p01, p99) = percentiles_01_99(&mut finite);
     DepthReport {
         valid_fraction: finite.len() as f64 / height.len().max(1) as f64,
-        height_p01_um: pick(0.01),
-        height_p99_um: pick(0.99),
+        height_p01_um: p01,
+        height_p99_um: p99,
         um_per_disparity_px: g.um_per_px(),
     }
+}
+
+/// The 1st and 99th percentile of `v` (the values at ranks `round((n − 1)·q)` of its sorted
+/// order), `NaN` when empty. Two selections instead of a sort: the same values, in linear time.
+/// Reorders `v`.
+fn percentiles_01_99(v: &mut [f32]) -> (f64, f64) {
+    if v.is_empty() {
+        return (f64::NAN, f64::NAN);
+    }
+    #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
+    let rank = |q: f64| ((v.len() - 1) as f64 * q).round() as usize;
+    let (lo, hi) = (rank(0.01), rank(0.99));
+    let (below, &mut p99, _) = v.select_nth_unstable_by(hi, f32::total_cmp);
+    // Every value of rank below `hi` is in `below`, at the same rank.
+    let p01 = if lo < hi {
+        *below.select_nth_unstable_by(lo, f32::total_cmp).1
+    } else {
+        p99
+    };
+    (f64::from(p01), f64::from(p99))
 }
 
 #[cfg(test)]
@@ -828,6 +848,31 @@ mod tests {
         let c = left_grid_confidence(&flat, &filled, &height, &Matrix3::identity());
         assert_eq!(c.get(3, 2), 0.0);
         assert!(c.get(1, 0) > 0.0 && c.get(5, 3) > 0.0);
+    }
+
+    /// The percentiles by selection are those of a full sort.
+    #[test]
+    fn percentiles_by_selection_equal_the_sorted_ranks() {
+        let mut seed = 3u32;
+        for n in [1usize, 2, 3, 50, 101, 1000, 4099] {
+            let v: Vec<f32> = (0..n)
+                .map(|_| {
+                    seed = seed.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+                    // Repeated values and both zeros, as heights have.
+                    ((seed >> 20) % 97) as f32 - 48.0
+                })
+                .map(|x| if x == 0.0 { -0.0 } else { x / 3.0 })
+                .collect();
+            let mut sorted = v.clone();
+            sorted.sort_by(f32::total_cmp);
+            let at = |q: f64| f64::from(sorted[((n - 1) as f64 * q).round() as usize]);
+            let (p01, p99) = percentiles_01_99(&mut v.clone());
+            assert_eq!(
+                (p01.to_bits(), p99.to_bits()),
+                (at(0.01).to_bits(), at(0.99).to_bits())
+            );
+        }
+        assert!(percentiles_01_99(&mut []).0.is_nan());
     }
 
     #[test]
