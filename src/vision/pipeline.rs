@@ -76,7 +76,6 @@ error_from!(ReconstructError {
 /// Wall time of each stage, ms.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Serialize)]
 pub struct StageTimings {
-    /// The sparse stage and rectification, with the precision prediction run beside them.
     pub sparse_ms: f64,
     pub dense_ms: f64,
     pub depth_ms: f64,
@@ -226,27 +225,7 @@ pub fn reconstruct_observed(
 
     let t = Instant::now();
     progress(Stage::Sparse);
-    let stereo = StereoGeometry {
-        tilt_deg: geometry.tilt_deg,
-        pixel_size_um: geometry.pixel_size_um,
-        tilt_axis_deg: geometry.tilt_axis_deg,
-    };
-    // The precision needs the micrographs alone: predicted beside the sparse stage, whose
-    // serial parts (matching, ORSA, rectification) leave a core free, and whose buffers are
-    // small (SIFT runs on at most `sift_max_megapixels`).
-    let (established, precision) = rayon::join(
-        || rectify_for_dense(left, right, geometry, &params.sparse),
-        || {
-            precision::predict(
-                left,
-                right,
-                geometry.tilt_axis_deg,
-                matcher_window_sigma(&params.dense),
-                stereo.um_per_px(),
-            )
-        },
-    );
-    let established = established?;
+    let established = rectify_for_dense(left, right, geometry, &params.sparse)?;
     let range = established.range;
     let canvas = established.canvas;
     let (h_left, h_right) = (established.h_left, established.h_right);
@@ -320,12 +299,17 @@ pub fn reconstruct_observed(
 
     let t = Instant::now();
     progress(Stage::Depth);
+    let stereo = StereoGeometry {
+        tilt_deg: geometry.tilt_deg,
+        pixel_size_um: geometry.pixel_size_um,
+        tilt_axis_deg: geometry.tilt_axis_deg,
+    };
     let (w, h) = left.dimensions();
     let mut height_um = height_on_left_grid(&disp.disparity, &h_left, &h_right, &stereo, w, h)?;
     let datum = apply_datum(&mut height_um, params.datum, geometry.pixel_size_um);
     let confidence = left_grid_confidence(&disp.confidence, &disp.filled, &height_um, &h_left);
     let unknown = left_grid_unknown(&disp.unknown, canvas, &height_um, &confidence, &h_left);
-    // The canvas maps (up to twice the micrograph's pixels) go as soon as they are read.
+    // The canvas maps (up to twice the micrograph's pixels) go before the precision's planes.
     let dense_stats = disp.stats;
     drop((disp.disparity, disp.confidence, disp.filled, disp.unknown));
     let depth = depth_report(&height_um, &stereo);
@@ -333,6 +317,13 @@ pub fn reconstruct_observed(
         return Err(ReconstructError::NoOverlap);
     }
     let depth_ms = ms(t);
+    let precision = precision::predict(
+        left,
+        right,
+        geometry.tilt_axis_deg,
+        matcher_window_sigma(&params.dense),
+        depth.um_per_disparity_px,
+    );
 
     let map = |hm: &Matrix3<f64>, p: [f64; 2]| {
         let q = hm * Vector3::new(p[0], p[1], 1.0);
