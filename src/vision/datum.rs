@@ -286,7 +286,7 @@ fn best_sample(
                     below += 1;
                 }
             }
-            (on >= min_cells).then(|| on as f64 - BELOW_PENALTY * below as f64)
+            (on >= min_cells).then_some(on as f64 - BELOW_PENALTY * below as f64)
         })
         .collect();
     let mut best: Option<([f64; 3], f64)> = None;
