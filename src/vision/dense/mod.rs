@@ -730,7 +730,7 @@ fn left_right_consistency(
         let judged = support::support_test(
             (&inputs.a, &inputs.b),
             (va, vb),
-            &raw,
+            (&raw, Some(&v)),
             &params.support,
             crate::vision::pipeline::matcher_window_sigma(params) as f32,
         );
