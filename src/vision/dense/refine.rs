@@ -441,7 +441,12 @@ fn refine_level(
             clamped,
         };
     }
-    work.resize(8 * n, 0.0);
+    if work.capacity() < 8 * n {
+        // Fresh: the system's zeroed pages, not a zeroing pass (every sum is written below).
+        work = vec![0f32; 8 * n];
+    } else {
+        work.resize(8 * n, 0.0);
+    }
     let (sums, scratch) = work.split_at_mut(4 * n);
     let (sums, scratch) = (sums.as_chunks_mut::<4>().0, scratch.as_chunks_mut::<4>().0);
     sums.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
