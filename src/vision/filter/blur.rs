@@ -369,6 +369,51 @@ mod tests {
         }
     }
 
+    /// The contrast normalisation step by step, each in a plane of its own (packed into
+    /// one-channel pixels for the blur): the in-place version gives the same bits.
+    #[test]
+    fn contrast_normalisation_in_place_equals_the_plane_by_plane_steps() {
+        let (w, h) = (31, 19);
+        let img = Image::from_fn(w, h, |x, y| {
+            ((x * 7 + y * 13) % 17) as f32 / 17.0 + 0.01 * y as f32
+        });
+        let plane = |src: &[f32], sigma: f32| -> Vec<f32> {
+            let packed: Vec<[f32; 1]> = src.iter().map(|&v| [v]).collect();
+            blur(&packed, w, h, sigma)
+                .into_iter()
+                .map(|v| v[0])
+                .collect()
+        };
+        for (presmooth, sigma) in [(0.0, 2.5), (0.8, 2.5), (0.0, 4.0), (1.5, 1.2)] {
+            let base = if presmooth > 0.0 {
+                plane(img.data(), presmooth)
+            } else {
+                img.data().to_vec()
+            };
+            let mean = plane(&base, sigma);
+            let hp: Vec<f32> = base.iter().zip(&mean).map(|(a, m)| a - m).collect();
+            let sq: Vec<f32> = hp.iter().map(|v| v * v).collect();
+            let var = plane(&sq, sigma);
+            let mean_sd = var
+                .iter()
+                .map(|v| f64::from(v.max(0.0)).sqrt())
+                .sum::<f64>()
+                / var.len() as f64;
+            let eps2 = (0.1 * mean_sd as f32).powi(2).max(1e-12);
+            let want: Vec<u32> = hp
+                .iter()
+                .zip(&var)
+                .map(|(a, v)| (a / (v.max(0.0) + eps2).sqrt()).to_bits())
+                .collect();
+            let got: Vec<u32> = normalise_contrast(&img, presmooth, sigma)
+                .data()
+                .iter()
+                .map(|v| v.to_bits())
+                .collect();
+            assert_eq!(got, want, "presmooth {presmooth}, σ {sigma}");
+        }
+    }
+
     /// The Gaussian blur by its definition: a double sum over the window.
     fn naive_blur(src: &[f32], w: usize, h: usize, sigma: f32) -> Vec<f32> {
         let taps = gaussian_taps(sigma);
