@@ -78,8 +78,9 @@ pub fn load_pair(
     given: Figures,
     configured_tilt_axis_deg: Option<f64>,
 ) -> anyhow::Result<LoadedPair> {
-    let l = load_micrograph(left)?;
-    let r = load_micrograph(right)?;
+    // Decoded at the same time; the left one's error first.
+    let (l, r) = rayon::join(|| load_micrograph(left), || load_micrograph(right));
+    let (l, r) = (l?, r?);
     if l.image.dimensions() != r.image.dimensions() {
         bail!(
             "the micrographs differ in size: {} is {}×{}, {} is {}×{}",

@@ -18,7 +18,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::ExportError;
-use super::atomic::Target;
+use super::atomic::{EarlyWriteback, Target};
 use crate::vision::Image;
 
 /// One point of the dense cloud: position in µm (see the module docs) and intensity.
@@ -343,9 +343,29 @@ fn row_triangles(
     cut
 }
 
+/// Writes the byte blocks `encode` makes of `blocks`, in order, encoding the next block while
+/// the previous one is written: the copy into the page cache takes one core, the encoding the
+/// others. The bytes are those of encoding and writing the blocks one after the other.
+fn write_pipelined<B: Send>(
+    w: &mut (impl Write + Send),
+    blocks: impl Iterator<Item = B>,
+    encode: impl Fn(B) -> Vec<Vec<u8>> + Sync,
+) -> std::io::Result<()> {
+    let write = |w: &mut (dyn Write + Send), encoded: &[Vec<u8>]| {
+        encoded.iter().try_for_each(|bytes| w.write_all(bytes))
+    };
+    let mut pending: Vec<Vec<u8>> = Vec::new();
+    for block in blocks {
+        let (written, next) = rayon::join(|| write(&mut *w, &pending), || encode(block));
+        written?;
+        pending = next;
+    }
+    write(w, &pending)
+}
+
 /// Writes the vertices of `height_um`'s finite pixels, row-major, a block of rows at a time.
 fn write_height_vertices(
-    w: &mut impl Write,
+    w: &mut (impl Write + Send),
     height_um: &Image,
     pixel_size_um: f64,
     intensity: Option<&Image>,
@@ -353,8 +373,8 @@ fn write_height_vertices(
 ) -> std::io::Result<()> {
     let size = if with_intensity { 16 } else { 12 };
     let rows: Vec<usize> = (0..height_um.height()).collect();
-    for block in rows.chunks(ROWS_PER_BLOCK) {
-        let encoded: Vec<Vec<u8>> = block
+    write_pipelined(w, rows.chunks(ROWS_PER_BLOCK), |block| {
+        block
             .par_iter()
             .map(|&r| {
                 let mut out = Vec::new();
@@ -368,12 +388,8 @@ fn write_height_vertices(
                 }
                 out
             })
-            .collect();
-        for bytes in encoded {
-            w.write_all(&bytes)?;
-        }
-    }
-    Ok(())
+            .collect()
+    })
 }
 
 /// Writes `pointcloud.ply` atomically from a height map, a block of rows at a time: the bytes
@@ -406,7 +422,13 @@ pub fn write_point_cloud_from_height<'a>(
              element vertex {n}\nproperty float x\nproperty float y\nproperty float z\n\
              property float intensity\nend_header\n",
         )?;
-        write_height_vertices(w, height_um, pixel_size_um, intensity, true)
+        write_height_vertices(
+            &mut EarlyWriteback::new(w),
+            height_um,
+            pixel_size_um,
+            intensity,
+            true,
+        )
     })?;
     Ok(n)
 }
@@ -469,6 +491,7 @@ pub fn write_mesh_from_height<'a>(
             },
             counts.triangles
         )?;
+        let out = &mut EarlyWriteback::new(out);
         write_height_vertices(out, height_um, pixel_size_um, intensity, with_intensity)?;
         // A vertex's index: its row's first index and the finite pixels before it in the row.
         let row_index = |r: usize| -> Vec<u32> {
@@ -485,26 +508,22 @@ pub fn write_mesh_from_height<'a>(
                 .collect()
         };
         let rows: Vec<usize> = (0..h.saturating_sub(1)).collect();
-        for block in rows.chunks(ROWS_PER_BLOCK) {
-            let encoded: Vec<Vec<u8>> = block
+        write_pipelined(out, rows.chunks(ROWS_PER_BLOCK), |block| {
+            block
                 .par_iter()
                 .map(|&r| {
                     let (top, bottom) = (row_index(r), row_index(r + 1));
                     let id = |(x, y): (usize, usize)| if y == r { top[x] } else { bottom[x] };
                     let mut bytes = Vec::with_capacity(13 * per_row[r].1);
                     row_triangles(height_um, r, max_step, |tri| {
-                        let at = bytes.len();
-                        bytes.resize(at + 13, 0);
-                        encode_face(&[id(tri[0]), id(tri[1]), id(tri[2])], &mut bytes[at..]);
+                        let mut face = [0u8; 13];
+                        encode_face(&[id(tri[0]), id(tri[1]), id(tri[2])], &mut face);
+                        bytes.extend_from_slice(&face);
                     });
                     bytes
                 })
-                .collect();
-            for bytes in encoded {
-                out.write_all(&bytes)?;
-            }
-        }
-        Ok(())
+                .collect()
+        })
     })?;
     Ok(counts)
 }
@@ -644,7 +663,8 @@ mod tests {
     /// The streaming writers give the very bytes of building the cloud and mesh first.
     #[test]
     fn streamed_cloud_and_mesh_are_the_bytes_of_the_built_ones() {
-        let (w, h) = (37, 29);
+        // More rows than one block: the blocks are written while the next is encoded.
+        let (w, h) = (37, 2 * ROWS_PER_BLOCK + 29);
         let height = Image::from_fn(w, h, |x, y| {
             if (x * 7 + y * 3) % 11 == 0 {
                 f32::NAN

@@ -18,6 +18,7 @@
 //! least 0.5 % of the relief.
 
 use rand::{Rng, SeedableRng};
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::Image;
@@ -144,12 +145,18 @@ pub fn apply_datum(height_um: &mut Image, kind: DatumKind, pixel_size_um: f64) -
         datum.fallback = Some("no measured height to level on".to_owned());
         return datum;
     };
-    let w = height_um.width();
-    for (p, v) in height_um.data_mut().iter_mut().enumerate() {
-        if v.is_finite() {
-            *v = (f64::from(*v) - (c[0] + c[1] * (p % w) as f64 + c[2] * (p / w) as f64)) as f32;
-        }
-    }
+    let w = height_um.width().max(1);
+    height_um
+        .data_mut()
+        .par_chunks_mut(w)
+        .enumerate()
+        .for_each(|(y, row)| {
+            for (x, v) in row.iter_mut().enumerate() {
+                if v.is_finite() {
+                    *v = (f64::from(*v) - (c[0] + c[1] * x as f64 + c[2] * y as f64)) as f32;
+                }
+            }
+        });
     datum.plane_um = c;
     datum.plane_inclination_deg = (c[1].hypot(c[2]) / pixel_size_um).atan().to_degrees();
     if let Some(tol) = datum.tolerance_um {
@@ -186,37 +193,37 @@ struct Cell {
 }
 
 /// Block medians of the finite heights (a block at least half measured), on a grid whose long
-/// side is at most [`GRID`]; `None` for blocks without enough heights.
+/// side is at most [`GRID`]; `None` for blocks without enough heights. Rows of blocks in
+/// parallel: each cell is its own block's median, so the grid is the same in any order.
 fn block_medians(height: &Image) -> (Vec<Option<Cell>>, usize, usize) {
     let (w, h) = height.dimensions();
     let b = w.max(h).div_ceil(GRID).max(1);
     let (gw, gh) = (w.div_ceil(b), h.div_ceil(b));
-    let mut cells = Vec::with_capacity(gw * gh);
-    let mut values = Vec::with_capacity(b * b);
-    for gy in 0..gh {
-        for gx in 0..gw {
-            let (x0, y0) = (gx * b, gy * b);
-            let (x1, y1) = ((x0 + b).min(w), (y0 + b).min(h));
-            values.clear();
-            for y in y0..y1 {
-                values.extend(
-                    height.row(y)[x0..x1]
-                        .iter()
-                        .copied()
-                        .filter(|v| v.is_finite()),
-                );
-            }
-            let area = (x1 - x0) * (y1 - y0);
-            cells.push((2 * values.len() >= area && !values.is_empty()).then(|| {
-                let mut z: Vec<f64> = values.iter().map(|&v| f64::from(v)).collect();
-                Cell {
+    let cells = (0..gh)
+        .into_par_iter()
+        .flat_map_iter(|gy| {
+            let mut values = Vec::with_capacity(b * b);
+            (0..gw).map(move |gx| {
+                let (x0, y0) = (gx * b, gy * b);
+                let (x1, y1) = ((x0 + b).min(w), (y0 + b).min(h));
+                values.clear();
+                for y in y0..y1 {
+                    values.extend(
+                        height.row(y)[x0..x1]
+                            .iter()
+                            .map(|&v| f64::from(v))
+                            .filter(|v| v.is_finite()),
+                    );
+                }
+                let area = (x1 - x0) * (y1 - y0);
+                (2 * values.len() >= area && !values.is_empty()).then(|| Cell {
                     x: (x0 + x1 - 1) as f64 / 2.0,
                     y: (y0 + y1 - 1) as f64 / 2.0,
-                    z: median(&mut z).unwrap_or(f64::NAN),
-                }
-            }));
-        }
-    }
+                    z: median(&mut values).unwrap_or(f64::NAN),
+                })
+            })
+        })
+        .collect();
     (cells, gw, gh)
 }
 
@@ -256,6 +263,41 @@ fn grid_noise(cells: &[Option<Cell>], gw: usize, gh: usize) -> Option<f64> {
         }
     }
     median(&mut d).map(|m| 1.4826 * m / 6f64.sqrt())
+}
+
+/// The sample plane with the highest score — the cells within `tolerance` of it minus
+/// [`BELOW_PENALTY`] per cell more than 3 tolerances below it — among those with at least
+/// `min_cells` cells on them; the first of equal scores. Scored in parallel, chosen in order.
+fn best_sample(
+    samples: &[[f64; 3]],
+    pts: &[Cell],
+    tolerance: f64,
+    min_cells: usize,
+) -> Option<([f64; 3], f64)> {
+    let scores: Vec<Option<f64>> = samples
+        .par_iter()
+        .map(|plane| {
+            let (mut on, mut below) = (0usize, 0usize);
+            for c in pts {
+                let r = residual(plane, c);
+                if r.abs() <= tolerance {
+                    on += 1;
+                } else if r < -3.0 * tolerance {
+                    below += 1;
+                }
+            }
+            (on >= min_cells).then_some(on as f64 - BELOW_PENALTY * below as f64)
+        })
+        .collect();
+    let mut best: Option<([f64; 3], f64)> = None;
+    for (plane, score) in samples.iter().zip(scores) {
+        if let Some(score) = score
+            && best.is_none_or(|(_, s)| score > s)
+        {
+            best = Some((*plane, score));
+        }
+    }
+    best
 }
 
 /// The plane through three cells, `None` when they are (nearly) collinear.
@@ -341,35 +383,21 @@ fn support_plane(height: &Image) -> Result<Support, String> {
     by_height.sort_by(|&a, &b| pts[a].z.total_cmp(&pts[b].z));
     let low = ((LOW_POOL * n as f64).ceil() as usize).clamp(3, n);
 
+    // The samples are drawn in order from one seeded generator, as a loop would draw them; their
+    // scores are independent, so they are counted in parallel.
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0x5EED_DA7A);
-    let mut best: Option<([f64; 3], f64)> = None;
-    for it in 0..ITERATIONS {
-        let pool = if it % 2 == 0 { low } else { n };
-        let mut draw = || by_height[rng.random_range(0..pool)];
-        let (i, j, k) = (draw(), draw(), draw());
-        if i == j || j == k || i == k {
-            continue;
-        }
-        let Some(plane) = plane_through(pts[i], pts[j], pts[k]) else {
-            continue;
-        };
-        let (mut on, mut below) = (0usize, 0usize);
-        for c in &pts {
-            let r = residual(&plane, c);
-            if r.abs() <= tolerance {
-                on += 1;
-            } else if r < -3.0 * tolerance {
-                below += 1;
+    let samples: Vec<[f64; 3]> = (0..ITERATIONS)
+        .filter_map(|it| {
+            let pool = if it % 2 == 0 { low } else { n };
+            let mut draw = || by_height[rng.random_range(0..pool)];
+            let (i, j, k) = (draw(), draw(), draw());
+            if i == j || j == k || i == k {
+                return None;
             }
-        }
-        if on < min_cells {
-            continue;
-        }
-        let score = on as f64 - BELOW_PENALTY * below as f64;
-        if best.is_none_or(|(_, s)| score > s) {
-            best = Some((plane, score));
-        }
-    }
+            plane_through(pts[i], pts[j], pts[k])
+        })
+        .collect();
+    let best = best_sample(&samples, &pts, tolerance, min_cells);
     let Some((mut plane, _)) = best else {
         return Err(format!(
             "no flat region covers {:.0} % of the measured area",
@@ -571,6 +599,65 @@ mod tests {
         let mut empty = Image::filled(8, 8, f32::NAN);
         let datum = apply_datum(&mut empty, DatumKind::Support, 0.1);
         assert_eq!(datum.kind, DatumKind::None);
+    }
+
+    /// The parallel block medians and RANSAC scores equal a serial loop's, to the bit.
+    #[test]
+    fn parallel_support_search_equals_the_serial_loop() {
+        let map = support_with_bump(333, 211);
+        let (w, h) = map.dimensions();
+        let (cells, gw, gh) = block_medians(&map);
+        let b = w.max(h).div_ceil(GRID);
+        let mut serial = Vec::new();
+        for gy in 0..gh {
+            for gx in 0..gw {
+                let (x0, y0) = (gx * b, gy * b);
+                let (x1, y1) = ((x0 + b).min(w), (y0 + b).min(h));
+                let mut z: Vec<f64> = (y0..y1)
+                    .flat_map(|y| (x0..x1).map(move |x| (x, y)))
+                    .map(|(x, y)| f64::from(map.get(x, y)))
+                    .filter(|v| v.is_finite())
+                    .collect();
+                let enough = 2 * z.len() >= (x1 - x0) * (y1 - y0) && !z.is_empty();
+                serial.push(enough.then(|| (x0 + x1 - 1, y0 + y1 - 1, median(&mut z).unwrap())));
+            }
+        }
+        let got: Vec<_> = cells
+            .iter()
+            .map(|c| c.map(|c| ((2.0 * c.x) as usize, (2.0 * c.y) as usize, c.z)))
+            .collect();
+        assert_eq!(got.len(), gw * gh);
+        assert_eq!(got, serial);
+
+        let pts: Vec<Cell> = cells.iter().flatten().copied().collect();
+        let mut samples = Vec::new();
+        for i in 0..300 {
+            let (a, b, c) = (
+                pts[i * 7 % pts.len()],
+                pts[i * 13 % pts.len()],
+                pts[i * 29 % pts.len()],
+            );
+            samples.extend(plane_through(a, b, c));
+        }
+        let (tolerance, min_cells) = (0.05, 10);
+        let mut best: Option<([f64; 3], f64)> = None;
+        for plane in &samples {
+            let (mut on, mut below) = (0usize, 0usize);
+            for c in &pts {
+                let r = residual(plane, c);
+                if r.abs() <= tolerance {
+                    on += 1;
+                } else if r < -3.0 * tolerance {
+                    below += 1;
+                }
+            }
+            let score = on as f64 - BELOW_PENALTY * below as f64;
+            if on >= min_cells && best.is_none_or(|(_, s)| score > s) {
+                best = Some((*plane, score));
+            }
+        }
+        assert!(best.is_some());
+        assert_eq!(best_sample(&samples, &pts, tolerance, min_cells), best);
     }
 
     #[test]

@@ -284,74 +284,128 @@ pub fn dense_sift_where(
         return DescriptorImage::zeros(w, h);
     }
 
-    // 1. Orientation bands, interleaved [pixel][band].
-    let mut bands = vec![0f32; w * h * N_BINS];
-    bands
-        .par_chunks_mut(w * N_BINS)
+    // Blocks of output rows, each computed from its own bands and cells (those of the rows
+    // its descriptors reach, recomputed where blocks overlap): no full-size intermediate
+    // plane, and each block's planes stay in cache. Every value is the same sum in the same
+    // order whatever the blocks, so the descriptors do not depend on them.
+    let block = h
+        .div_ceil(BLOCKS_PER_THREAD * rayon::current_num_threads())
+        .max(MIN_BLOCK_ROWS);
+    let mut out = DescriptorImage::zeros(w, h);
+    out.data
+        .par_chunks_mut(block * w * DESCRIPTOR_LEN)
         .enumerate()
-        .for_each(|(y, row)| {
-            let up = img.row(y.saturating_sub(1));
-            let down = img.row((y + 1).min(h - 1));
-            sobel_row(up, img.row(y), down, row);
-        });
+        .for_each_init(
+            || (Vec::new(), Vec::new()),
+            |(bands, horizontal), (b, rows)| {
+                let y0 = b * block;
+                let y1 = y0 + rows.len() / (w * DESCRIPTOR_LEN);
+                if let Some(m) = wanted
+                    && !m[y0 * w..y1 * w].contains(&true)
+                {
+                    return;
+                }
+                descriptor_block(img, &layout, (y0, y1), wanted, bands, horizontal, rows);
+            },
+        );
+    out
+}
+
+/// Blocks of output rows per thread of [`dense_sift_where`] (the descriptors do not depend on it).
+const BLOCKS_PER_THREAD: usize = 4;
+/// Fewest rows of a block: its halo (the rows its cells and tents reach) is recomputed.
+const MIN_BLOCK_ROWS: usize = 32;
+
+/// Rows `y0..y1` of [`dense_sift_where`] into `out` (their descriptors, `w · DESCRIPTOR_LEN`
+/// bytes a row, zeros where not wanted), with `bands` and `horizontal` as working planes.
+///
+/// The descriptor of row `y` reads the cells of rows `y + cell_offsets` (clamped), a cell
+/// row the horizontally filtered bands of the rows its tent reaches (clamped), a band row
+/// the image rows around it: the block computes exactly those rows, each value as the
+/// whole-image passes do (the tent taps in order, from zero).
+#[allow(clippy::too_many_arguments)]
+fn descriptor_block(
+    img: &Image,
+    layout: &CellLayout,
+    (y0, y1): (usize, usize),
+    wanted: Option<&[bool]>,
+    bands: &mut Vec<f32>,
+    horizontal: &mut Vec<f32>,
+    out: &mut [u8],
+) {
+    let (w, h) = img.dimensions();
+    let last = h as isize - 1;
+    let clamp = |y: isize| y.clamp(0, last) as usize;
+    let (co_lo, co_hi) = (layout.cell_offsets[0], layout.cell_offsets[3]);
+    let (k_lo, k_hi) = (
+        layout.taps.first().map_or(0, |t| t.0),
+        layout.taps.last().map_or(0, |t| t.0),
+    );
+    // Cell rows c0..c1, band rows b0..b1 (clamped offsets are monotone: the bounds hold all).
+    let (c0, c1) = (
+        clamp(y0 as isize + co_lo),
+        clamp(y1 as isize - 1 + co_hi) + 1,
+    );
+    let (b0, b1) = (clamp(c0 as isize + k_lo), clamp(c1 as isize - 1 + k_hi) + 1);
+    let row_len = w * N_BINS;
+
+    // 1. Orientation bands, interleaved [pixel][band].
+    bands.resize((b1 - b0) * row_len, 0.0);
+    for (y, row) in (b0..b1).zip(bands.chunks_exact_mut(row_len)) {
+        let up = img.row(y.saturating_sub(1));
+        let down = img.row((y + 1).min(h - 1));
+        sobel_row(up, img.row(y), down, row);
+    }
 
     // 2. Separable tent filter: horizontal, then vertical (replicated border).
-    let mut horizontal = vec![0f32; w * h * N_BINS];
-    horizontal
-        .par_chunks_mut(w * N_BINS)
-        .enumerate()
-        .for_each(|(y, row)| {
-            let src = &bands[y * w * N_BINS..(y + 1) * w * N_BINS];
-            for (x, out) in row.chunks_exact_mut(N_BINS).enumerate() {
-                for &(k, wt) in &layout.taps {
-                    let sx = (x as isize + k).clamp(0, w as isize - 1) as usize;
-                    for (o, &s) in out.iter_mut().zip(&src[sx * N_BINS..(sx + 1) * N_BINS]) {
-                        *o += wt * s;
-                    }
-                }
-            }
-        });
-    let mut cells = bands; // reuse the buffer
-    cells
-        .par_chunks_mut(w * N_BINS)
-        .enumerate()
-        .for_each(|(y, row)| {
-            row.fill(0.0);
+    horizontal.resize((b1 - b0) * row_len, 0.0);
+    for (src, row) in bands
+        .chunks_exact(row_len)
+        .zip(horizontal.chunks_exact_mut(row_len))
+    {
+        for (x, out) in row.chunks_exact_mut(N_BINS).enumerate() {
+            out.fill(0.0);
             for &(k, wt) in &layout.taps {
-                let sy = (y as isize + k).clamp(0, h as isize - 1) as usize;
-                let src = &horizontal[sy * w * N_BINS..(sy + 1) * w * N_BINS];
-                for (o, &s) in row.iter_mut().zip(src) {
+                let sx = (x as isize + k).clamp(0, w as isize - 1) as usize;
+                for (o, &s) in out.iter_mut().zip(&src[sx * N_BINS..(sx + 1) * N_BINS]) {
                     *o += wt * s;
                 }
             }
-        });
-    drop(horizontal);
+        }
+    }
+    // The cells in the bands' plane (no longer needed).
+    let cells = bands;
+    for (y, row) in (c0..c1).zip(cells.chunks_exact_mut(row_len)) {
+        row.fill(0.0);
+        for &(k, wt) in &layout.taps {
+            let sy = clamp(y as isize + k);
+            let src = &horizontal[(sy - b0) * row_len..(sy - b0 + 1) * row_len];
+            for (o, &s) in row.iter_mut().zip(src) {
+                *o += wt * s;
+            }
+        }
+    }
 
     // 3. Assemble, normalise, quantise.
-    let mut out = DescriptorImage::zeros(w, h);
-    out.data
-        .par_chunks_mut(w * DESCRIPTOR_LEN)
-        .enumerate()
-        .for_each(|(y, row)| {
-            let mut v = [0f32; DESCRIPTOR_LEN];
-            for (x, desc) in row.chunks_exact_mut(DESCRIPTOR_LEN).enumerate() {
-                if wanted.is_some_and(|m| !m[y * w + x]) {
-                    continue;
-                }
-                let mut i = 0;
-                for &oy in &layout.cell_offsets {
-                    let cy = (y as isize + oy).clamp(0, h as isize - 1) as usize;
-                    for &ox in &layout.cell_offsets {
-                        let cx = (x as isize + ox).clamp(0, w as isize - 1) as usize;
-                        let c = (cy * w + cx) * N_BINS;
-                        v[i..i + N_BINS].copy_from_slice(&cells[c..c + N_BINS]);
-                        i += N_BINS;
-                    }
-                }
-                quantise(&v, desc);
+    let mut v = [0f32; DESCRIPTOR_LEN];
+    for (y, row) in (y0..y1).zip(out.chunks_exact_mut(w * DESCRIPTOR_LEN)) {
+        for (x, desc) in row.chunks_exact_mut(DESCRIPTOR_LEN).enumerate() {
+            if wanted.is_some_and(|m| !m[y * w + x]) {
+                continue;
             }
-        });
-    out
+            let mut i = 0;
+            for &oy in &layout.cell_offsets {
+                let cy = clamp(y as isize + oy);
+                for &ox in &layout.cell_offsets {
+                    let cx = (x as isize + ox).clamp(0, w as isize - 1) as usize;
+                    let c = (cy - c0) * row_len + cx * N_BINS;
+                    v[i..i + N_BINS].copy_from_slice(&cells[c..c + N_BINS]);
+                    i += N_BINS;
+                }
+            }
+            quantise(&v, desc);
+        }
+    }
 }
 
 #[cfg(test)]
@@ -414,6 +468,105 @@ mod tests {
             }
         }
         out
+    }
+
+    /// The whole-image passes (a full plane of bands, of their horizontal tents, of cells),
+    /// as [`dense_sift_where`] computed them before its blocks: the same bytes.
+    fn dense_sift_planes(
+        img: &Image,
+        cell_size: usize,
+        wanted: Option<&[bool]>,
+    ) -> DescriptorImage {
+        let (w, h) = img.dimensions();
+        let layout = CellLayout::new(cell_size);
+        // 1. Orientation bands, interleaved [pixel][band].
+        let mut bands = vec![0f32; w * h * N_BINS];
+        bands
+            .par_chunks_mut(w * N_BINS)
+            .enumerate()
+            .for_each(|(y, row)| {
+                let up = img.row(y.saturating_sub(1));
+                let down = img.row((y + 1).min(h - 1));
+                sobel_row(up, img.row(y), down, row);
+            });
+
+        // 2. Separable tent filter: horizontal, then vertical (replicated border).
+        let mut horizontal = vec![0f32; w * h * N_BINS];
+        horizontal
+            .par_chunks_mut(w * N_BINS)
+            .enumerate()
+            .for_each(|(y, row)| {
+                let src = &bands[y * w * N_BINS..(y + 1) * w * N_BINS];
+                for (x, out) in row.chunks_exact_mut(N_BINS).enumerate() {
+                    for &(k, wt) in &layout.taps {
+                        let sx = (x as isize + k).clamp(0, w as isize - 1) as usize;
+                        for (o, &s) in out.iter_mut().zip(&src[sx * N_BINS..(sx + 1) * N_BINS]) {
+                            *o += wt * s;
+                        }
+                    }
+                }
+            });
+        let mut cells = bands; // reuse the buffer
+        cells
+            .par_chunks_mut(w * N_BINS)
+            .enumerate()
+            .for_each(|(y, row)| {
+                row.fill(0.0);
+                for &(k, wt) in &layout.taps {
+                    let sy = (y as isize + k).clamp(0, h as isize - 1) as usize;
+                    let src = &horizontal[sy * w * N_BINS..(sy + 1) * w * N_BINS];
+                    for (o, &s) in row.iter_mut().zip(src) {
+                        *o += wt * s;
+                    }
+                }
+            });
+        drop(horizontal);
+
+        // 3. Assemble, normalise, quantise.
+        let mut out = DescriptorImage::zeros(w, h);
+        out.data
+            .par_chunks_mut(w * DESCRIPTOR_LEN)
+            .enumerate()
+            .for_each(|(y, row)| {
+                let mut v = [0f32; DESCRIPTOR_LEN];
+                for (x, desc) in row.chunks_exact_mut(DESCRIPTOR_LEN).enumerate() {
+                    if wanted.is_some_and(|m| !m[y * w + x]) {
+                        continue;
+                    }
+                    let mut i = 0;
+                    for &oy in &layout.cell_offsets {
+                        let cy = (y as isize + oy).clamp(0, h as isize - 1) as usize;
+                        for &ox in &layout.cell_offsets {
+                            let cx = (x as isize + ox).clamp(0, w as isize - 1) as usize;
+                            let c = (cy * w + cx) * N_BINS;
+                            v[i..i + N_BINS].copy_from_slice(&cells[c..c + N_BINS]);
+                            i += N_BINS;
+                        }
+                    }
+                    quantise(&v, desc);
+                }
+            });
+        out
+    }
+
+    #[test]
+    fn blocks_give_the_bytes_of_whole_image_passes() {
+        for (w, h) in [(23, 17), (41, 150), (9, 70)] {
+            let img = texture(w, h);
+            let wanted: Vec<bool> = (0..w * h).map(|p| (p % w) * 3 + (p / w) > 20).collect();
+            for cs in [1, 2, 3] {
+                let params = DenseSiftParams { cell_size: cs };
+                for mask in [None, Some(&wanted[..])] {
+                    let blocks = dense_sift_where(&img, &params, mask);
+                    let planes = dense_sift_planes(&img, cs, mask);
+                    assert!(
+                        blocks == planes,
+                        "{w}x{h}, cell {cs}, mask {}",
+                        mask.is_some()
+                    );
+                }
+            }
+        }
     }
 
     fn texture(w: usize, h: usize) -> Image {

@@ -263,16 +263,15 @@ fn dense_disparity_of(
     let filter_ms = ms(tf);
 
     let mut unknown = consistent.unknown;
-    for (u, _) in unknown
-        .iter_mut()
+    unknown
+        .par_iter_mut()
         .zip(&filtered.filled)
         .filter(|(_, f)| **f)
-    {
-        *u = Unknown::Interpolated;
-    }
+        .for_each(|(u, _)| *u = Unknown::Interpolated);
     let Inputs { va, n_valid, .. } = inputs;
+    // Counts (integers: the same in any order) in parallel; the NCC's sum in order.
     let fraction = |marks: &[bool]| {
-        va.iter().zip(marks).filter(|(v, m)| **v && **m).count() as f64 / n_valid as f64
+        va.par_iter().zip(marks).filter(|(v, m)| **v && **m).count() as f64 / n_valid as f64
     };
     let ncc_sum: f64 = va
         .iter()
@@ -285,7 +284,7 @@ fn dense_disparity_of(
         levels_right_to_left: levels.1,
         flow: consistent.flow_stats,
         coverage: filtered.known as f64 / n_valid as f64,
-        filled_fraction: filtered.filled.iter().filter(|&&f| f).count() as f64 / n_valid as f64,
+        filled_fraction: filtered.filled.par_iter().filter(|&&f| f).count() as f64 / n_valid as f64,
         rejected_fraction: fraction(&consistent.rejected),
         no_texture_fraction: count_valid(&va, &unknown, Unknown::NoTexture) / n_valid as f64,
         ambiguous_fraction: count_valid(&va, &unknown, Unknown::Ambiguous) / n_valid as f64,
@@ -325,7 +324,7 @@ fn dense_disparity_of(
 /// Valid pixels whose reason is `which`.
 fn count_valid(valid: &[bool], unknown: &[Unknown], which: Unknown) -> f64 {
     valid
-        .iter()
+        .par_iter()
         .zip(unknown)
         .filter(|(v, u)| **v && **u == which)
         .count() as f64
@@ -375,8 +374,8 @@ struct Inputs {
 impl Inputs {
     /// Checks sizes, masks and parameters; fills the images' unknown samples in place.
     fn checked(
-        (mut a, valid_left): (Image, Option<Vec<bool>>),
-        (mut b, valid_right): (Image, Option<Vec<bool>>),
+        (a, valid_left): (Image, Option<Vec<bool>>),
+        (b, valid_right): (Image, Option<Vec<bool>>),
         params: &DenseParams,
     ) -> Result<Self, DenseError> {
         let (w, h) = a.dimensions();
@@ -390,14 +389,20 @@ impl Inputs {
         }
         params.validate()?;
         sift_flow::check_size(w, h, params.flow.levels)?;
-        let va = validity(&a, valid_left)?;
-        let vb = validity(&b, valid_right)?;
-        let n_valid = va.iter().filter(|&&v| v).count();
+        // Each image's validity, then its unknown samples filled: both images at once.
+        let prepare = |mut img: Image, mask| {
+            let valid = validity(&img, mask);
+            if valid.is_ok() {
+                sift_flow::fill_non_finite_in_place(&mut img);
+            }
+            (img, valid)
+        };
+        let ((a, va), (b, vb)) = rayon::join(|| prepare(a, valid_left), || prepare(b, valid_right));
+        let (va, vb) = (va?, vb?);
+        let n_valid = va.par_iter().filter(|&&v| v).count();
         if n_valid == 0 {
             return Err(DenseError::NoValidPixels);
         }
-        sift_flow::fill_non_finite_in_place(&mut a);
-        sift_flow::fill_non_finite_in_place(&mut b);
         Ok(Self {
             a,
             b,
@@ -649,10 +654,11 @@ fn left_right_consistency(
         .collect();
     let tolerances = (params.lr_tolerance, params.lr_tolerance_smooth);
     let rejected_by_matching = check.rejected.map(|r| r.0);
-    let (rejected, agreement) = match &bwd {
+    // The backward field's u is kept for the steep-slope measurement.
+    let (rejected, agreement, backward_u) = match bwd {
         Some(bw) => {
-            let ur = Image::from_vec(w, h, bw.u.clone()).expect("flow has the canvas size");
-            let vr = Image::from_vec(w, h, bw.v.clone()).expect("flow has the canvas size");
+            let ur = Image::from_vec(w, h, bw.u).expect("flow has the canvas size");
+            let vr = Image::from_vec(w, h, bw.v).expect("flow has the canvas size");
             let residual = left_right_residual(&u, &v, &ur, &vr);
             // The agreement's scale is the strict tolerance everywhere, also
             // where `lr_tolerance_smooth` accepts a larger residual: the
@@ -674,9 +680,9 @@ fn left_right_consistency(
                 Some(m) => refined.par_iter().zip(m).map(|(a, b)| *a || *b).collect(),
                 None => refined,
             };
-            (rejected, agreement)
+            (rejected, agreement, Some(ur))
         }
-        None => (vec![false; w * h], vec![1.0; w * h]),
+        None => (vec![false; w * h], vec![1.0; w * h], None),
     };
     let start = params.slanted.enabled.then(|| u.data().to_vec());
     let mut raw = u;
@@ -711,7 +717,7 @@ fn left_right_consistency(
             }
         });
     if let Some(start) = &start {
-        let backward = bwd.as_ref().map(|b| &b.u[..]);
+        let backward = backward_u.as_ref().map(Image::data);
         let out = (&mut raw, &mut confidence, &mut unknown[..]);
         slanted::measure_steep(
             (&inputs.a, &inputs.b),
@@ -725,7 +731,7 @@ fn left_right_consistency(
         let judged = support::support_test(
             (&inputs.a, &inputs.b),
             (va, vb),
-            &raw,
+            (&raw, Some(&v)),
             &params.support,
             crate::vision::pipeline::matcher_window_sigma(params) as f32,
         );
@@ -774,14 +780,18 @@ fn bilateral_filtering(
     inputs: &Inputs,
     params: &DenseParams,
 ) -> Filtered {
-    let mut to_filter = raw.clone();
+    let (w, h) = raw.dimensions();
+    let copy = raw.data().par_iter().copied().collect();
+    let mut to_filter = Image::from_vec(w, h, copy).expect("the size of raw");
     let filled = fill_row_gaps(&mut to_filter, &inputs.va, params.fill_max_gap);
     let weights = params.weighted_filter.then(|| {
-        let mut wt = confidence.clone();
-        for (c, _) in wt.data_mut().iter_mut().zip(&filled).filter(|(_, f)| **f) {
-            *c = FILLED_WEIGHT;
-        }
-        wt
+        let wt = confidence
+            .data()
+            .par_iter()
+            .zip(&filled)
+            .map(|(&c, &f)| if f { FILLED_WEIGHT } else { c })
+            .collect();
+        Image::from_vec(w, h, wt).expect("the size of the confidence")
     });
     let (mut disparity, grid) = bilateral_filter(&to_filter, weights.as_ref(), &params.bilateral);
     if params.detail.enabled {
@@ -803,7 +813,11 @@ fn bilateral_filtering(
     }
     Filtered {
         disparity,
-        known: to_filter.data().iter().filter(|d| d.is_finite()).count(),
+        known: to_filter
+            .data()
+            .par_iter()
+            .filter(|d| d.is_finite())
+            .count(),
         filled,
         grid,
     }

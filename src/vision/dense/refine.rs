@@ -169,7 +169,25 @@ impl Sampled<'_> {
         }
         let (tx, ty) = (x - x0 as f32, y - y0 as f32);
         let (kx, ky) = (keys_weights(tx), keys_weights(ty));
+        let bil = |g: &[f32]| {
+            let top = g[y0 * w + x0] * (1.0 - tx) + g[y0 * w + x1] * tx;
+            let bottom = g[y1 * w + x0] * (1.0 - tx) + g[y1 * w + x1] * tx;
+            top * (1.0 - ty) + bottom * ty
+        };
         let mut v = 0f32;
+        if x0 >= 1 && y0 >= 1 && x0 + 2 < w && y0 + 2 < h {
+            // All 4 × 4 samples inside: no clamping, the same sums in the same order.
+            for (j, &wy) in ky.iter().enumerate() {
+                let start = (y0 + j - 1) * w + x0 - 1;
+                let row = &self.img[start..start + 4];
+                let mut acc = 0f32;
+                for (&wx, &s) in kx.iter().zip(row) {
+                    acc += wx * s;
+                }
+                v += wy * acc;
+            }
+            return Some([v, bil(self.gx), bil(self.gy)]);
+        }
         for (j, &wy) in ky.iter().enumerate() {
             let yy = (y0 as isize + j as isize - 1).clamp(0, h as isize - 1) as usize;
             let row = &self.img[yy * w..(yy + 1) * w];
@@ -180,11 +198,6 @@ impl Sampled<'_> {
             }
             v += wy * acc;
         }
-        let bil = |g: &[f32]| {
-            let top = g[y0 * w + x0] * (1.0 - tx) + g[y0 * w + x1] * tx;
-            let bottom = g[y1 * w + x0] * (1.0 - tx) + g[y1 * w + x1] * tx;
-            top * (1.0 - ty) + bottom * ty
-        };
         Some([v, bil(self.gx), bil(self.gy)])
     }
 }
@@ -386,8 +399,7 @@ fn refine_level(
     let mut work: Vec<f32> = Vec::new();
     let mut scratch = Vec::new();
     if xb.is_none() && iterations > 0 {
-        work.reserve_exact(8 * n);
-        work.resize(6 * n, 0.0);
+        work = vec![0f32; 6 * n];
         scratch = vec![[0f32; 6]; n];
     }
     for _ in 0..iterations {
@@ -432,7 +444,7 @@ fn refine_level(
     }
     // Quality of the final match: NCC of the normalised images over the window,
     // from the sums of [aa, bb, ab, 1]. A coarser level's is not used.
-    drop((scratch, grid, xb, u0, v0));
+    drop((xb, u0, v0));
     if !with_ncc {
         return RefinedFlow {
             u,
@@ -441,9 +453,26 @@ fn refine_level(
             clamped,
         };
     }
-    work.resize(8 * n, 0.0);
-    let (sums, scratch) = work.split_at_mut(4 * n);
-    let (sums, scratch) = (sums.as_chunks_mut::<4>().0, scratch.as_chunks_mut::<4>().0);
+    // The sums in the Gaussian window's buffer, their blur's second buffer in the memory of the
+    // iterations' grid or second buffer (touched pages, whatever they hold: the blur writes
+    // before it reads); fresh zeroed pages where those are too small (every sum is written).
+    let mut sums = if work.capacity() >= 4 * n {
+        work.resize(4 * n, 0.0);
+        work
+    } else {
+        vec![0f32; 4 * n]
+    };
+    let mut second = [grid, scratch.into_flattened()]
+        .into_iter()
+        .find(|b| b.len() >= 4 * n)
+        .map_or_else(
+            || vec![0f32; 4 * n],
+            |mut b| {
+                b.truncate(4 * n);
+                b
+            },
+        );
+    let (sums, scratch) = (sums.as_chunks_mut::<4>().0, second.as_chunks_mut::<4>().0);
     sums.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
         for (x, s) in row.iter_mut().enumerate() {
             *s = match warped(&u, &v, x, y) {
@@ -681,6 +710,43 @@ mod tests {
     use super::*;
 
     use crate::testing::Texture;
+
+    /// Cubic sampling with every tap clamped to the image, as at the borders: the interior's
+    /// unclamped path gives the same bits.
+    #[test]
+    fn cubic_sampling_inside_equals_the_clamped_taps() {
+        let (w, h) = (13, 9);
+        let img: Vec<f32> = (0..w * h).map(|i| ((i * 37) % 23) as f32 * 0.1).collect();
+        let (gx, gy) = (vec![0f32; w * h], vec![0f32; w * h]);
+        let s = Sampled {
+            w,
+            h,
+            img: &img,
+            gx: &gx,
+            gy: &gy,
+            valid: None,
+        };
+        let clamped = |x: f32, y: f32| {
+            let (x0, y0) = (x as usize, y as usize);
+            let (kx, ky) = (keys_weights(x - x0 as f32), keys_weights(y - y0 as f32));
+            let mut v = 0f32;
+            for (j, &wy) in ky.iter().enumerate() {
+                let yy = (y0 as isize + j as isize - 1).clamp(0, h as isize - 1) as usize;
+                let mut acc = 0f32;
+                for (i, &wx) in kx.iter().enumerate() {
+                    let xx = (x0 as isize + i as isize - 1).clamp(0, w as isize - 1) as usize;
+                    acc += wx * img[yy * w + xx];
+                }
+                v += wy * acc;
+            }
+            v
+        };
+        for k in 0..400 {
+            let (x, y) = ((k * 7 % 120) as f32 * 0.1, (k * 11 % 80) as f32 * 0.1);
+            let got = s.at(x, y).expect("inside the hull")[0];
+            assert_eq!(got.to_bits(), clamped(x, y).to_bits(), "({x}, {y})");
+        }
+    }
 
     /// A bright textured region moving 2 px more than its textured
     /// surroundings (a particle on a substrate): with the range weights the

@@ -292,30 +292,53 @@ fn blur_taps<const C: usize>(
     });
 }
 
+/// [`blur`] of one plane.
 pub(crate) fn blur_plane(src: &[f32], w: usize, h: usize, sigma: f32) -> Vec<f32> {
-    let packed: Vec<[f32; 1]> = src.par_iter().map(|&v| [v]).collect();
-    blur(&packed, w, h, sigma)
-        .into_par_iter()
-        .map(|v| v[0])
-        .collect()
+    let mut buf = src.to_vec();
+    let mut scratch = vec![0f32; buf.len()];
+    blur_plane_in_place(&mut buf, &mut scratch, w, h, sigma);
+    buf
+}
+
+/// [`blur_in_place`] of one plane (`scratch`: the other buffer, any contents), without
+/// packing it into one-channel pixels first: the same layout, the same sums.
+fn blur_plane_in_place(buf: &mut [f32], scratch: &mut [f32], w: usize, h: usize, sigma: f32) {
+    blur_in_place(
+        buf.as_chunks_mut::<1>().0,
+        scratch.as_chunks_mut::<1>().0,
+        w,
+        h,
+        sigma,
+    );
 }
 
 /// The image with its local mean removed and its local contrast scaled to
 /// one (Gaussian windows of `sigma`), after an optional pre-smoothing.
 /// `eps` — a tenth of the mean local contrast — keeps flat areas from
 /// turning into amplified noise.
+///
+/// Three full-size planes (four with the pre-smoothing), each step in place: the refinement
+/// normalises both images at every level, and fresh planes cost more in page faults than
+/// the arithmetic.
 #[must_use]
 pub fn normalise_contrast(img: &Image, presmooth: f32, sigma: f32) -> Image {
     let (w, h) = img.dimensions();
-    let base: Vec<f32> = if presmooth > 0.0 {
-        blur_plane(img.data(), w, h, presmooth)
-    } else {
-        img.data().to_vec()
-    };
-    let mean = blur_plane(&base, w, h, sigma);
-    let hp: Vec<f32> = base.par_iter().zip(&mean).map(|(a, m)| a - m).collect();
-    let sq: Vec<f32> = hp.par_iter().map(|v| v * v).collect();
-    let var = blur_plane(&sq, w, h, sigma);
+    let mut scratch = vec![0f32; w * h];
+    let smoothed = (presmooth > 0.0).then(|| {
+        let mut b = img.data().to_vec();
+        blur_plane_in_place(&mut b, &mut scratch, w, h, presmooth);
+        b
+    });
+    let base: &[f32] = smoothed.as_deref().unwrap_or(img.data());
+    // The local mean, then the high-pass `base − mean` in its place.
+    let mut hp = base.to_vec();
+    blur_plane_in_place(&mut hp, &mut scratch, w, h, sigma);
+    hp.par_iter_mut().zip(base).for_each(|(m, &a)| *m = a - *m);
+    // The squares in the pre-smoothed plane when there is one (no longer needed).
+    let mut var = smoothed.unwrap_or_else(|| vec![0f32; w * h]);
+    var.par_iter_mut().zip(&hp).for_each(|(s, &v)| *s = v * v);
+    blur_plane_in_place(&mut var, &mut scratch, w, h, sigma);
+    drop(scratch);
     // Sequential sum: the same figure whatever the thread count.
     let mean_sd = var
         .iter()
@@ -323,12 +346,10 @@ pub fn normalise_contrast(img: &Image, presmooth: f32, sigma: f32) -> Image {
         .sum::<f64>()
         / var.len().max(1) as f64;
     let eps2 = (0.1 * mean_sd as f32).powi(2).max(1e-12);
-    let data = hp
-        .par_iter()
+    hp.par_iter_mut()
         .zip(&var)
-        .map(|(a, v)| a / (v.max(0.0) + eps2).sqrt())
-        .collect();
-    Image::from_vec(w, h, data).expect("same size as the input")
+        .for_each(|(a, v)| *a /= (v.max(0.0) + eps2).sqrt());
+    Image::from_vec(w, h, hp).expect("same size as the input")
 }
 
 #[cfg(test)]
@@ -345,6 +366,51 @@ mod tests {
             gaussian_blur_into(img.data(), img.dimensions(), sigma, &mut tmp, &mut out);
             let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
             assert_eq!(bits(&out), bits(want.data()), "σ {sigma}");
+        }
+    }
+
+    /// The contrast normalisation step by step, each in a plane of its own (packed into
+    /// one-channel pixels for the blur): the in-place version gives the same bits.
+    #[test]
+    fn contrast_normalisation_in_place_equals_the_plane_by_plane_steps() {
+        let (w, h) = (31, 19);
+        let img = Image::from_fn(w, h, |x, y| {
+            ((x * 7 + y * 13) % 17) as f32 / 17.0 + 0.01 * y as f32
+        });
+        let plane = |src: &[f32], sigma: f32| -> Vec<f32> {
+            let packed: Vec<[f32; 1]> = src.iter().map(|&v| [v]).collect();
+            blur(&packed, w, h, sigma)
+                .into_iter()
+                .map(|v| v[0])
+                .collect()
+        };
+        for (presmooth, sigma) in [(0.0, 2.5), (0.8, 2.5), (0.0, 4.0), (1.5, 1.2)] {
+            let base = if presmooth > 0.0 {
+                plane(img.data(), presmooth)
+            } else {
+                img.data().to_vec()
+            };
+            let mean = plane(&base, sigma);
+            let hp: Vec<f32> = base.iter().zip(&mean).map(|(a, m)| a - m).collect();
+            let sq: Vec<f32> = hp.iter().map(|v| v * v).collect();
+            let var = plane(&sq, sigma);
+            let mean_sd = var
+                .iter()
+                .map(|v| f64::from(v.max(0.0)).sqrt())
+                .sum::<f64>()
+                / var.len() as f64;
+            let eps2 = (0.1 * mean_sd as f32).powi(2).max(1e-12);
+            let want: Vec<u32> = hp
+                .iter()
+                .zip(&var)
+                .map(|(a, v)| (a / (v.max(0.0) + eps2).sqrt()).to_bits())
+                .collect();
+            let got: Vec<u32> = normalise_contrast(&img, presmooth, sigma)
+                .data()
+                .iter()
+                .map(|v| v.to_bits())
+                .collect();
+            assert_eq!(got, want, "presmooth {presmooth}, σ {sigma}");
         }
     }
 

@@ -44,7 +44,8 @@ pub struct DualLayerBp<'a> {
     weights: EnergyWeights,
     /// Per-edge truncation instead of `weights.d` (see [`DualLayerBp::truncate_edges`]).
     edges: Option<&'a EdgeTruncation>,
-    /// Per layer: `msgs[k][(p · SLOTS + slot) · n_k + l]`.
+    /// Per layer: `msgs[k][(p · SLOTS + slot) · n_k + l]`; empty until a step sets them
+    /// ([`DualLayerBp::set_messages`]): the warm start writes every one, no zeros first.
     msgs: [Vec<f32>; 2],
     /// The messages of the warm-start grids, kept between runs ([`BpBuffers`]).
     coarse: Option<Box<BpBuffers>>,
@@ -569,10 +570,11 @@ impl<'a> DualLayerBp<'a> {
             msgs: [m0, m1],
             coarse,
         } = buffers;
-        let msgs = [
-            zeroed(m0, area * SLOTS * space.states(0)),
-            zeroed(m1, area * SLOTS * space.states(1)),
-        ];
+        // Emptied, not zeroed: the room is kept for whichever step sets the messages first.
+        let msgs = [m0, m1].map(|mut m| {
+            m.clear();
+            m
+        });
         Self {
             space,
             data,
@@ -634,8 +636,21 @@ impl<'a> DualLayerBp<'a> {
         self.edges = Some(edges);
     }
 
+    /// All messages at zero unless a step has set them already (the warm start writes every
+    /// one: zeroing its room first would be a pass over the largest buffer for nothing).
+    fn set_messages(&mut self) {
+        let area = self.space.width * self.space.height;
+        for (k, m) in self.msgs.iter_mut().enumerate() {
+            let len = area * SLOTS * self.space.states(k);
+            if m.len() != len {
+                *m = zeroed(std::mem::take(m), len);
+            }
+        }
+    }
+
     /// Recomputes the labels if the messages changed since they were taken.
     fn refresh_labels(&mut self) {
+        self.set_messages();
         if !self.labels_current {
             self.labels = self.all_labels();
             self.labels_current = true;
@@ -670,15 +685,23 @@ impl<'a> DualLayerBp<'a> {
         for count in 0..iterations {
             coarse.iterate(count);
         }
-        // Every node takes the messages of its coarse parent, label-aligned.
+        // Every node takes the messages of its coarse parent, label-aligned, written into the
+        // room of the messages without zeroing it first.
         let w = self.space.width;
+        let area = w * self.space.height;
         for k in 0..2 {
             let n = self.space.states(k);
+            let len = area * SLOTS * n;
             let src = &coarse.msgs[k];
             let cw = cspace.width;
             let offsets = &self.space.offset[k];
             let coffsets = &cspace.offset[k];
-            self.msgs[k]
+            let msgs = &mut self.msgs[k];
+            msgs.clear();
+            if msgs.capacity() < len {
+                *msgs = room(len);
+            }
+            msgs.spare_capacity_mut()[..len]
                 .par_chunks_mut(w * SLOTS * n)
                 .enumerate()
                 .for_each(|(y, row)| {
@@ -689,7 +712,9 @@ impl<'a> DualLayerBp<'a> {
                         let cnode = &src[c * SLOTS * n..(c + 1) * SLOTS * n];
                         // Mostly the parent's own offset: a plain copy.
                         if shift == 0 {
-                            node.copy_from_slice(cnode);
+                            for (o, &v) in node.iter_mut().zip(cnode) {
+                                o.write(v);
+                            }
                             continue;
                         }
                         for (l, f) in from[..n].iter_mut().enumerate() {
@@ -697,11 +722,18 @@ impl<'a> DualLayerBp<'a> {
                         }
                         for (slot, cslot) in node.chunks_exact_mut(n).zip(cnode.chunks_exact(n)) {
                             for (o, &f) in slot.iter_mut().zip(&from[..n]) {
-                                *o = cslot[f];
+                                o.write(cslot[f]);
                             }
                         }
                     }
                 });
+            // SAFETY: the rows above are the `height` rows of `width` nodes of `SLOTS · n`
+            // messages each, `len` in all, and every message of every node was written (a
+            // copy of its parent's node, or each slot label by label): the first `len`
+            // elements are initialised `f32`s, within the capacity checked above.
+            unsafe {
+                msgs.set_len(len);
+            }
         }
         self.coarse = Some(Box::new(coarse.into_buffers()));
         self.labels_current = false;
@@ -719,6 +751,7 @@ impl<'a> DualLayerBp<'a> {
     /// first sweep sees no data and spreads the small-displacement prior over
     /// the whole grid, which the strong smoothness then keeps.
     pub fn init_dual_from_data(&mut self) {
+        self.set_messages();
         let sp = self.space;
         let (nu, nv) = (sp.states(0), sp.states(1));
         let gamma = self.weights.gamma;
@@ -757,6 +790,7 @@ impl<'a> DualLayerBp<'a> {
 
     /// One iteration `count` of the BP-S schedule.
     fn iterate(&mut self, count: usize) {
+        self.set_messages();
         let k = count % 2;
         let forward = count % 4 < 2;
         let dual = count % 8 < 4;
@@ -838,8 +872,9 @@ impl<'a> DualLayerBp<'a> {
         }
     }
 
-    /// Beliefs of layer `k` at pixel `p`: range term plus every incoming message.
-    pub fn belief(&self, k: usize, p: usize, out: &mut [f32]) {
+    /// Beliefs of layer `k` at pixel `p`: range term plus every incoming message (once a step
+    /// has set the messages).
+    fn belief(&self, k: usize, p: usize, out: &mut [f32]) {
         let n = self.space.states(k);
         let node = &self.msgs[k][p * SLOTS * n..(p + 1) * SLOTS * n];
         // The flow of label `l` is `base + l` (`LabelSpace::flow`).

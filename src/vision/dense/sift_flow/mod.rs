@@ -281,34 +281,36 @@ impl Engine {
         }
         let pyramid_ms = ms(t0);
 
-        // The BP messages, reserved for the largest grids (untouched until used) and reused from
-        // level to level. The coarser levels solve both directions at once, one buffer each. The
-        // finest level, by far the largest, gets its own, reserved once the coarser ones are
-        // freed (they would sit beside its descriptors), and solves one direction after the
-        // other in it (its strips keep the cores busy): one direction's messages are alive.
+        // The BP messages, reserved once for the largest grids (untouched until used) and reused
+        // from level to level. The coarser levels solve both directions at once, one buffer
+        // each. The finest level, by far the largest, solves one direction after the other in
+        // the forward buffer (its strips keep the cores busy), whose room holds its grids from
+        // the start: the coarser levels use the beginning of it, which the finest level reuses,
+        // and its warm-start grids serve both directions. Fresh memory costs more than the
+        // messages' arithmetic on its first touch (the kernel clears every page).
         let reserve = |buffers: &mut BpBuffers, l: usize, (w, h): (usize, usize)| {
             let plan = &self.plan[l];
             buffers.grow(w, h, plan.window.map(|w| 2 * w + 1), plan.hierarchy);
         };
         let mut buffers_fwd = BpBuffers::default();
         let mut buffers_bwd = BpBuffers::default();
-        for (l, &(wa, ha, wb, hb)) in sizes.iter().enumerate().skip(self.finest + 1) {
+        for (l, &(wa, ha, wb, hb)) in sizes.iter().enumerate().skip(self.finest) {
             reserve(&mut buffers_fwd, l, (wa, ha));
             if both {
-                reserve(&mut buffers_bwd, l, (wb, hb));
+                let buffers = if l == self.finest {
+                    &mut buffers_fwd
+                } else {
+                    &mut buffers_bwd
+                };
+                reserve(buffers, l, (wb, hb));
             }
         }
         let mut fwd: Option<Direction> = None;
         let mut bwd: Option<Direction> = None;
         for l in (self.finest..levels).rev() {
             if l == self.finest {
-                buffers_fwd = BpBuffers::default();
+                // The backward buffer's levels are done (it would sit beside the descriptors).
                 buffers_bwd = BpBuffers::default();
-                let (wa, ha, wb, hb) = sizes[l];
-                reserve(&mut buffers_fwd, l, (wa, ha));
-                if both {
-                    reserve(&mut buffers_fwd, l, (wb, hb));
-                }
             }
             let td = Instant::now();
             // This level's descriptors, owned: they are dropped once its data
@@ -381,17 +383,20 @@ impl Engine {
             let mask_b = masks_b[l].as_deref();
             let mask_a = masks_a[l].as_deref();
             let (f, b) = if l == self.finest {
-                let f = self.solve(l, source(0), f, mask_a, descriptor_ms, &mut buffers_fwd);
+                // The last solve frees the warm-start grids before its iterations.
                 let bf = &mut buffers_fwd;
+                let f = self.solve(l, source(0), f, mask_a, descriptor_ms, bf, b.is_none());
                 (
                     f,
-                    b.map(|b| self.solve(l, source(1), b, mask_b, descriptor_ms, bf)),
+                    b.map(|b| self.solve(l, source(1), b, mask_b, descriptor_ms, bf, true)),
                 )
             } else {
                 let (bf, bb) = (&mut buffers_fwd, &mut buffers_bwd);
                 forward_and_backward(
-                    || self.solve(l, source(0), f, mask_a, descriptor_ms, bf),
-                    b.map(|b| move || self.solve(l, source(1), b, mask_b, descriptor_ms, bb)),
+                    || self.solve(l, source(0), f, mask_a, descriptor_ms, bf, false),
+                    b.map(|b| {
+                        move || self.solve(l, source(1), b, mask_b, descriptor_ms, bb, false)
+                    }),
                 )
             };
             fwd = Some(merge(fwd, f));
@@ -468,7 +473,10 @@ impl Engine {
         }
     }
 
-    /// Solves one level in one direction by BP on its data term.
+    /// Solves one level in one direction by BP on its data term, in `buffers`; at the finest
+    /// level `last` frees the warm-start grids' messages (kept for the next solve otherwise)
+    /// before the iterations.
+    #[allow(clippy::too_many_arguments)]
     fn solve(
         &self,
         l: usize,
@@ -477,6 +485,7 @@ impl Engine {
         mask_a: Option<&[bool]>,
         descriptor_ms: f64,
         buffers: &mut BpBuffers,
+        last: bool,
     ) -> Direction {
         let plan = self.plan[l];
         let LevelData {
@@ -529,7 +538,7 @@ impl Engine {
             bp.init_dual_from_data();
         }
         bp.warm_start(plan.hierarchy, p.warm_start_iterations);
-        if finest {
+        if finest && last {
             bp.release_warm_start_buffers();
         }
         // Coarser levels hand on their labels only: no more iterations once
