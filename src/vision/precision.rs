@@ -91,6 +91,25 @@ pub struct Precision {
     pub height_um: f64,
 }
 
+/// Per pixel of a `w × h` grid, the gradient energy above the noise's share `(g² − grad_noise)⁺`
+/// and its weight (1 where `gradient` gives one, else 0), both blurred by a Gaussian of
+/// `window_sigma` pixels: their ratio is the mean gradient energy the window match sees. The
+/// two are the channels of one plane, blurred in place; each is what it would be alone.
+pub(crate) fn windowed_gradient_energy(
+    (w, h): (usize, usize),
+    gradient: impl Fn(usize) -> Option<f32> + Sync,
+    grad_noise: f32,
+    window_sigma: f32,
+) -> Vec<[f32; 2]> {
+    let mut planes: Vec<[f32; 2]> = (0..w * h)
+        .into_par_iter()
+        .map(|q| gradient(q).map_or([0.0, 0.0], |g| [(g * g - grad_noise).max(0.0), 1.0]))
+        .collect();
+    let mut scratch = vec![[0f32; 2]; w * h];
+    blur_in_place(&mut planes, &mut scratch, w, h, window_sigma);
+    planes
+}
+
 /// The median over the pixels of `left` of the Cramér–Rao bound on
 /// the disparity's standard deviation (pixels) for a Gaussian window of
 /// `window_sigma` pixels, the parallax along the unit vector `parallax`
@@ -124,23 +143,18 @@ pub fn disparity_bound(
             && ok(q - w)
             && ok(q + w)
     };
-    // The gradient energy and its weight as the two channels of one plane, blurred in place:
-    // the blur treats channels apart, so each is what it would be alone.
-    let mut planes: Vec<[f32; 2]> = (0..w * h)
-        .into_par_iter()
-        .map(|q| {
-            if !counted(q) {
-                return [0.0, 0.0];
-            }
-            let gx = 0.5 * (d[q + 1] - d[q - 1]);
-            let gy = 0.5 * (d[q + w] - d[q - w]);
-            let g = nx * gx + ny * gy;
-            [(g * g - grad_noise).max(0.0), 1.0]
-        })
-        .collect();
-    let mut scratch = vec![[0f32; 2]; w * h];
-    blur_in_place(&mut planes, &mut scratch, w, h, window_sigma as f32);
-    drop(scratch);
+    let planes = windowed_gradient_energy(
+        (w, h),
+        |q| {
+            counted(q).then(|| {
+                let gx = 0.5 * (d[q + 1] - d[q - 1]);
+                let gy = 0.5 * (d[q + w] - d[q - w]);
+                nx * gx + ny * gy
+            })
+        },
+        grad_noise,
+        window_sigma as f32,
+    );
     let n_eff = 4.0 * std::f64::consts::PI * window_sigma * window_sigma;
     // The bound falls as the mean gradient energy rises (monotone also as rounded), so the
     // median bound is the bound of the mirrored order statistic of the means.

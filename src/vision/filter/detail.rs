@@ -24,7 +24,7 @@ use serde::{Deserialize, Serialize};
 
 use super::blur::blur_in_place;
 use crate::vision::Image;
-use crate::vision::precision::noise_sigma;
+use crate::vision::precision::{noise_sigma, windowed_gradient_energy};
 
 /// Parameters of the detail restoration after the bilateral filter.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -79,20 +79,17 @@ pub fn disparity_noise_variance(
     let noise_var = 0.5 * (noise[0] * noise[0] + noise[1] * noise[1]);
     let grad_noise = (0.5 * noise_var) as f32;
     let d = a.data();
-    // Gradient energy above the noise's share and its weight, blurred together.
-    let mut planes: Vec<[f32; 2]> = (0..w * h)
-        .into_par_iter()
-        .map(|q| {
+    // Gradient energy along x above the noise's share and its weight, blurred together.
+    let planes = windowed_gradient_energy(
+        (w, h),
+        |q| {
             let x = q % w;
-            if x == 0 || x + 1 >= w || !va[q] || !va[q - 1] || !va[q + 1] {
-                return [0.0, 0.0];
-            }
-            let g = 0.5 * (d[q + 1] - d[q - 1]);
-            [(g * g - grad_noise).max(0.0), 1.0]
-        })
-        .collect();
-    let mut scratch = vec![[0f32; 2]; w * h];
-    blur_in_place(&mut planes, &mut scratch, w, h, window_sigma);
+            (x > 0 && x + 1 < w && va[q] && va[q - 1] && va[q + 1])
+                .then(|| 0.5 * (d[q + 1] - d[q - 1]))
+        },
+        grad_noise,
+        window_sigma,
+    );
     let n_eff = 4.0 * std::f32::consts::PI * window_sigma * window_sigma;
     let two_noise = (2.0 * noise_var) as f32;
     Some(
