@@ -148,6 +148,33 @@ pub struct CanvasErrors {
     pub vertical_median: f64,
     /// Mean signed error of the filtered disparity (a bias shows here).
     pub filtered_mean: f64,
+    /// Median |vertical offset| of the exact correspondences on the rectified canvas, pixels:
+    /// the rectification's own row error, whatever the dense stage makes of it (0 for the exact
+    /// rectification). The dense stage's check of the rows ([`SimFigures::dense_rows`]) is a
+    /// different figure: a fit to its measured vertical flow, which wanders where the flow does.
+    pub rows_median: f64,
+    /// On a scene with a featureless support: how much of the raised features' relief the
+    /// matcher measured before the filter.
+    pub raised: Option<RaisedRelief>,
+}
+
+/// The relief of the raised features above a featureless support on the canvas, before the
+/// bilateral filter: the matcher's own compression of it, apart from the support's invented
+/// heights. On the calibration grid the bars' silhouettes are the strongest texture and, with
+/// walls steeper than half the tilt, each micrograph sees one wall the other cannot: the
+/// outline moves by about half the top's disparity, and a window that straddles it measures
+/// the bar at about half its height.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct RaisedRelief {
+    /// Share of the visible pixels on the tops (true height at least 80 % of the 99th
+    /// percentile), with a measured disparity.
+    pub share: f64,
+    /// Median true disparity of the tops minus that of the support, pixels.
+    pub true_px: f64,
+    /// The same measured: median measured disparity of the tops minus that of the support's
+    /// measured pixels, both as errors against the exact disparities (a support left unknown
+    /// leaves the figure undefined, NaN).
+    pub measured_px: f64,
 }
 
 /// Errors of a simulated evaluation.
@@ -265,32 +292,68 @@ struct Rectified {
 
 /// The flow's errors on the canvas: every visible left pixel and its exact
 /// match, both through the rectification, against the flow sampled there.
+///
+/// `support_truth`: the true heights where the scene has a featureless support at z = 0
+/// (then [`CanvasErrors::raised`] is measured).
 fn canvas_errors(
     corr: &[Option<sdsem_sim::render::Correspondence>],
     visible: &[bool],
     width: usize,
     rect: &Rectified,
     disp: &sdsem::vision::dense::Disparity,
+    support_truth: Option<&[f32]>,
 ) -> CanvasErrors {
     let map = |hm: &Matrix3<f64>, x: f64, y: f64| {
         let q = hm * nalgebra::Vector3::new(x, y, 1.0);
         (q.x / q.z, q.y / q.z)
     };
-    let (mut raw, mut filt, mut vert) = (Vec::new(), Vec::new(), Vec::new());
+    let (mut raw, mut filt, mut vert, mut rows) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
     let mut sum = 0f64;
+    // The tops' threshold, and per region (support, tops) the exact disparities and the
+    // measured ones' errors.
+    let top_from = support_truth.map(|t| {
+        let mut v: Vec<f64> = t
+            .iter()
+            .zip(visible)
+            .filter(|(h, vis)| **vis && h.is_finite())
+            .map(|(h, _)| f64::from(*h))
+            .collect();
+        v.sort_by(f64::total_cmp);
+        0.8 * percentile(&v, 0.99)
+    });
+    let (mut true_d, mut raw_err) = ([Vec::new(), Vec::new()], [Vec::new(), Vec::new()]);
+    let mut n_visible = 0usize;
     for (p, c) in corr.iter().enumerate() {
         let Some(c) = c else { continue };
         if !visible[p] {
             continue;
         }
+        n_visible += 1;
         let (xl, yl) = map(&rect.h_left, (p % width) as f64, (p / width) as f64);
         let (xr, yr) = map(&rect.h_right, c.x, c.y);
         let (du, dv) = (xr - xl, yr - yl);
+        rows.push(dv.abs());
         let at = |img: &Image| {
             img.sample_bilinear(xl, yl)
                 .map(f64::from)
                 .filter(|v| v.is_finite())
         };
+        if let (Some(t), Some(from)) = (support_truth, top_from) {
+            let h = f64::from(t[p]);
+            let region = if h.abs() < 1e-3 {
+                Some(0)
+            } else if h >= from {
+                Some(1)
+            } else {
+                None
+            };
+            if let Some(k) = region {
+                true_d[k].push(du);
+                if let Some(r) = at(&disp.raw) {
+                    raw_err[k].push(r - du);
+                }
+            }
+        }
         if let (Some(r), Some(f), Some(v)) =
             (at(&disp.raw), at(&disp.disparity), at(&disp.vertical))
         {
@@ -305,11 +368,23 @@ fn canvas_errors(
         v.sort_by(f64::total_cmp);
         percentile(&v, 0.5)
     };
+    let raised = top_from.map(|_| {
+        let share = raw_err[1].len() as f64 / n_visible.max(1) as f64;
+        let [true_support, true_top] = true_d.map(median);
+        let [err_support, err_top] = raw_err.map(median);
+        RaisedRelief {
+            share,
+            true_px: true_top - true_support,
+            measured_px: true_top - true_support + err_top - err_support,
+        }
+    });
     CanvasErrors {
         raw_median: median(raw),
         filtered_median: median(filt),
         vertical_median: median(vert),
         filtered_mean: sum / n,
+        rows_median: median(rows),
+        raised,
     }
 }
 
@@ -527,7 +602,14 @@ pub fn evaluate_case(
         sdsem::vision::pipeline::matcher_window_sigma(dense),
         geometry.um_per_px(),
     );
-    let canvas_error_px = canvas_errors(&corr, &visible, case.width, &rect, &disp);
+    let canvas_error_px = canvas_errors(
+        &corr,
+        &visible,
+        case.width,
+        &rect,
+        &disp,
+        featureless_support(case.kind).then_some(&truth[..]),
+    );
 
     // Score.
     let w = case.width;
@@ -818,7 +900,7 @@ pub fn format_row(f: &SimFigures) -> String {
         }
     }
     format!(
-        "{:<8} {:<9} {:>4}x{:<4} θ {:>4.1}° φ {:>5.1}° | geometry: {} (rows {}) | cover {:>5.1} % unknown {:>4.1} %{} | range {:>6.2} µm RMSE {:>5.3} µm ({:>4.1} %, floor {}) | median {:.3} px >1px {:>4.1} % | scale {:.3} (unfiltered {:.3}) | canvas raw {:.3} filtered {:.3} (bias {:+.3}) v {:.3} px | rect {:>5.0} ms dense {:>5.0} ms | {}",
+        "{:<8} {:<9} {:>4}x{:<4} θ {:>4.1}° φ {:>5.1}° | geometry: {} (rows off {:.2} px; dense check {}) | cover {:>5.1} % unknown {:>4.1} %{} | range {:>6.2} µm RMSE {:>5.3} µm ({:>4.1} %, floor {}) | median {:.3} px >1px {:>4.1} % | scale {:.3} (unfiltered {:.3}) | canvas raw {:.3} filtered {:.3} (bias {:+.3}) v {:.3} px{} | rect {:>5.0} ms dense {:>5.0} ms | {}",
         format!("{:?}", f.mode).to_lowercase(),
         f.case.kind.name(),
         f.case.width,
@@ -826,6 +908,7 @@ pub fn format_row(f: &SimFigures) -> String {
         f.case.tilt_deg,
         f.case.tilt_axis_deg,
         f.geometry_source,
+        f.canvas_error_px.rows_median,
         f.dense_rows.map_or_else(
             || "—".to_owned(),
             |r| format!("{:.2} px, axis {:+.1}°", r.offset_px, r.axis_error_deg)
@@ -852,6 +935,10 @@ pub fn format_row(f: &SimFigures) -> String {
         f.canvas_error_px.filtered_median,
         f.canvas_error_px.filtered_mean,
         f.canvas_error_px.vertical_median,
+        f.canvas_error_px.raised.map_or_else(String::new, |r| format!(
+            ", tops' relief raw {:.2} of {:.2} px",
+            r.measured_px, r.true_px
+        )),
         f.sparse_ms,
         f.dense_ms,
         if missed.is_empty() {
