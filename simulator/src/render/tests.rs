@@ -617,3 +617,93 @@ fn timings() {
         }
     }
 }
+
+/// The calibration grid's bars have walls steeper than half the tilt, so each view sees a wall
+/// the other cannot: the bar's outline (its strongest texture) moves by about half the top's
+/// parallax, the top's own texture by all of it. A window matcher that straddles the outline
+/// measures the bar at about half its height (`sdsem-eval dense --only calgrid`, "tops' relief").
+#[test]
+fn calgrid_outline_moves_by_half_the_tops_parallax() {
+    let sc = scene(SceneKind::Calgrid, 102);
+    let theta: f64 = 7.0;
+    let left = View {
+        width: 400,
+        height: 400,
+        ..small_view(0.0)
+    };
+    let right = View {
+        tilt_deg: theta,
+        ..left
+    };
+    let (a, b) = (clean(&sc, &left), clean(&sc, &right));
+    let heights = height_map(&sc, &left);
+    let w = left.width;
+    let top = heights.iter().copied().fold(0f32, f32::max);
+    // Where a column crosses one bar cleanly: a run of top between floor on both sides.
+    let mut ratios_outline = Vec::new();
+    let mut ratios_top = Vec::new();
+    for x in (30..370).step_by(7) {
+        let col = |img: &[f32], y: usize| f64::from(img[y * w + x]);
+        let mut y = 30;
+        while y < 370 {
+            if heights[y * w + x] < 0.95 * top {
+                y += 1;
+                continue;
+            }
+            let start = y;
+            while y < 370 && heights[y * w + x] >= 0.95 * top {
+                y += 1;
+            }
+            let (len, yc) = (y - start, (start + y) / 2);
+            let floor_around =
+                heights[(start - 6) * w + x] == 0.0 && heights[(y + 5) * w + x] == 0.0;
+            if !(10..=30).contains(&len) || !floor_around || yc < 40 || yc > 360 {
+                continue;
+            }
+            // The outline: the half-way crossings of the bright bar over the dark floor.
+            let edges = |img: &[f32]| {
+                let (lo, hi) = (yc - 22, yc + 22);
+                let floor = 0.5 * (col(img, lo) + col(img, hi));
+                let peak = (lo..hi).map(|k| col(img, k)).fold(f64::MIN, f64::max);
+                let t = floor + 0.5 * (peak - floor);
+                let cross = |k: usize| {
+                    let (p, q) = (col(img, k), col(img, k + 1));
+                    k as f64 + (t - p) / (q - p)
+                };
+                let first = (lo..hi).find(|&k| col(img, k) < t && col(img, k + 1) >= t);
+                let last = (lo..hi)
+                    .rev()
+                    .find(|&k| col(img, k) >= t && col(img, k + 1) < t);
+                first.zip(last).map(|(f, l)| 0.5 * (cross(f) + cross(l)))
+            };
+            let parallax = f64::from(heights[yc * w + x]) * theta.to_radians().sin() / 0.1;
+            if let (Some(ea), Some(eb)) = (edges(&a), edges(&b)) {
+                ratios_outline.push((eb - ea) / parallax);
+                let s = find_shift(&a, &b, w, x as isize, yc as isize, 3, 4);
+                ratios_top.push(s.1 / parallax);
+            }
+        }
+    }
+    let median = |mut v: Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    };
+    assert!(
+        ratios_outline.len() >= 5,
+        "too few clean crossings: {}",
+        ratios_outline.len()
+    );
+    let (outline, tops) = (median(ratios_outline.clone()), median(ratios_top.clone()));
+    eprintln!(
+        "outline {outline:.3} tops {tops:.3} of the parallax ({} crossings)",
+        ratios_outline.len()
+    );
+    assert!(
+        (0.3..0.7).contains(&outline),
+        "outline moves {outline:.2} of the parallax"
+    );
+    assert!(
+        (tops - 1.0).abs() < 0.2,
+        "top moves {tops:.2} of the parallax"
+    );
+}
