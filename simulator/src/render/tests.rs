@@ -657,7 +657,7 @@ fn calgrid_outline_moves_by_half_the_tops_parallax() {
             let (len, yc) = (y - start, (start + y) / 2);
             let floor_around =
                 heights[(start - 6) * w + x] == 0.0 && heights[(y + 5) * w + x] == 0.0;
-            if !(10..=30).contains(&len) || !floor_around || yc < 40 || yc > 360 {
+            if !(10..=30).contains(&len) || !floor_around || !(40..=360).contains(&yc) {
                 continue;
             }
             // The outline: the half-way crossings of the bright bar over the dark floor.
