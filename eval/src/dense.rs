@@ -47,6 +47,10 @@ pub enum Rectifier {
     Sparse,
     /// The simulator's exact geometry: the dense stage alone.
     Truth,
+    /// The instrument's geometry (tilt axis, tiles' phase correlation; no sparse matches) as
+    /// if the sparse stage had failed, with the dense stage's check of its rows: the fallback
+    /// measured on every scene.
+    Instrument,
 }
 
 /// One simulated acquisition.
@@ -542,6 +546,25 @@ pub fn evaluate_case(
                 },
             }
         }
+        Rectifier::Instrument => {
+            let r = sdsem::vision::rectify::instrument::instrument_rectification(
+                &left,
+                &right,
+                case.tilt_axis_deg,
+                &[],
+                &sparse.instrument,
+            )
+            .map_err(SimEvalError::Unverified)?;
+            let (cw, ch) = r.canvas;
+            Rectified {
+                left: warp(&left, &r.h_left, cw, ch).ok_or(SimEvalError::Singular)?,
+                right: warp(&right, &r.h_right, cw, ch).ok_or(SimEvalError::Singular)?,
+                h_left: r.h_left,
+                h_right: r.h_right,
+                range: r.disparity_range,
+                source: "instrument",
+            }
+        }
         Rectifier::Truth => {
             let (hm, (cw, ch)) = exact_rectification(case.width, case.height, case.tilt_axis_deg);
             Rectified {
@@ -1020,6 +1043,8 @@ pub fn quick_cases() -> Vec<SimCase> {
 pub struct DenseEvalArgs {
     /// Use the simulator's exact rectification instead of the sparse stage.
     pub true_rectification: bool,
+    /// Use the instrument's geometry instead of the sparse stage (the fallback's figures).
+    pub instrument: bool,
     /// Only this mode (default: both).
     pub mode: Option<Preset>,
     /// Only the cases whose label (`kind WxH`, e.g. `dome 640x480`) contains this.
@@ -1173,6 +1198,8 @@ pub fn run(opts: &super::EvalOptions, args: &DenseEvalArgs) -> anyhow::Result<()
         .map_or(vec![Preset::Improved, Preset::Paper], |m| vec![m]);
     let rectifier = if args.true_rectification {
         Rectifier::Truth
+    } else if args.instrument {
+        Rectifier::Instrument
     } else {
         Rectifier::Sparse
     };
@@ -1230,6 +1257,8 @@ pub fn run(opts: &super::EvalOptions, args: &DenseEvalArgs) -> anyhow::Result<()
             match rectifier {
                 Rectifier::Sparse => "sparse stage (whole pipeline)",
                 Rectifier::Truth => "exact, from the simulator's geometry (dense stage alone)",
+                Rectifier::Instrument =>
+                    "the instrument's (tilt axis and tiles, no sparse matches), checked by the dense stage",
             }
         );
         for &mode in &modes {

@@ -125,6 +125,9 @@ pub struct DenseArgs {
     /// Rectify with the simulator's exact geometry instead of the sparse stage (dense errors alone).
     #[arg(long)]
     pub true_rectification: bool,
+    /// Rectify with the instrument's geometry (tilt axis, tiles' correlation) as if the sparse stage had failed, checked by the dense stage.
+    #[arg(long, conflicts_with = "true_rectification")]
+    pub instrument: bool,
     /// Only this mode (default: improved and paper).
     #[arg(long, value_parser = parse_mode)]
     pub mode: Option<Preset>,
@@ -269,6 +272,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<ExitCode> {
             &opts,
             &dense::DenseEvalArgs {
                 true_rectification: d.true_rectification,
+                instrument: d.instrument,
                 mode: d.mode,
                 only: d.only.clone(),
                 set: d.set.clone(),

@@ -206,7 +206,10 @@ fn geometry_line(g: &crate::vision::pipeline::GeometryReport) -> String {
             f.row_residual_rms_px,
             f.dense_rows.map_or_else(
                 || "not checked (tiled)".to_owned(),
-                |r| format!("{:.2} px off, axis {:+.2}°", r.offset_px, r.axis_error_deg)
+                |r| format!(
+                    "{:.2} px off, axis {:+.2}° (moves rows {:.2} px)",
+                    r.offset_px, r.axis_error_deg, r.leak_px
+                )
             ),
         ),
         (None, _) => "geometry: sparse (epipolar geometry from the matches)".to_owned(),
