@@ -934,7 +934,10 @@ pub fn format_row(f: &SimFigures) -> String {
         f.canvas_error_px.rows_median,
         f.dense_rows.map_or_else(
             || "—".to_owned(),
-            |r| format!("{:.2} px, axis {:+.1}°", r.offset_px, r.axis_error_deg)
+            |r| format!(
+                "{:.2} px, axis {:+.1}° moving rows {:.2} px",
+                r.offset_px, r.axis_error_deg, r.leak_px
+            )
         ),
         100.0 * f.coverage,
         100.0 * f.unknown,
