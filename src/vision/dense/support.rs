@@ -28,7 +28,12 @@
 //!    pixels along the row; when an offset beyond a rise of that cost comes back within
 //!    `min_distinctiveness` standard deviations of the match's (`c₀ · √(A/N)`, `c₀` what the
 //!    match leaves unexplained), the cost has no unique minimum (repetitive texture) and the
-//!    match is ambiguous.
+//!    match is ambiguous;
+//! 4. **the nearby surfaces** (opt-in, `own_sigma`): the pixel's own small window must tell its
+//!    disparity from the least and greatest along its row within `surface_reach` matcher σ
+//!    (where they differ by a pixel or more), by the mean squared difference of 3.: beside a
+//!    raised feature the matcher carries its disparity onto the featureless surface next to
+//!    it, and the matcher's window vouches for it because the feature's texture is near.
 //!
 //! A pixel passes all three over the matcher's window, or over a window `wider_window` times
 //! wider where the disparity is one smooth surface across it (its scatter about a plane at
@@ -36,6 +41,9 @@
 //! window's σ): weak texture, a few features spread over a flat substrate, pins down a smooth
 //! disparity that the matcher's window alone cannot, while beside a raised feature the wider
 //! window straddles the step and does not speak for the pixel.
+//! With `wider_min_significance` the wider window speaks only for a pixel whose matcher's
+//! window shows some texture at the match (its correlation that many standard deviations
+//! above noise alone): a featureless pixel amid features is not measured by their texture.
 
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -71,6 +79,12 @@ pub struct SupportParams {
     pub reach_px: usize,
     /// Least excess of a competing offset's mean squared difference over the match's, in standard deviations of the noise's share.
     pub min_distinctiveness: f32,
+    /// σ of the pixel's own window that must tell its disparity from the nearby surfaces' (`surface_reach`), pixels; 0: no such test.
+    pub own_sigma: f32,
+    /// The nearby surfaces: the least and greatest disparity along the row within this many matcher σ of the pixel.
+    pub surface_reach: f32,
+    /// Least correlation at the match over the matcher's window, in standard deviations of its spread on noise alone, for the wider window to speak for a pixel (0: none).
+    pub wider_min_significance: f32,
 }
 
 impl Default for SupportParams {
@@ -88,6 +102,9 @@ impl Default for SupportParams {
             wider_max_step_px: 0.5,
             reach_px: 16,
             min_distinctiveness: 4.0,
+            own_sigma: 0.0,
+            surface_reach: 2.0,
+            wider_min_significance: 0.0,
         }
     }
 }
@@ -120,6 +137,12 @@ impl SupportParams {
             Some("support.reach_px")
         } else if !non_negative(self.min_distinctiveness) {
             Some("support.min_distinctiveness")
+        } else if !sigma_ok(self.own_sigma) {
+            Some("support.own_sigma")
+        } else if !(non_negative(self.surface_reach) && self.surface_reach <= 16.0) {
+            Some("support.surface_reach")
+        } else if !non_negative(self.wider_min_significance) {
+            Some("support.wider_min_significance")
         } else {
             None
         }
@@ -344,35 +367,42 @@ pub fn support_test(
         Some(r0 + fy * (r1 - r0))
     };
     // Per pixel g_a g_b, g_a², g_b² and whether both gradients exist.
-    type Planes = (Vec<f32>, (Vec<f32>, (Vec<f32>, Vec<f32>)));
+    struct Planes {
+        gab: Vec<f32>,
+        gaa: Vec<f32>,
+        gbb: Vec<f32>,
+        m: Vec<f32>,
+    }
     let products = |sa: &[f32], sb: &[f32]| -> Planes {
-        (0..w * h)
+        let per: Vec<[f32; 4]> = (0..w * h)
             .into_par_iter()
             .map(|q| {
-                let none = (0.0, (0.0, (0.0, 0.0)));
                 let Some(ga) = grad(sa, va, q).filter(|_| du[q].is_finite()) else {
-                    return none;
+                    return [0.0; 4];
                 };
                 let Some(gb) = at_match(sb, q, 0.0) else {
-                    return none;
+                    return [0.0; 4];
                 };
-                (ga * gb, (ga * ga, (gb * gb, 1.0)))
+                [ga * gb, ga * ga, gb * gb, 1.0]
             })
-            .unzip()
+            .collect();
+        let plane = |k: usize| per.par_iter().map(|v| v[k]).collect::<Vec<f32>>();
+        Planes {
+            gab: plane(0),
+            gaa: plane(1),
+            gbb: plane(2),
+            m: plane(3),
+        }
     };
     // 1. Texture: over a window the correlation ρ = ⟨g_a g_b⟩ / √(⟨g_a²⟩⟨g_b²⟩) of the two
     // gradients at the match is s / (1 + s) for a signal-to-noise ratio s of the band's
     // gradient energy (their noise independent, their texture common), whatever the noise's
     // level.
-    let correlation = |(gab, (gaa, (gbb, gm))): &Planes, sigma: f32| -> Vec<f32> {
+    let correlation = |pl: &Planes, sigma: f32| -> Vec<f32> {
+        let mean = |v: &Vec<f32>| window_mean(v, &pl.m, w, h, sigma);
         let (mab, (maa, mbb)) = rayon::join(
-            || window_mean(gab, gm, w, h, sigma),
-            || {
-                rayon::join(
-                    || window_mean(gaa, gm, w, h, sigma),
-                    || window_mean(gbb, gm, w, h, sigma),
-                )
-            },
+            || mean(&pl.gab),
+            || rayon::join(|| mean(&pl.gaa), || mean(&pl.gbb)),
         );
         (0..w * h)
             .into_par_iter()
@@ -399,14 +429,14 @@ pub fn support_test(
     };
     // Whether a window of σ `s` shows texture that stands out of the noise and bounds the
     // disparity within `max_bound_px`.
-    let textured_at = |s: f32| -> Vec<bool> {
+    let textured_at = |s: f32| -> (Vec<bool>, Vec<f32>) {
         let n = 4.0 * std::f32::consts::PI * s * s;
         let min_rho = params.min_significance * (area_band / n).sqrt();
         let (rho_band, rho_raw) = rayon::join(
             || correlation(&band, s),
             || raw.as_ref().map(|r| correlation(r, s)),
         );
-        (0..w * h)
+        let textured = (0..w * h)
             .into_par_iter()
             .map(|q| {
                 let rho = rho_band[q];
@@ -417,13 +447,14 @@ pub fn support_test(
                 );
                 rho.is_finite() && rho >= min_rho && info * max_var >= 1.0
             })
-            .collect()
+            .collect();
+        (textured, rho_band)
     };
     // 2. Where the texture lies: the window's centroid of the band's texture energy g_a g_b
     // (signed: the noise's products average out instead of pulling the centroid to the
     // pixel), relative to the canvas centre to keep the sums small.
     let (cx, cy) = ((w / 2) as f32, (h / 2) as f32);
-    let energy = &band.0;
+    let energy = &band.gab;
     let at_x: Vec<f32> = energy
         .par_iter()
         .enumerate()
@@ -486,58 +517,165 @@ pub fn support_test(
             .unzip()
     };
     let (e0, m0) = difference(0.0);
-    let ambiguous_at = |s: f32| -> Vec<bool> {
-        let c0 = window_mean(&e0, &m0, w, h, s);
-        let n_eff = 4.0 * std::f32::consts::PI * s * s;
-        let spread = (area_band / n_eff).sqrt();
-        let min_excess: Vec<f32> = c0
-            .par_iter()
-            .map(|c| params.min_distinctiveness * c * spread)
+    // Per window σ of `scales`, whether the match is ambiguous; the competing offsets'
+    // differences are computed once for all windows.
+    let ambiguous_at = |scales: &[f32]| -> Vec<Vec<bool>> {
+        struct Scale {
+            s: f32,
+            c0: Vec<f32>,
+            min_excess: Vec<f32>,
+            rose: [Vec<bool>; 2],
+            ambiguous: Vec<bool>,
+        }
+        let mut per: Vec<Scale> = scales
+            .iter()
+            .map(|&s| {
+                let c0 = window_mean(&e0, &m0, w, h, s);
+                let n_eff = 4.0 * std::f32::consts::PI * s * s;
+                let spread = (area_band / n_eff).sqrt();
+                let min_excess = c0
+                    .par_iter()
+                    .map(|c| params.min_distinctiveness * c * spread)
+                    .collect();
+                Scale {
+                    s,
+                    c0,
+                    min_excess,
+                    rose: [vec![false; w * h], vec![false; w * h]],
+                    ambiguous: vec![false; w * h],
+                }
+            })
             .collect();
         // An offset competes only beyond a rise of the cost on its side: a cost that stays
         // low from the match out to it is a broad minimum, which the texture test's bound
         // judges.
-        let mut rose = [vec![false; w * h], vec![false; w * h]];
-        let mut ambiguous = vec![false; w * h];
         for off in offsets(params.reach_px) {
             let (e, m) = difference(off);
-            let c = window_mean(&e, &m, w, h, s);
-            let side = &mut rose[usize::from(off < 0.0)];
-            ambiguous
-                .par_iter_mut()
-                .zip(side.par_iter_mut())
-                .enumerate()
-                .for_each(|(q, (amb, rose))| {
-                    let (c, c0) = (c[q], c0[q]);
-                    if c.is_finite() && c0.is_finite() {
-                        if c - c0 >= min_excess[q] {
-                            *rose = true;
-                        } else if *rose {
-                            *amb = true;
+            for sc in &mut per {
+                let c = window_mean(&e, &m, w, h, sc.s);
+                let (c0, min_excess) = (&sc.c0, &sc.min_excess);
+                let side = &mut sc.rose[usize::from(off < 0.0)];
+                sc.ambiguous
+                    .par_iter_mut()
+                    .zip(side.par_iter_mut())
+                    .enumerate()
+                    .for_each(|(q, (amb, rose))| {
+                        let (c, c0) = (c[q], c0[q]);
+                        if c.is_finite() && c0.is_finite() {
+                            if c - c0 >= min_excess[q] {
+                                *rose = true;
+                            } else if *rose {
+                                *amb = true;
+                            }
                         }
-                    }
-                });
+                    });
+            }
         }
-        ambiguous
+        per.into_iter().map(|sc| sc.ambiguous).collect()
     };
     // The matcher's window, and optionally a wider one over a smooth disparity: a pixel is
     // supported when either shows texture near it and a unique minimum of the cost.
-    let judge = |s: f32, wide: bool| -> (Vec<bool>, Vec<bool>) {
-        let mut textured = textured_at(s);
+    let judge = |s: f32, wide: bool| -> (Vec<bool>, Vec<f32>) {
+        let (mut textured, rho) = textured_at(s);
         let near = located(s, wide);
         textured
             .par_iter_mut()
             .zip(&near)
             .for_each(|(t, n)| *t &= n);
-        (textured, ambiguous_at(s))
+        (textured, rho)
+    };
+    let wide_sigma = (params.wider_window > 1.0).then_some(sigma * params.wider_window);
+    let scales: Vec<f32> = std::iter::once(sigma).chain(wide_sigma).collect();
+    let mut ambiguous = ambiguous_at(&scales).into_iter();
+    // 4. The nearby surfaces (opt-in, `own_sigma`): beside a raised feature the matcher's window and smoothness
+    // carry the feature's disparity onto the lower surface next to it (and back), and the
+    // window vouches for it because the feature's texture is near. The pixel's own window
+    // (σ `own_sigma`) must tell its disparity from the least and the greatest disparity along
+    // its row within `surface_reach` matcher σ, where they differ from it by a pixel or
+    // more: the mean squared difference of the band's gradients there must exceed the
+    // match's by `min_distinctiveness` of its spread (as in 3.), else the pixel is ambiguous.
+    let like_a_neighbour = || -> Vec<bool> {
+        let s_own = params.own_sigma;
+        if s_own <= 0.0 || params.surface_reach <= 0.0 {
+            return vec![false; w * h];
+        }
+        #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
+        let reach = (params.surface_reach * sigma).ceil() as usize;
+        // Per pixel the least and the greatest disparity along the row within `reach`.
+        let extremes: Vec<(f32, f32)> = du
+            .par_chunks(w)
+            .flat_map_iter(|row| {
+                (0..w).map(move |x| {
+                    let span = &row[x.saturating_sub(reach)..(x + reach + 1).min(w)];
+                    span.iter()
+                        .filter(|d| d.is_finite())
+                        .fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), &d| {
+                            (lo.min(d), hi.max(d))
+                        })
+                })
+            })
+            .collect();
+        let c0 = window_mean(&e0, &m0, w, h, s_own);
+        let n_eff = 4.0 * std::f32::consts::PI * s_own * s_own;
+        let spread = (area_band / n_eff).sqrt();
+        let mut alike = vec![false; w * h];
+        for pick in [0, 1] {
+            let target: Vec<f32> = extremes
+                .par_iter()
+                .zip(du)
+                .map(|(&(lo, hi), &d)| {
+                    let t = if pick == 0 { lo } else { hi };
+                    if t.is_finite() && d.is_finite() && (t - d).abs() >= 1.0 {
+                        t - d
+                    } else {
+                        f32::NAN
+                    }
+                })
+                .collect();
+            let (e, m): (Vec<f32>, Vec<f32>) = (0..w * h)
+                .into_par_iter()
+                .map(|q| {
+                    let pair = grad(&sa, va, q)
+                        .filter(|_| target[q].is_finite())
+                        .zip(at_match(&sb, q, target[q]));
+                    pair.map_or((0.0, 0.0), |(ga, gb)| ((ga - gb) * (ga - gb), 1.0))
+                })
+                .unzip();
+            let c = window_mean(&e, &m, w, h, s_own);
+            alike.par_iter_mut().enumerate().for_each(|(q, a)| {
+                let (c, c0) = (c[q], c0[q]);
+                if target[q].is_finite() && c.is_finite() && c0.is_finite() {
+                    *a |= c - c0 < params.min_distinctiveness * c0 * spread;
+                }
+            });
+        }
+        alike
+    };
+    let or = |mut a: Vec<bool>, b: Vec<bool>| {
+        a.par_iter_mut().zip(b).for_each(|(a, b)| *a |= b);
+        a
     };
     let narrow = judge(sigma, false);
-    let wide = (params.wider_window > 1.0).then(|| judge(sigma * params.wider_window, true));
+    let narrow_ambiguous = or(
+        ambiguous.next().expect("the matcher's window"),
+        like_a_neighbour(),
+    );
+    let wide = wide_sigma.map(|s| {
+        (
+            judge(s, true).0,
+            ambiguous.next().expect("the wider window"),
+        )
+    });
+    // The wider window speaks for a pixel only where the matcher's window shows some texture
+    // at the match (`ρ` above `wider_min_significance` of its spread on noise alone).
+    let own = params.wider_min_significance;
+    let min_own = own * (area_band / (4.0 * std::f32::consts::PI * sigma * sigma)).sqrt();
     (0..w * h)
         .into_par_iter()
         .map(|q| {
-            let (t, a) = (narrow.0[q], narrow.1[q]);
+            let (t, a) = (narrow.0[q], narrow_ambiguous[q]);
             let (tw, aw) = wide.as_ref().map_or((false, false), |(t, a)| (t[q], a[q]));
+            let tw = tw && (own <= 0.0 || narrow.1[q] >= min_own);
             if !va[q] || !du[q].is_finite() || (t && !a) || (tw && !aw) {
                 Unknown::Measured
             } else if t || tw {
@@ -739,6 +877,78 @@ mod tests {
         let stepped = weak_texture_measured(0.06, 3.0, &SupportParams::default());
         assert!(alone < 0.5 && wide >= 0.8, "{alone} {wide}");
         assert!(stepped < wide - 0.2, "{stepped} {wide}");
+    }
+
+    /// A texture with a featureless disc of `radius` at (`cx`, `cy`), shifted by 2 px, under
+    /// noise of σ 0.02.
+    fn textured_with_a_hole(
+        (w, h): (usize, usize),
+        (cx, cy, radius): (f64, f64, f64),
+    ) -> (Image, Image) {
+        let tex = Texture::new(13);
+        let mut k = 0x2468_u64;
+        let flat = |x: f64, y: f64| (x - cx).hypot(y - cy) <= radius;
+        let mut img = |shift: f64| {
+            Image::from_fn(w, h, |x, y| {
+                let (xs, y) = (x as f64 - shift, y as f64);
+                let v = if flat(xs, y) {
+                    0.4
+                } else {
+                    tex.at(xs, y) as f32
+                };
+                v + gaussian(&mut k, 0.02)
+            })
+        };
+        let a = img(0.0);
+        let b = img(2.0);
+        (a, b)
+    }
+
+    /// A featureless hole in a texture, the matcher's window reaching the texture all round
+    /// it, and another surface 6 px along the row: the hole's own window cannot tell the two
+    /// disparities apart (ambiguous), the texture beside it can (measured). Without the test
+    /// the hole's centre is measured.
+    #[test]
+    fn a_pixel_whose_own_window_cannot_tell_the_nearby_surface_is_ambiguous() {
+        let (w, h) = (120, 60);
+        let (a, b) = textured_with_a_hole((w, h), (50.0, 30.0, 6.0));
+        let valid = vec![true; w * h];
+        let disparity = Image::from_fn(w, h, |x, _| if x == 56 { 0.0 } else { 2.0 });
+        let old = SupportParams {
+            wider_window: 1.0,
+            max_step_px: 10.0,
+            ..SupportParams::default()
+        };
+        let own = SupportParams {
+            own_sigma: 1.5,
+            ..old
+        };
+        let judge = |p: &SupportParams| {
+            support_test((&a, &b), (&valid, &valid), (&disparity, None), p, 3.0)
+        };
+        let (before, after) = (judge(&old), judge(&own));
+        assert_eq!(before[30 * w + 50], Unknown::Measured);
+        assert_eq!(after[30 * w + 50], Unknown::Ambiguous);
+        assert_eq!(after[10 * w + 50], Unknown::Measured);
+    }
+
+    /// A featureless disc wider than the matcher's window in a texture: the wider window
+    /// speaks for its centre unless the matcher's window must show some texture there too.
+    #[test]
+    fn the_wider_window_needs_texture_in_the_matchers_window_when_asked() {
+        let (w, h) = (120, 80);
+        let (a, b) = textured_with_a_hole((w, h), (60.0, 40.0, 14.0));
+        let valid = vec![true; w * h];
+        let disparity = Image::filled(w, h, 2.0);
+        let judge = |p: &SupportParams| {
+            support_test((&a, &b), (&valid, &valid), (&disparity, None), p, 3.0)[40 * w + 60]
+        };
+        assert_eq!(judge(&SupportParams::default()), Unknown::Measured);
+        let gated = SupportParams {
+            wider_min_significance: 2.0,
+            ..SupportParams::default()
+        };
+        assert_eq!(judge(&gated), Unknown::NoTexture);
     }
 
     #[test]
