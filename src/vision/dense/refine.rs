@@ -18,7 +18,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::vision::Image;
 use crate::vision::filter::blur::{blur, blur_in_place, normalise_contrast};
-use crate::vision::filter::cross_grid::{CrossGrid, range_key};
+use crate::vision::filter::cross_grid::{CrossGrid, range_key_smoothed};
 
 /// Parameters of the intensity refinement of a flow ([`refine_flow`]).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -40,6 +40,19 @@ pub struct RefineParams {
     pub vertical: bool,
     /// Range σ of edge-aware windows (Yoon & Kweon 2006), standard deviations of the intensity; 0 = plain Gaussian.
     pub range_sigma: f32,
+    /// How far a window's residuals are carried to the pixel's own flow, 0–1 (0: each
+    /// neighbour's residual at its own flow, "warp, then filter"; 1: at the pixel's flow, to
+    /// first order, the window's own Lucas–Kanade).
+    pub window_coupling: f32,
+    /// Smooth the start over the window at every level (false: only at the first one, where
+    /// the matcher's flow with its label steps enters; below, the start is a refined flow).
+    pub resmooth_start: bool,
+    /// Gaussian smoothing of the edge-aware windows' key image, pixels: wider drops fine
+    /// texture from the key, so that windows on a textured surface stay whole.
+    pub range_key_sigma: f32,
+    /// Factor on every Gauss–Newton step (1: the plain step); above 1 it makes up for the step
+    /// the noise of the gradients shortens (their energy in the normal equations).
+    pub step_scale: f32,
 }
 
 impl Default for RefineParams {
@@ -53,6 +66,10 @@ impl Default for RefineParams {
             max_step: 4.0,
             vertical: true,
             range_sigma: 0.5,
+            window_coupling: 0.0,
+            resmooth_start: true,
+            range_key_sigma: 1.0,
+            step_scale: 1.0,
         }
     }
 }
@@ -72,6 +89,12 @@ impl RefineParams {
             Some("refine.max_step")
         } else if !ok(self.range_sigma, 0.0) || self.range_sigma > 100.0 {
             Some("refine.range_sigma")
+        } else if !ok(self.window_coupling, 0.0) || self.window_coupling > 1.0 {
+            Some("refine.window_coupling")
+        } else if !ok(self.range_key_sigma, 0.3) || self.range_key_sigma > 20.0 {
+            Some("refine.range_key_sigma")
+        } else if !ok(self.step_scale, 0.1) || self.step_scale > 2.0 {
+            Some("refine.step_scale")
         } else if self.iterations > 100 {
             Some("refine.iterations")
         } else if self.full_resolution_iterations.is_some_and(|n| n > 100) {
@@ -223,7 +246,7 @@ fn refine_level(
     params: &RefineParams,
     iterations: usize,
     max_step: f32,
-    with_ncc: bool,
+    (with_ncc, smooth_start): (bool, bool),
 ) -> RefinedFlow {
     let (w, h) = a.dimensions();
     let (u0, v0) = (&u_start[..], &v_start[..]);
@@ -263,7 +286,7 @@ fn refine_level(
     let n = w * h;
     // The smoothed start of pixel `p` from its window sums `[u, v, count, ·]`.
     let mean = |p: usize, s: &[f32; 4], o: &[f32], c: usize| {
-        if !usable[p] {
+        if !usable[p] || !smooth_start {
             o[p]
         } else if s[2] > 1e-12 {
             s[c] / s[2]
@@ -277,7 +300,7 @@ fn refine_level(
         // The sums of the start, produced and taken row by row while the grid is built.
         let (mut su, mut sv) = (vec![0f32; n], vec![0f32; n]);
         let g = CrossGrid::with_row_sums(
-            &range_key(a.data(), w, h),
+            &range_key_smoothed(a.data(), w, h, params.range_key_sigma),
             (w, h),
             (params.window_sigma, params.range_sigma),
             &|y, row: &mut [[f32; 4]]| {
@@ -343,6 +366,13 @@ fn refine_level(
         }
         sb.at(x as f32 + u[p], y as f32 + v[p])
     };
+    // The window coupling: with β = 0 every pixel of a window enters with its residual at its
+    // own flow ("warp, then filter"), whose fixed point is the pixel-wise flow constraint; the
+    // iterations then drift slowly (Landweber-like) from the smooth start towards that noisy
+    // solution. With β = 1 each residual is carried to the window centre's flow to first order,
+    // e_q(d_p) ≈ e_q(d_q) + g_qᵀ(d_p − d_q), and the fixed point is every window's own
+    // Lucas–Kanade estimate, with its noise (the Cramér–Rao bound of the window).
+    let beta = params.window_coupling;
     // The Gauss–Newton products of pixel row `y` with its own warp.
     let products_row = |u: &[f32], v: &[f32], y: usize, row: &mut [[f32; 6]]| {
         for (x, out) in row.iter_mut().enumerate() {
@@ -358,14 +388,32 @@ fn refine_level(
                 0.0
             };
             let e = bw - na.data()[y * w + x];
-            *out = [gx * gx, gx * gy, gy * gy, gx * e, gy * e, 1.0];
+            let (rx, ry) = if beta > 0.0 {
+                // The residual carried to the window centre's flow d_p to first order,
+                // e + gᵀ(d_p − d_q): the window sums take its −β g gᵀ d_q, the step adds β A d_p.
+                let p = y * w + x;
+                let (du, dv) = (beta * u[p], beta * v[p]);
+                (
+                    gx * e - (gx * gx * du + gx * gy * dv),
+                    gy * e - (gx * gy * du + gy * gy * dv),
+                )
+            } else {
+                (gx * e, gy * e)
+            };
+            *out = [gx * gx, gx * gy, gy * gy, rx, ry, 1.0];
         }
     };
     // The step of pixel `p` from its window sums of the products.
     let step = |p: usize, sums: &[f32; 6], up: &mut f32, vp: &mut f32, cl: &mut bool| {
-        let [sxx, sxy, syy, sxe, sye, s1] = *sums;
+        let [sxx, sxy, syy, mut sxe, mut sye, s1] = *sums;
         if !usable[p] || s1 < 1e-3 {
             return;
+        }
+        if beta > 0.0 {
+            // Σ g (e + gᵀ(d_p − d_q)) of the coupled residuals (see `products_row`).
+            let (du, dv) = (beta * *up, beta * *vp);
+            sxe += sxx * du + sxy * dv;
+            sye += sxy * du + syy * dv;
         }
         let lam = TIKHONOV * s1;
         let (du, dv) = if params.vertical {
@@ -380,6 +428,11 @@ fn refine_level(
             )
         } else {
             (-sxe / (sxx + lam), 0.0)
+        };
+        let (du, dv) = if params.step_scale == 1.0 {
+            (du, dv)
+        } else {
+            (params.step_scale * du, params.step_scale * dv)
         };
         let lim = |d: f32| d.clamp(-MAX_ITERATION_STEP, MAX_ITERATION_STEP);
         let (nu, nv) = (*up + lim(du), *vp + lim(dv));
@@ -672,7 +725,7 @@ pub fn refine_flow_to_level(
             // A coarse level may move a little more: its error doubles on the way up.
             if l > 0 { max_step.max(1.0) } else { max_step },
             // Only the last level's NCC is kept.
-            l == stop,
+            (l == stop, l == level || params.resmooth_start),
         ));
     }
     result.expect("level `stop` always runs")

@@ -547,18 +547,34 @@ fn blur_y_in_place<const C: usize>(
 /// smoothed, in units of its standard deviation (sequential sums: the same
 /// figure whatever the thread count).
 pub(crate) fn range_key(img: &[f32], w: usize, h: usize) -> Vec<f32> {
+    range_key_smoothed(img, w, h, XB_KEY_PRESMOOTH)
+}
+
+/// [`range_key`] with the image smoothed by `sigma` pixels, still in units of the standard
+/// deviation of the lightly smoothed image: a wider smoothing drops fine texture from the key
+/// (the windows stay whole on a textured surface) and keeps the contrast of larger regions.
+pub(crate) fn range_key_smoothed(img: &[f32], w: usize, h: usize, sigma: f32) -> Vec<f32> {
     let finite: Vec<f32> = img
         .iter()
         .map(|&v| if v.is_finite() { v } else { 0.0 })
         .collect();
-    let s = blur_plane(&finite, w, h, XB_KEY_PRESMOOTH);
-    let n = s.len().max(1) as f64;
-    let mean = s.iter().map(|&v| f64::from(v)).sum::<f64>() / n;
-    let var = s
-        .iter()
-        .map(|&v| (f64::from(v) - mean).powi(2))
-        .sum::<f64>()
-        / n;
+    let spread = |s: &[f32]| {
+        let n = s.len().max(1) as f64;
+        let mean = s.iter().map(|&v| f64::from(v)).sum::<f64>() / n;
+        let var = s
+            .iter()
+            .map(|&v| (f64::from(v) - mean).powi(2))
+            .sum::<f64>()
+            / n;
+        (mean, var)
+    };
+    let s = blur_plane(&finite, w, h, sigma);
+    let (mean, var) = spread(&s);
+    let var = if sigma == XB_KEY_PRESMOOTH {
+        var
+    } else {
+        spread(&blur_plane(&finite, w, h, XB_KEY_PRESMOOTH)).1
+    };
     let inv = if var > 0.0 { 1.0 / var.sqrt() } else { 1.0 };
     s.iter()
         .map(|&v| ((f64::from(v) - mean) * inv) as f32)
