@@ -547,18 +547,34 @@ fn blur_y_in_place<const C: usize>(
 /// smoothed, in units of its standard deviation (sequential sums: the same
 /// figure whatever the thread count).
 pub(crate) fn range_key(img: &[f32], w: usize, h: usize) -> Vec<f32> {
+    range_key_smoothed(img, w, h, XB_KEY_PRESMOOTH)
+}
+
+/// [`range_key`] with the image smoothed by `sigma` pixels, still in units of the standard
+/// deviation of the lightly smoothed image: a wider smoothing drops fine texture from the key
+/// (the windows stay whole on a textured surface) and keeps the contrast of larger regions.
+pub(crate) fn range_key_smoothed(img: &[f32], w: usize, h: usize, sigma: f32) -> Vec<f32> {
     let finite: Vec<f32> = img
         .iter()
         .map(|&v| if v.is_finite() { v } else { 0.0 })
         .collect();
-    let s = blur_plane(&finite, w, h, XB_KEY_PRESMOOTH);
-    let n = s.len().max(1) as f64;
-    let mean = s.iter().map(|&v| f64::from(v)).sum::<f64>() / n;
-    let var = s
-        .iter()
-        .map(|&v| (f64::from(v) - mean).powi(2))
-        .sum::<f64>()
-        / n;
+    let spread = |s: &[f32]| {
+        let n = s.len().max(1) as f64;
+        let mean = s.iter().map(|&v| f64::from(v)).sum::<f64>() / n;
+        let var = s
+            .iter()
+            .map(|&v| (f64::from(v) - mean).powi(2))
+            .sum::<f64>()
+            / n;
+        (mean, var)
+    };
+    let s = blur_plane(&finite, w, h, sigma);
+    let (mean, var) = spread(&s);
+    let var = if sigma == XB_KEY_PRESMOOTH {
+        var
+    } else {
+        spread(&blur_plane(&finite, w, h, XB_KEY_PRESMOOTH)).1
+    };
     let inv = if var > 0.0 { 1.0 / var.sqrt() } else { 1.0 };
     s.iter()
         .map(|&v| ((f64::from(v) - mean) * inv) as f32)
@@ -568,6 +584,43 @@ pub(crate) fn range_key(img: &[f32], w: usize, h: usize) -> Vec<f32> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Two regions of different brightness, each with fine texture: the wider smoothing drops
+    /// most of the texture from the key and keeps the regions' difference, in the same units.
+    #[test]
+    fn a_smoothed_key_keeps_regions_and_drops_fine_texture() {
+        let (w, h) = (96, 64);
+        let img: Vec<f32> = (0..w * h)
+            .map(|p| {
+                let (x, y) = ((p % w) as f32, (p / w) as f32);
+                let k = std::f32::consts::TAU / 6.0;
+                let texture = 0.5 * (k * x).sin() * (k * y).sin();
+                texture + if x >= 48.0 { 1.0 } else { 0.0 }
+            })
+            .collect();
+        assert_eq!(range_key(&img, w, h), range_key_smoothed(&img, w, h, 1.0));
+        let (fine, wide) = (range_key(&img, w, h), range_key_smoothed(&img, w, h, 3.0));
+        // The key's mean and spread over 24 × 24 px of one region, away from the edge and border.
+        let stats = |k: &[f32], x0: usize| {
+            let v: Vec<f32> = (20..44)
+                .flat_map(|y| (x0..x0 + 24).map(move |x| k[y * w + x]))
+                .collect();
+            let m = v.iter().sum::<f32>() / v.len() as f32;
+            let s = (v.iter().map(|a| (a - m).powi(2)).sum::<f32>() / v.len() as f32).sqrt();
+            (m, s)
+        };
+        let ((fl, fs), (fr, _)) = (stats(&fine, 10), stats(&fine, 62));
+        let ((wl, ws), (wr, _)) = (stats(&wide, 10), stats(&wide, 62));
+        assert!(
+            ws < 0.1 * fs,
+            "texture in the key: {ws} smoothed, {fs} light"
+        );
+        let (step_fine, step_wide) = (fr - fl, wr - wl);
+        assert!(
+            step_fine > 1.0 && (step_wide - step_fine).abs() < 0.05 * step_fine,
+            "regions' difference {step_wide} smoothed, {step_fine} light"
+        );
+    }
 
     /// The filter the cross-bilateral grid computes, written as a sum over
     /// pixel pairs: `out(p) = Σ_q K(p, q) f_q / Σ_q K(p, q)` with
