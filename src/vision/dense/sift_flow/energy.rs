@@ -14,6 +14,7 @@
 use rayon::prelude::*;
 
 use crate::vision::dense::dense_sift::{DescriptorImage, l1_distance};
+use crate::vision::pages;
 
 /// Parameters of eq. (10) at one pyramid level.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -147,7 +148,7 @@ impl DataTerm {
         let (nu, nv) = (space.states(0), space.states(1));
         let (w2, h2) = (s2.width() as i64, s2.height() as i64);
         let per_pixel = nu * nv;
-        let mut cost = vec![0u16; w * h * per_pixel];
+        let mut cost = pages::zeroed::<u16>(w * h * per_pixel);
         cost.par_chunks_mut(w * per_pixel)
             .enumerate()
             .for_each(|(y, row)| {
@@ -323,6 +324,11 @@ pub fn clamp_label(l: usize, shift: i32, n: usize) -> usize {
     c
 }
 
+/// Histograms [`median_inside`] counts into side by side, entry `i` into `i mod 4`, summed
+/// after: neighbouring costs mostly fall into the same bin, whose increments would otherwise
+/// wait for each other.
+const HISTOGRAM_LANES: usize = 4;
+
 /// The median of the entries that are not [`OUTSIDE`], to two units (`2i + 1` for the first
 /// pair of values `2i, 2i + 1` at which half of them are counted); 0 when every match falls
 /// outside.
@@ -333,15 +339,43 @@ pub fn clamp_label(l: usize, shift: i32, n: usize) -> usize {
 fn median_inside(cost: &[u16]) -> u16 {
     /// Bins `0..256` count the blocks of the inside entries, bin 256 the outside ones.
     fn blocks(chunk: &[u16], h: &mut [u64; 257]) {
-        for &c in chunk {
-            h[usize::from(c >> 8) + usize::from(c == OUTSIDE)] += 1;
+        let bin = |c: u16| usize::from(c >> 8) + usize::from(c == OUTSIDE);
+        let mut lanes = [[0u64; 257]; HISTOGRAM_LANES];
+        let mut quads = chunk.chunks_exact(HISTOGRAM_LANES);
+        for q in &mut quads {
+            for (l, &c) in lanes.iter_mut().zip(q) {
+                l[bin(c)] += 1;
+            }
+        }
+        for &c in quads.remainder() {
+            lanes[0][bin(c)] += 1;
+        }
+        for l in &lanes {
+            for (a, &n) in h.iter_mut().zip(l) {
+                *a += n;
+            }
         }
     }
     /// The pairs `(c >> 1) & 127` of the inside entries of block `b`.
     fn pairs(chunk: &[u16], b: u16, h: &mut [u64; 128]) {
-        for &c in chunk {
+        let mut lanes = [[0u64; 128]; HISTOGRAM_LANES];
+        let add = |l: &mut [u64; 128], c: u16| {
             let hit = (c >> 8 == b) & (c != OUTSIDE);
-            h[usize::from((c >> 1) & 127)] += u64::from(hit);
+            l[usize::from((c >> 1) & 127)] += u64::from(hit);
+        };
+        let mut quads = chunk.chunks_exact(HISTOGRAM_LANES);
+        for q in &mut quads {
+            for (l, &c) in lanes.iter_mut().zip(q) {
+                add(l, c);
+            }
+        }
+        for &c in quads.remainder() {
+            add(&mut lanes[0], c);
+        }
+        for l in &lanes {
+            for (a, &n) in h.iter_mut().zip(l) {
+                *a += n;
+            }
         }
     }
     fn add<const N: usize>(mut a: [u64; N], b: [u64; N]) -> [u64; N] {
