@@ -483,12 +483,8 @@ mod tests {
             let mut got = vec![7u8; 11 * DESCRIPTOR_LEN];
             quantise_lanes(&v, n, &xs, &mut got);
             let mut want = vec![7u8; 11 * DESCRIPTOR_LEN];
-            for j in 0..n {
-                let x = xs[j];
-                quantise(
-                    &v[j],
-                    &mut want[x * DESCRIPTOR_LEN..(x + 1) * DESCRIPTOR_LEN],
-                );
+            for (d, &x) in v.iter().zip(&xs).take(n) {
+                quantise(d, &mut want[x * DESCRIPTOR_LEN..(x + 1) * DESCRIPTOR_LEN]);
             }
             assert_eq!(got, want, "{n} lanes");
         }
