@@ -8,6 +8,7 @@ pub mod depth;
 pub mod filter;
 pub mod geometry;
 pub mod image;
+pub(crate) mod pages;
 pub mod params;
 pub mod pipeline;
 pub mod precision;

@@ -21,6 +21,8 @@
 
 use rayon::prelude::*;
 
+use crate::vision::pages;
+
 use super::energy::{
     DataTerm, EdgeTruncation, EnergyWeights, LabelSpace, clamp_label, energy_with,
 };
@@ -109,61 +111,32 @@ impl BpBuffers {
     }
 }
 
-/// Asks the kernel to back the (untouched) room of a large message buffer with huge pages: the
-/// first sweep touches all of it, and a fault per 4 KiB page cost as much as the zeroing
-/// (measured: a tenth of the process's CPU went to page faults and clearing). Only for
-/// buffers of [`HUGE_PAGES_FROM`] or more, which the C allocator maps on their own and unmaps
-/// when freed: advice on its heap would outlive the buffer and back later small allocations
-/// with whole huge pages (measured: +40 MiB peak RSS). Advice only: nothing changes where
-/// transparent huge pages are off.
-fn advise_huge_pages(v: &Vec<f32>) {
-    #[cfg(target_os = "linux")]
-    {
-        const HUGE: usize = 2 << 20;
-        let bytes = v.capacity() * size_of::<f32>();
-        let start = v.as_ptr() as usize;
-        let (a, b) = (start.next_multiple_of(HUGE), (start + bytes) / HUGE * HUGE);
-        if bytes >= HUGE_PAGES_FROM && b > a {
-            // SAFETY: `madvise` with MADV_HUGEPAGE on whole pages inside this vector's
-            // allocation changes neither contents nor validity of the memory, only how the
-            // kernel backs it; a failure (advice refused) is harmless and ignored.
-            unsafe {
-                libc::madvise(a as *mut libc::c_void, b - a, libc::MADV_HUGEPAGE);
-            }
-        }
-    }
-    #[cfg(not(target_os = "linux"))]
-    let _ = v;
-}
-
-/// Smallest buffer [`advise_huge_pages`] advises: above glibc's largest dynamic mmap threshold
-/// (32 MiB on 64-bit), so always a mapping of its own.
-const HUGE_PAGES_FROM: usize = 33 << 20;
-
-/// Buffers from this size on get huge pages: their room is reserved up to [`HUGE_PAGES_FROM`]
-/// (address space only; the room beyond `len` is never touched, so never resident).
-const HUGE_PAGES_WORTH: usize = 8 << 20;
-
-/// An empty buffer with room for `len` messages, on huge pages when it is large.
+/// An empty buffer with room for `len` messages, on huge pages when it is large: the first
+/// sweep touches all of it ([`crate::vision::pages`]).
 fn room(len: usize) -> Vec<f32> {
-    if len * size_of::<f32>() < HUGE_PAGES_WORTH {
-        return Vec::with_capacity(len);
-    }
-    let v = Vec::with_capacity(len.max(HUGE_PAGES_FROM.div_ceil(size_of::<f32>())));
-    advise_huge_pages(&v);
-    v
+    pages::room(len)
 }
 
-/// `v` holding `len` zeros, in its own memory when it has room.
+/// `v` holding `len` zeros, in its own memory when it has room (cleared in parallel: a
+/// message buffer is tens of MB).
 fn zeroed(mut v: Vec<f32>, len: usize) -> Vec<f32> {
     if v.capacity() < len {
         // Fresh zeroed memory costs no writes.
-        return vec![0f32; len];
+        return pages::zeroed(len);
     }
     v.clear();
-    v.resize(len, 0.0);
+    v.spare_capacity_mut()[..len]
+        .par_chunks_mut(ZERO_CHUNK)
+        .for_each(|c| c.fill(std::mem::MaybeUninit::new(0.0)));
+    // SAFETY: the first `len` elements (within the capacity checked above) were all written.
+    unsafe {
+        v.set_len(len);
+    }
     v
 }
+
+/// Elements cleared by one task of [`zeroed`].
+const ZERO_CHUNK: usize = 1 << 16;
 
 /// What [`DualLayerBp::run`] returns.
 #[derive(Debug, Clone)]

@@ -19,6 +19,7 @@ pub(crate) use self::params::{check_size, min_side};
 use std::borrow::Cow;
 use std::time::Instant;
 
+use rayon::prelude::*;
 use serde::Serialize;
 
 use self::bp::{BpBuffers, DualLayerBp};
@@ -551,6 +552,7 @@ impl Engine {
         } else {
             [0, 1].map(|k| {
                 (0..w * h)
+                    .into_par_iter()
                     .map(|p| space.flow(k, p, usize::from(outcome.labels[k][p])) as f32)
                     .collect()
             })

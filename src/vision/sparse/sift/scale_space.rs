@@ -21,6 +21,7 @@ use rayon::prelude::*;
 use super::SiftParams;
 use crate::vision::Image;
 use crate::vision::filter::blur::gaussian_blur_into;
+use crate::vision::pages;
 
 /// Size and inter-sample distance of one octave.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -179,7 +180,7 @@ impl<'a> ScaleSpace<'a> {
         if data.len() < layout.total {
             // Never read before written: a fresh zeroed block, not a copy of the old one.
             *data = Vec::new();
-            *data = vec![0.0; layout.total];
+            *data = pages::zeroed(layout.total);
         }
         Self {
             octaves,
