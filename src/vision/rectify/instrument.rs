@@ -543,6 +543,11 @@ pub struct DenseRows {
     /// 1st and 99th percentiles from its median, pixels.
     #[serde(default)]
     pub leak_px: f64,
+    /// How far the rows themselves move: the farthest of the 1st and 99th percentiles of
+    /// `v − (a + b·x + c·y)` from its median, pixels (a tilt axis 90° off puts the whole
+    /// parallax here while the measured disparity, and so `leak_px`, stays small).
+    #[serde(default)]
+    pub row_reach_px: f64,
 }
 
 /// Samples at most this many measured pixels for [`dense_rows`].
@@ -629,16 +634,23 @@ fn fit_dense_rows(samples: &[[f64; 4]]) -> Option<DenseRows> {
         let limit = (3.0 * 1.4826 * mad).max(0.5);
         keep = res.iter().map(|r| *r <= limit).collect();
     }
-    // The leak's reach: the measured disparities' 1st and 99th percentiles about their median.
-    let d_reach = {
-        let mut d: Vec<f64> = samples.iter().map(|s| s[2]).collect();
+    // The farthest of the 1st and 99th percentiles from the median.
+    let reach = |mut d: Vec<f64>| {
         let q = |d: &mut [f64], f: f64| {
             let i = ((d.len() - 1) as f64 * f).round() as usize;
             *d.select_nth_unstable_by(i, f64::total_cmp).1
         };
-        let (lo, hi) = (q(&mut d, 0.01), q(&mut d, 0.99));
-        (d_mid - lo).abs().max((hi - d_mid).abs())
+        let (lo, mid, hi) = (q(&mut d, 0.01), q(&mut d, 0.5), q(&mut d, 0.99));
+        (mid - lo).abs().max((hi - mid).abs())
     };
+    // The leak's reach: the measured disparities' spread.
+    let d_reach = reach(samples.iter().map(|s| s[2]).collect());
+    let row_reach_px = reach(
+        samples
+            .iter()
+            .map(|s| s[3] - coef[0] - coef[1] * s[0] - coef[2] * s[1])
+            .collect(),
+    );
     let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
     for s in samples {
         for i in 0..2 {
@@ -659,6 +671,7 @@ fn fit_dense_rows(samples: &[[f64; 4]]) -> Option<DenseRows> {
         offset_px,
         axis_error_deg: coef[3].atan().to_degrees(),
         leak_px: coef[3].abs() * d_reach,
+        row_reach_px,
     })
 }
 
@@ -683,7 +696,10 @@ pub fn verify_dense_rows(
     // determined (the calibration grid's 2.9 px: a few per cent of wrong matches at the
     // disparity's ends, whose vertical flow slides along the bars' edges, read 3–30°), and an
     // axis error that moves no row by more than the rows' own limit does not harm the matching.
-    if rows.leak_px <= params.max_dense_row_offset_px {
+    // Only when the rows themselves stay within it too: with the axis far off, the parallax is
+    // in the rows and the measured disparity, hence the leak, is small.
+    let limit = params.max_dense_row_offset_px;
+    if rows.leak_px <= limit && rows.row_reach_px <= limit {
         return Ok(());
     }
     check(
@@ -903,5 +919,16 @@ mod tests {
         let r = dense_rows(&v, &d, &u).unwrap();
         assert!((r.leak_px - 1.4).abs() < 0.1, "{r:?}");
         assert!(verify_dense_rows(&r, 0.0, &p).is_err());
+        // An axis 90° off: the parallax (±6 px) is in the rows, the measured disparity is
+        // noise with a faint trace of it; the slope reads degrees, the leak looks small, the
+        // rows move by the whole parallax.
+        let relief = |x: usize, y: usize| ((x * 7 + y * 3) % 21) as f32 * 0.6 - 6.0;
+        let d = Image::from_fn(w, h, |x, y| noise(x, y) + 0.0005 * relief(x, y));
+        let v = Image::from_fn(w, h, relief);
+        let r = dense_rows(&v, &d, &u).unwrap();
+        assert!(r.axis_error_deg.abs() > p.max_dense_axis_error_deg, "{r:?}");
+        assert!(r.leak_px < p.max_dense_row_offset_px, "{r:?}");
+        assert!(r.row_reach_px > 5.0, "{r:?}");
+        assert!(verify_dense_rows(&r, 0.0, &p).is_err(), "{r:?}");
     }
 }
