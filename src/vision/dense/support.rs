@@ -83,7 +83,8 @@ pub struct SupportParams {
     pub own_sigma: f32,
     /// The nearby surfaces: the least and greatest disparity along the row within this many matcher σ of the pixel.
     pub surface_reach: f32,
-    /// Least correlation at the match over the matcher's window, in standard deviations of its spread on noise alone, for the wider window to speak for a pixel (0: none).
+    /// Least correlation at the match over the matcher's window, in standard deviations of
+    /// its spread on noise alone, for the wider window to speak for a pixel (0: none).
     pub wider_min_significance: f32,
 }
 
