@@ -532,6 +532,7 @@ pub fn energy_with(
             *o = (off + i32::from(l) - window[k]) as f32;
         }
     };
+    let mut rows = Vec::with_capacity(h);
     (0..h)
         .into_par_iter()
         .map_init(
@@ -589,7 +590,10 @@ pub fn energy_with(
                     + f64::from(smooth)
             },
         )
-        .sum()
+        .collect_into_vec(&mut rows);
+    // Rows summed in order: a parallel sum's order follows work stealing, and the reported
+    // energy would change in its last bits from run to run.
+    rows.iter().sum()
 }
 
 #[cfg(test)]
@@ -770,6 +774,49 @@ mod tests {
         }
         let got = energy(&data, &space, &labels, &wts);
         assert!((got - want).abs() < 1e-3, "{got} vs {want}");
+    }
+
+    /// The energy is the same to the last bit whatever the number of threads (report.json
+    /// carries it): the rows' energies are summed in order, not in work-stealing order.
+    #[test]
+    fn energy_is_the_same_on_any_number_of_threads() {
+        // Large costs at a scale of 0.1: the sum needs more than f64's 53 bits, so its order
+        // shows in the last bits.
+        let (w, h) = (64, 3000);
+        let space = LabelSpace {
+            width: w,
+            height: h,
+            window: [1, 1],
+            offset: [vec![0; w * h], vec![0; w * h]],
+        };
+        let cost: Vec<u16> = (0..w * h * 9).map(|i| (i * 7919 % 65_521) as u16).collect();
+        let data = DataTerm {
+            cost,
+            scale: 0.1,
+            outside_cost: 0,
+        };
+        let labels = [
+            (0..w * h).map(|p| (p * 5 % 3) as u16).collect::<Vec<_>>(),
+            (0..w * h).map(|p| (p * 11 % 3) as u16).collect::<Vec<_>>(),
+        ];
+        let wts = EnergyWeights {
+            alpha: 0.3,
+            d: 0.7,
+            gamma: 0.13,
+        };
+        let on = |threads: usize| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap()
+                .install(|| energy(&data, &space, &labels, &wts))
+        };
+        let one = on(1);
+        for threads in [2, 3, 8, 1] {
+            for _ in 0..5 {
+                assert_eq!(on(threads).to_bits(), one.to_bits(), "{threads} threads");
+            }
+        }
     }
 
     #[test]
