@@ -109,6 +109,37 @@ pub struct SlantedStats {
     pub examined: usize,
     /// Of those, pixels measured with a slanted window.
     pub measured: usize,
+    /// Pixels given up, at their last pass, by the first test they failed (in the order of
+    /// [`Fail`]).
+    pub failed: [usize; Fail::COUNT],
+}
+
+/// Why a pixel was not measured: the first test it failed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Fail {
+    /// No candidate plane kept enough of its window on data in both micrographs.
+    NoCandidate,
+    /// The window lost its data during the fit.
+    Lost,
+    /// After the coarse fit the windows hardly correlate (below `min_ncc` by a margin).
+    CoarseNcc,
+    /// After the coarse fit the disparity is far beyond what the measured ends allow.
+    CoarseReach,
+    /// The fine windows correlate less than `min_ncc`.
+    Ncc,
+    /// The disparity is beyond what the measured ends allow.
+    Reach,
+    /// A slope reached `max_slope`.
+    Slope,
+    /// Both directions disagree.
+    LeftRight,
+    /// Not tried again at a later pass (no neighbour measured at the last one).
+    Stale,
+}
+
+impl Fail {
+    /// The number of reasons.
+    pub const COUNT: usize = 9;
 }
 
 /// A disparity plane about its pixel: `d + a δx + b δy`.
@@ -187,12 +218,17 @@ impl<'a> View<'a> {
     }
 }
 
-/// The Gaussian window's samples `(δx, δy, weight)`, to 2σ, every `step` pixels.
+/// The Gaussian window's samples `(δx, δy, weight)`, to 2σ, every σ/3 pixels.
 fn window_taps(sigma: f32) -> Vec<(f32, f32, f32)> {
     #[allow(clippy::cast_possible_truncation)]
-    let r = (2.0 * sigma).ceil() as isize;
-    #[allow(clippy::cast_possible_truncation)]
     let step = ((sigma / 3.0).round() as isize).max(1);
+    window_taps_every(sigma, step)
+}
+
+/// The Gaussian window's samples `(δx, δy, weight)`, to 2σ, every `step` pixels.
+fn window_taps_every(sigma: f32, step: isize) -> Vec<(f32, f32, f32)> {
+    #[allow(clippy::cast_possible_truncation)]
+    let r = (2.0 * sigma).ceil() as isize;
     let mut taps = Vec::new();
     let mut dy = -r - (-r).rem_euclid(step);
     while dy <= r {
@@ -257,20 +293,22 @@ fn ncc(
 /// Gauss–Newton on the plane and an offset of the intensities over the slanted window:
 /// `r = B(x₀ + δx + d + a δx + b δy, y₀ + δy + v) + β − A(x₀ + δx, y₀ + δy)`, Jacobian
 /// `(B_x, B_x δx, B_x δy, 1)`. Steps are bounded (a pixel, a tenth of slope) and the slopes
-/// clamped to `max_slope`; `None` when the window loses its data.
+/// clamped to `max_slope`; [`Fail::Lost`] when the window loses its data. With `keep`, a
+/// disparity interval and its reason, the fit stops as soon as its disparity is further outside
+/// than the steps left could bring it back (the result would fail the same test).
 fn gauss_newton(
     src: &View,
     dst: &View,
     taps: &[(f32, f32, f32)],
     at: (usize, usize, f32),
     mut plane: Plane,
-    iterations: usize,
-    max_slope: f32,
-) -> Option<Plane> {
+    (iterations, max_slope): (usize, f32),
+    keep: Option<(Interval, Fail)>,
+) -> Result<Plane, Fail> {
     use nalgebra::{Matrix4, Vector4};
     let total: f64 = taps.iter().map(|t| f64::from(t.2)).sum();
     let mut beta = 0.0f64;
-    for _ in 0..iterations {
+    for k in 0..iterations {
         let mut hm = Matrix4::<f64>::zeros();
         let mut g = Vector4::<f64>::zeros();
         let mut s1 = 0.0f64;
@@ -284,11 +322,14 @@ fn gauss_newton(
             s1 += w;
         }
         if s1 < 0.5 * total {
-            return None;
+            return Err(Fail::Lost);
         }
         // A little damping keeps a window without texture along one direction solvable.
         let lam = 1e-3 * hm.trace() / 4.0 + 1e-9;
-        let step = (hm + Matrix4::identity() * lam).cholesky()?.solve(&(-g));
+        let step = (hm + Matrix4::identity() * lam)
+            .cholesky()
+            .ok_or(Fail::Lost)?
+            .solve(&(-g));
         #[allow(clippy::cast_possible_truncation)]
         let (dd, da, db) = (
             (step[0] as f32).clamp(-1.0, 1.0),
@@ -302,8 +343,29 @@ fn gauss_newton(
         if dd.abs() < 1e-3 && da.abs() < 1e-4 && db.abs() < 1e-4 {
             break;
         }
+        // Each step moves the disparity by a pixel at most.
+        #[allow(clippy::cast_precision_loss)]
+        if let Some((interval, why)) = keep
+            && interval.beyond(plane.d, (iterations - 1 - k) as f32)
+        {
+            return Err(why);
+        }
     }
-    Some(plane)
+    Ok(plane)
+}
+
+/// The disparities the measured pixels around a gap allow: `[lo, hi]`, empty when `lo > hi`.
+#[derive(Debug, Clone, Copy)]
+struct Interval {
+    lo: f32,
+    hi: f32,
+}
+
+impl Interval {
+    /// Whether `d` lies more than `slack` outside.
+    fn beyond(self, d: f32, slack: f32) -> bool {
+        d > self.hi + slack || d < self.lo - slack
+    }
 }
 
 /// The plane of the right-to-left match that inverts `plane` (left pixel `x₀` on `x₀ + d`):
@@ -358,6 +420,9 @@ fn line(ends: [Option<(f32, f32)>; 2]) -> Option<(f32, f32)> {
     }
 }
 
+/// How far below `min_ncc` the coarse fit may correlate and still go on to the fine one.
+const COARSE_NCC_SLACK: f32 = 0.15;
+
 /// Pre-smoothing of the fine scale, pixels: keeps bilinear sampling from pulling the match
 /// towards whole pixels.
 const FINE_PRESMOOTH: f32 = 0.7;
@@ -390,6 +455,8 @@ struct Context<'a> {
     coarse: (View<'a>, View<'a>),
     fine: (View<'a>, View<'a>),
     taps: Vec<(f32, f32, f32)>,
+    /// The coarse scale's taps, sparser: it is smoothed more.
+    coarse_taps: Vec<(f32, f32, f32)>,
     fields: &'a Fields<'a>,
     params: &'a SlantedParams,
     lr_tolerance: f32,
@@ -453,23 +520,25 @@ impl Context<'_> {
     fn refine(
         &self,
         (src, dst): (&View, &View),
+        taps: &[(f32, f32, f32)],
         at: (usize, usize, f32),
         start: Plane,
-    ) -> Option<Plane> {
+        keep: Option<(Interval, Fail)>,
+    ) -> Result<Plane, Fail> {
         let params = self.params;
         gauss_newton(
             src,
             dst,
-            &self.taps,
+            taps,
             at,
             start,
-            params.iterations,
-            params.max_slope,
+            (params.iterations, params.max_slope),
+            keep,
         )
     }
 
     /// The slanted measurement of left pixel `p` from the candidates, if it passes.
-    fn measure(&self, p: usize, candidates: &[Plane], ends: &Ends) -> Option<Measured> {
+    fn measure(&self, p: usize, candidates: &[Plane], ends: &Ends) -> Result<Measured, Fail> {
         let (x, y) = (p % self.w, p / self.w);
         let v = self.fields.v[p];
         let at = (x, y, if v.is_finite() { v } else { 0.0 });
@@ -477,36 +546,74 @@ impl Context<'_> {
         let (ca, cb) = (&self.coarse.0, &self.coarse.1);
         let best = candidates
             .iter()
-            .filter_map(|&c| ncc(ca, cb, &self.taps, at, c).map(|s| (s, c)))
-            .max_by(|l, r| l.0.total_cmp(&r.0))?
+            .filter_map(|&c| ncc(ca, cb, &self.coarse_taps, at, c).map(|s| (s, c)))
+            .max_by(|l, r| l.0.total_cmp(&r.0))
+            .ok_or(Fail::NoCandidate)?
             .1;
-        let coarse = self.refine((ca, cb), at, best)?;
-        let (fa, fb) = (&self.fine.0, &self.fine.1);
-        let plane = self.refine((fa, fb), at, coarse)?;
-        let score = ncc(fa, fb, &self.taps, at, plane)?;
-        if score < params.min_ncc {
-            return None;
-        }
         // The disparity cannot change faster than the steepest plane allowed: the measured
         // pixels around the gap bound it (a match far off them is a mismatch, e.g. into what
         // the other micrograph does not see).
         let reach = |o: f32| params.max_slope * o.abs() + self.lr_tolerance;
-        if ends
-            .iter()
-            .flatten()
-            .any(|&(o, d)| (plane.d - d).abs() > reach(o))
-        {
-            return None;
+        let allowed = ends.iter().flatten().fold(
+            Interval {
+                lo: f32::NEG_INFINITY,
+                hi: f32::INFINITY,
+            },
+            |i, &(o, e)| Interval {
+                lo: i.lo.max(e - reach(o)),
+                hi: i.hi.min(e + reach(o)),
+            },
+        );
+        let beyond = |d: f32, slack: f32| allowed.beyond(d, slack);
+        #[allow(clippy::cast_precision_loss)]
+        let coarse_slack = params.iterations as f32;
+        let coarse = self.refine(
+            (ca, cb),
+            &self.coarse_taps,
+            at,
+            best,
+            Some((
+                Interval {
+                    lo: allowed.lo - coarse_slack,
+                    hi: allowed.hi + coarse_slack,
+                },
+                Fail::CoarseReach,
+            )),
+        )?;
+        // Hopeless pixels stop here, before the fine fit: the coarse windows hardly correlate
+        // (they correlate better than the fine ones, being smoother), or the plane is further
+        // off the ends than the fine fit could bring it back.
+        let coarse_score = ncc(ca, cb, &self.coarse_taps, at, coarse).ok_or(Fail::Lost)?;
+        if coarse_score < params.min_ncc - COARSE_NCC_SLACK {
+            return Err(Fail::CoarseNcc);
+        }
+        if beyond(coarse.d, coarse_slack) {
+            return Err(Fail::CoarseReach);
+        }
+        let (fa, fb) = (&self.fine.0, &self.fine.1);
+        let plane = self.refine(
+            (fa, fb),
+            &self.taps,
+            at,
+            coarse,
+            Some((allowed, Fail::Reach)),
+        )?;
+        let score = ncc(fa, fb, &self.taps, at, plane).ok_or(Fail::Lost)?;
+        if score < params.min_ncc {
+            return Err(Fail::Ncc);
+        }
+        if beyond(plane.d, 0.0) {
+            return Err(Fail::Reach);
         }
         if plane.a.abs() >= params.max_slope || plane.b.abs() >= params.max_slope {
-            return None;
+            return Err(Fail::Slope);
         }
-        let residual = self.backward_residual(at, plane)?;
+        let residual = self.backward_residual(at, plane).ok_or(Fail::LeftRight)?;
         let tol = self.lr_tolerance.max(1e-3);
         if residual > self.lr_tolerance {
-            return None;
+            return Err(Fail::LeftRight);
         }
-        Some(Measured {
+        Ok(Measured {
             plane,
             ncc: score,
             agreement: (-(residual / tol).powi(2)).exp(),
@@ -542,7 +649,9 @@ impl Context<'_> {
         let back_at = (qx, qy, y as f32 - qy as f32);
         let params = self.params;
         let (fa, fb) = (&self.fine.1, &self.fine.0);
-        let back = self.refine((fa, fb), back_at, start)?;
+        let back = self
+            .refine((fa, fb), &self.taps, back_at, start, None)
+            .ok()?;
         let score = ncc(fa, fb, &self.taps, back_at, back)?;
         if score < params.min_ncc {
             return by_field;
@@ -624,6 +733,9 @@ pub(crate) fn measure_steep(
         coarse: (ca, cb),
         fine: (fa, fb),
         taps: window_taps(sigma),
+        // σ/2 apart: the coarse scale is smoothed by 1.5 pixels more.
+        #[allow(clippy::cast_possible_truncation)]
+        coarse_taps: window_taps_every(sigma, ((sigma / 2.0).round() as isize).max(1)),
         fields,
         params,
         lr_tolerance,
@@ -638,6 +750,7 @@ pub(crate) fn measure_steep(
     // The pass that measured each pixel (0: none yet).
     let mut pass_of = vec![0u8; w * h];
     let mut measured = 0;
+    let mut last_fail = vec![Fail::Stale; w * h];
     for pass in 1..=params.passes.max(1) {
         // After the first pass only pixels beside a plane the last pass found have a new start.
         let fresh = |p: usize| {
@@ -651,11 +764,11 @@ pub(crate) fn measure_steep(
                     && usize::from(pass_of[ny as usize * w + nx as usize]) + 1 == pass
             })
         };
-        let results: Vec<Option<Measured>> = pending
+        let results: Vec<Result<Measured, Fail>> = pending
             .par_iter()
             .map(|&p| {
                 if pass > 1 && !fresh(p) {
-                    return None;
+                    return Err(Fail::Stale);
                 }
                 let ends = ends_of(raw.data(), p, (w, h), params.max_gap);
                 let c = ctx.candidates(&ends, &planes, p);
@@ -666,7 +779,7 @@ pub(crate) fn measure_steep(
         let (d_out, conf) = (raw.data_mut(), confidence.data_mut());
         for (p, r) in pending.into_iter().zip(results) {
             match r {
-                Some(m) => {
+                Ok(m) => {
                     d_out[p] = m.plane.d;
                     conf[p] = m.ncc * m.agreement;
                     unknown[p] = Unknown::Measured;
@@ -677,7 +790,13 @@ pub(crate) fn measure_steep(
                     }
                     measured += 1;
                 }
-                None => still.push(p),
+                Err(why) => {
+                    // A pixel not tried again keeps the reason of its last try.
+                    if why != Fail::Stale {
+                        last_fail[p] = why;
+                    }
+                    still.push(p);
+                }
             }
         }
         pending = still;
@@ -685,8 +804,16 @@ pub(crate) fn measure_steep(
             break;
         }
     }
-    tracing::debug!(examined, measured, "slanted support");
-    SlantedStats { examined, measured }
+    let mut failed = [0; Fail::COUNT];
+    for &p in &pending {
+        failed[last_fail[p] as usize] += 1;
+    }
+    tracing::debug!(examined, measured, ?failed, "slanted support");
+    SlantedStats {
+        examined,
+        measured,
+        failed,
+    }
 }
 
 #[cfg(test)]
