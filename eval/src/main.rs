@@ -78,6 +78,11 @@ pub enum Which {
         /// Override a dense parameter, KEY=VALUE as in [reconstruction.dense] (repeatable).
         #[arg(long = "set", value_name = "KEY=VALUE")]
         set: Vec<String>,
+        /// Write each pair's height map (`MODE_RIGHT_height.f32`, raw little-endian float32,
+        /// µm, NaN unknown) and reasons (`MODE_RIGHT_unknown.u8`, confidence.tif's codes) on
+        /// pot_03's grid (1536 × 2048, row-major) into this directory.
+        #[arg(long, value_name = "DIR")]
+        dump: Option<PathBuf>,
     },
     /// The sparse stage (SIFT, ORSA, rectification): simulator pairs against their true
     /// correspondences, the grid over several seeds, the Potamogeton pairs beside the paper's
@@ -282,7 +287,9 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<ExitCode> {
                 dump: d.dump.clone(),
             },
         )?,
-        Which::Potamogeton { mode, set } => potamogeton::run(&opts, *mode, set)?,
+        Which::Potamogeton { mode, set, dump } => {
+            potamogeton::run(&opts, *mode, set, dump.as_deref())?;
+        }
         Which::Sparse => sparse::run(&opts)?,
     }
     Ok(ExitCode::SUCCESS)

@@ -47,6 +47,9 @@ pub struct PairFigures {
     pub not_seen: f64,
     pub report: ReconReport,
     pub wall_ms: f64,
+    /// Per pixel of pot_03, why its height is unknown (for `--dump`).
+    #[serde(skip)]
+    pub unknown: Vec<Unknown>,
 }
 
 /// Agreement of two height maps on one grid.
@@ -157,6 +160,7 @@ pub fn reconstruct_series(
                 not_seen: share(Unknown::NotSeen),
                 report: recon.report,
                 wall_ms: t.elapsed().as_secs_f64() * 1e3,
+                unknown: recon.unknown,
             },
             recon.height_um,
             interpolated,
@@ -169,13 +173,28 @@ pub fn reconstruct_series(
 ///
 /// # Errors
 /// When the data are missing or a reconstruction fails.
-pub fn run(opts: &super::EvalOptions, mode: Option<Preset>, set: &[String]) -> anyhow::Result<()> {
+pub fn run(
+    opts: &super::EvalOptions,
+    mode: Option<Preset>,
+    set: &[String],
+    dump: Option<&Path>,
+) -> anyhow::Result<()> {
     let dir = opts.data()?.join("potamogeton");
     let modes = mode.map_or(vec![Preset::Improved, Preset::Paper], |m| vec![m]);
     let mut json = Vec::new();
     for mode in modes {
         let series = reconstruct_series(&dir, mode, opts.quick, set)?;
         let m = format!("{mode:?}").to_lowercase();
+        if let Some(dir) = dump {
+            std::fs::create_dir_all(dir)?;
+            for (f, height, _) in &series {
+                let stem = format!("{m}_{}", f.right.trim_end_matches(".tif"));
+                let bytes: Vec<u8> = height.data().iter().flat_map(|v| v.to_le_bytes()).collect();
+                std::fs::write(dir.join(format!("{stem}_height.f32")), bytes)?;
+                let codes: Vec<u8> = f.unknown.iter().map(|u| u.code()).collect();
+                std::fs::write(dir.join(format!("{stem}_unknown.u8")), codes)?;
+            }
+        }
         let mut agreements = Vec::new();
         for (f, _, _) in &series {
             if !opts.json {

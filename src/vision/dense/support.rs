@@ -22,7 +22,9 @@
 //!    uniformly textured half-plane sees it at `0.8 σ_w`), and within `step_texture_offset ·
 //!    σ_w` where the window straddles a step of the disparity (its scatter about a plane above
 //!    `max_step_px`): beside a featureless area a window textured only at its rim takes the
-//!    disparity of whatever lies there (a raised feature's), not its own;
+//!    disparity of whatever lies there (a raised feature's), not its own; with
+//!    `step_offset_z` (opt-in) the centroid may stray beyond that by as many of its standard
+//!    errors where the window's texture lay at random (a rough, unevenly textured surface);
 //! 3. **distinctiveness**: the window's mean squared difference of both micrographs'
 //!    (pre-smoothed) gradients at the match, against the same at offsets of 2 to `reach_px`
 //!    pixels along the row; when an offset beyond a rise of that cost comes back within
@@ -71,6 +73,10 @@ pub struct SupportParams {
     pub max_step_px: f32,
     /// Largest distance of the texture centroid from the pixel beside a step, in window σ.
     pub step_texture_offset: f32,
+    /// Beside a step the centroid may lie this many of its standard errors (the scatter of
+    /// randomly placed texture) beyond `step_texture_offset`; 0: not at all (opt-in: on
+    /// the simulated `bare` support it also lets more of the rims beside particles through).
+    pub step_offset_z: f32,
     /// The texture may also hold over a window this many times wider (the disparity smooth across it); 1: only the matcher's.
     pub wider_window: f32,
     /// Largest scatter of the disparity about a plane over the wider window, pixels.
@@ -99,6 +105,7 @@ impl Default for SupportParams {
             max_texture_offset: 1.0,
             max_step_px: 0.5,
             step_texture_offset: 0.25,
+            step_offset_z: 0.0,
             wider_window: 3.0,
             wider_max_step_px: 0.5,
             reach_px: 16,
@@ -130,6 +137,8 @@ impl SupportParams {
             Some("support.max_step_px")
         } else if !(self.step_texture_offset.is_finite() && self.step_texture_offset > 0.0) {
             Some("support.step_texture_offset")
+        } else if !(non_negative(self.step_offset_z) && self.step_offset_z <= 10.0) {
+            Some("support.step_offset_z")
         } else if !(self.wider_window.is_finite() && (1.0..=8.0).contains(&self.wider_window)) {
             Some("support.wider_window")
         } else if !(self.wider_max_step_px.is_finite() && self.wider_max_step_px > 0.0) {
@@ -472,14 +481,28 @@ pub fn support_test(
     // featureless neighbour: there the texture must be the pixel's own. A wider window
     // (`wide`) must not straddle a step at all: its texture speaks for the pixel only where
     // the disparity is one smooth surface across it.
+    // The centroid's standard error where the texture lies at random over the window: the
+    // offset `Σ w x e / Σ w e` scatters by `σ_c² ≈ A σ² Σ w² e² / (Σ w e)²` (both axes; `A`
+    // the energy's correlation area, at least the band noise's; `Σ w² f` is `1/N` times the
+    // blur of σ/√2). Real texture is uneven: its centroid strays by some tenths of σ.
+    let energy2: Vec<f32> = energy.par_iter().map(|e| e * e).collect();
     let located = |s: f32, wide: bool| -> Vec<bool> {
         let (me, (mx, my)) = rayon::join(
             || blur_plane(energy, w, h, s),
             || rayon::join(|| blur_plane(&at_x, w, h, s), || blur_plane(&at_y, w, h, s)),
         );
+        let me2 = (!wide && params.step_offset_z > 0.0)
+            .then(|| blur_plane(&energy2, w, h, s * std::f32::consts::FRAC_1_SQRT_2));
         let step = step_scatter(du, w, h, s);
         let max_offset = params.max_texture_offset * s;
         let own_offset = params.step_texture_offset * s;
+        let n = 4.0 * std::f32::consts::PI * s * s;
+        let standard_error = |q: usize| -> f32 {
+            me2.as_ref().map_or(0.0, |m2| {
+                let v = area_band * s * s * m2[q] / (n * me[q] * me[q]);
+                if v.is_finite() { v.sqrt() } else { 0.0 }
+            })
+        };
         (0..w * h)
             .into_par_iter()
             .map(|q| {
@@ -492,7 +515,8 @@ pub fn support_test(
                 let ok = if wide {
                     near && step[q] <= params.wider_max_step_px
                 } else if step[q] > params.max_step_px {
-                    r2 <= own_offset * own_offset
+                    let limit = own_offset + params.step_offset_z * standard_error(q);
+                    r2 <= limit * limit
                 } else {
                     near
                 };
@@ -950,6 +974,56 @@ mod tests {
             ..SupportParams::default()
         };
         assert_eq!(judge(&gated), Unknown::NoTexture);
+    }
+
+    /// An evenly textured window across a step of the disparity: its texture's centroid
+    /// strays from the pixel at random, which `step_offset_z` allows for; a floor textured
+    /// only beyond the step stays unknown either way.
+    #[test]
+    fn step_offset_z_admits_uneven_texture_beside_a_step_but_not_a_rim() {
+        let narrow = SupportParams {
+            wider_window: 1.0,
+            ..SupportParams::default()
+        };
+        let loose = SupportParams {
+            step_offset_z: 2.0,
+            ..narrow
+        };
+        let (strict, lenient) = (
+            weak_texture_measured(0.3, 3.0, &narrow),
+            weak_texture_measured(0.3, 3.0, &loose),
+        );
+        // 0.41 and 0.47 of the inner pixels.
+        assert!(lenient > strict + 0.03, "{strict} {lenient}");
+        // A flat floor right of x = 50 beside a textured block, the disparity stepping there.
+        let (w, h) = (100, 30);
+        let mut k = 0x5151_u64;
+        let mut noise = || 0.01 * (2.0 * uniform(&mut k) - 1.0);
+        let tex = Texture::new(9);
+        let a = Image::from_fn(w, h, |x, y| {
+            let v = if x < 50 {
+                tex.at(x as f64, y as f64) as f32
+            } else {
+                0.3
+            };
+            v + noise()
+        });
+        let b = Image::from_fn(w, h, |x, y| {
+            let v = if x < 52 {
+                tex.at(x as f64 - 2.0, y as f64) as f32
+            } else {
+                0.3
+            };
+            v + noise()
+        });
+        let valid = vec![true; w * h];
+        let disparity = Image::from_fn(w, h, |x, _| if x < 50 { 2.0 } else { 4.0 });
+        let r = support_test((&a, &b), (&valid, &valid), (&disparity, None), &loose, 3.0);
+        let row = &r[15 * w..16 * w];
+        assert_eq!(row[30], Unknown::Measured);
+        for (x, u) in row.iter().enumerate().take(90).skip(54) {
+            assert_eq!(*u, Unknown::NoTexture, "x = {x}");
+        }
     }
 
     #[test]
