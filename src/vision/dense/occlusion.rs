@@ -154,21 +154,21 @@ pub fn unanchored(
         // The nearest anchor at or before x, and at or after it.
         let mut before = vec![None; w];
         let mut last = None;
-        for x in 0..w {
+        for (x, b) in before.iter_mut().enumerate() {
             if anchor(x) {
                 last = Some(x);
             }
-            before[x] = last;
+            *b = last;
         }
         let mut after = vec![None; w];
         last = None;
-        for x in (0..w).rev() {
+        for (x, a) in after.iter_mut().enumerate().rev() {
             if anchor(x) {
                 last = Some(x);
             }
-            after[x] = last;
+            *a = last;
         }
-        for x in 0..w {
+        for (x, out) in row.iter_mut().enumerate() {
             if t[x] || !d[x].is_finite() {
                 continue;
             }
@@ -180,7 +180,7 @@ pub fn unanchored(
                 }
                 _ => false,
             };
-            row[x] = !pinned;
+            *out = !pinned;
         }
     });
     out
