@@ -8,8 +8,9 @@
 //! 4. `left_right_check_at_matcher_level` ([`consistency`]);
 //! 5. `refine_to_full_resolution`: Lucas–Kanade on the intensities ([`refine`]);
 //! 6. `left_right_consistency` of the refined fields, the support test ([`support`]: texture
-//!    along the parallax against the noise floor, distinctiveness of the match) and the
-//!    per-pixel confidence, with the reason of every unknown pixel;
+//!    along the parallax against the noise floor, distinctiveness of the match), the anchor
+//!    test of featureless pixels ([`occlusion`]: texture on both sides along the parallax) and
+//!    the per-pixel confidence, with the reason of every unknown pixel;
 //! 7. `bilateral_filtering` ([`fill`], then the bilateral grid, then optionally the detail
 //!    restoration of [`detail`]).
 //!
@@ -20,6 +21,7 @@ pub mod consistency;
 pub mod dense_sift;
 mod error;
 pub mod fill;
+pub mod occlusion;
 mod params;
 pub mod reassign;
 pub mod refine;
@@ -748,6 +750,17 @@ fn left_right_consistency(
                 }
             });
     }
+    if params.occlusion.enabled {
+        let sigma = crate::vision::pipeline::matcher_window_sigma(params) as f32;
+        let rims = occlusion::occlusion_test(&inputs.a, va, &raw, &params.occlusion, sigma);
+        mark_unknown(
+            &mut raw,
+            &mut confidence,
+            &mut unknown,
+            &rims,
+            Unknown::NoTexture,
+        );
+    }
     Consistent {
         raw,
         vertical: v,
@@ -759,6 +772,27 @@ fn left_right_consistency(
         clamped,
         unknown,
     }
+}
+
+/// The pixels `which` marks, if measured, made unknown for reason `why`.
+fn mark_unknown(
+    raw: &mut Image,
+    confidence: &mut Image,
+    unknown: &mut [Unknown],
+    which: &[bool],
+    why: Unknown,
+) {
+    raw.data_mut()
+        .par_iter_mut()
+        .zip(confidence.data_mut().par_iter_mut())
+        .zip(unknown.par_iter_mut())
+        .zip(which)
+        .filter(|(((d, _), _), m)| **m && d.is_finite())
+        .for_each(|(((d, c), u), _)| {
+            *d = f32::NAN;
+            *c = 0.0;
+            *u = why;
+        });
 }
 
 /// The filtered disparity.

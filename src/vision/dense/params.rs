@@ -4,6 +4,7 @@
 use serde::{Deserialize, Serialize};
 
 use super::DenseError;
+use super::occlusion::OcclusionParams;
 use super::reassign::ReassignParams;
 use super::sift_flow::FlowParams;
 use super::slanted::SlantedParams;
@@ -46,6 +47,8 @@ pub struct DenseParams {
     pub support: SupportParams,
     /// Measure the flanks the left–right check rejects again with slanted windows (opt-in, `enabled = true`).
     pub slanted: SlantedParams,
+    /// Leave unknown the featureless pixels texture on both sides along the parallax does not pin (opt-in, `enabled = true`).
+    pub occlusion: OcclusionParams,
     /// Peak memory of the stage, MiB: a larger rectified canvas is matched in overlapping tiles; 0 = never tile.
     pub memory_budget_mib: usize,
 }
@@ -75,6 +78,7 @@ impl DenseParams {
             detail: DetailParams::default(),
             support: SupportParams::default(),
             slanted: SlantedParams::default(),
+            occlusion: OcclusionParams::default(),
             memory_budget_mib: 1024,
         };
         match preset {
@@ -134,6 +138,9 @@ impl DenseParams {
             return bad(name, "out of its range (see the parameter table)");
         }
         if let Some(name) = self.slanted.invalid_field() {
+            return bad(name, "out of its range (see the parameter table)");
+        }
+        if let Some(name) = self.occlusion.invalid_field() {
             return bad(name, "out of its range (see the parameter table)");
         }
         Ok(())

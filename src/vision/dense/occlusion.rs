@@ -1,0 +1,306 @@
+//! Heights the matcher lends to featureless pixels beside a step (beyond the paper): the rims
+//! beside raised features on a featureless support.
+//!
+//! A window matcher measures a pixel by the texture in its window. Where the pixel itself
+//! lies on a featureless area, that texture lies elsewhere, and the pixel takes the
+//! disparity of whatever surface carries it. Between textures of one smooth surface that is
+//! right (a few weak features spread over a flat substrate pin it down); beside a raised
+//! feature on a featureless support it is not: the matcher's window, and its smoothness
+//! term, lend the feature's disparity to the featureless support next to it ("foreground
+//! fattening", Scharstein & Szeliski 2002), both directions of matching agree on the lent
+//! disparity, so the left–right check passes, and the support test passes too, because the
+//! feature's outline lies within the window. Where the step between the feature and its
+//! support lies on the featureless area, no image can tell; the geometry can tell that the
+//! pixel's disparity is not pinned by texture on both sides of it.
+//!
+//! On the rectified pair (parallax along +x), row by row:
+//! 1. **texture along the parallax**: a pixel is textured where the energy of the gradient
+//!    along x of the left micrograph, after a light Gaussian pre-smoothing (`band_sigma`),
+//!    over a small Gaussian window (`texture_sigma`) stands `min_snr` standard deviations of
+//!    its spread on noise alone above the noise's share (the noise from Immerkær's estimate,
+//!    [`crate::vision::precision::noise_sigma`], through the filter's gain);
+//! 2. **anchors**: the nearest textured pixel with a measured disparity on each side of a
+//!    featureless measured pixel along its row, within `reach` matcher σ;
+//! 3. the featureless pixel keeps its disparity only when it has both anchors and lies
+//!    within `step_px` of their linear interpolation: it is then measured between two
+//!    textures of one surface (or one smooth slope), not extrapolated across an outline that
+//!    may be a step.
+//!
+//! Pure: images and the disparity in, a mask out; rows in parallel.
+
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use crate::vision::Image;
+use crate::vision::filter::blur::{gaussian_blur, gaussian_kernel};
+
+/// Parameters of the test (`[reconstruction.dense.occlusion]`).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct OcclusionParams {
+    /// Leave unknown the featureless pixels whose disparity texture on both sides along the parallax does not pin down (opt-in).
+    pub enabled: bool,
+    /// σ of the Gaussian pre-smoothing of the left micrograph before its gradient along the parallax, pixels; 0: none.
+    pub band_sigma: f32,
+    /// σ of the Gaussian window over which the gradient's energy is judged, pixels.
+    pub texture_sigma: f32,
+    /// Excess of that energy over the noise's, in standard deviations of its spread on noise alone, above which a pixel is textured.
+    pub min_snr: f32,
+    /// Largest distance of a featureless pixel's disparity from the interpolation of its anchors', pixels.
+    pub step_px: f32,
+    /// How far along the row the anchors may lie, in matcher σ.
+    pub reach: f32,
+}
+
+impl Default for OcclusionParams {
+    fn default() -> Self {
+        Self {
+            enabled: false,
+            band_sigma: 1.0,
+            texture_sigma: 3.0,
+            min_snr: 4.0,
+            step_px: 1.0,
+            reach: 3.0,
+        }
+    }
+}
+
+impl OcclusionParams {
+    /// The name of the first field out of range.
+    #[must_use]
+    pub fn invalid_field(&self) -> Option<&'static str> {
+        let non_negative = |v: f32| v.is_finite() && v >= 0.0;
+        if !(non_negative(self.band_sigma) && self.band_sigma <= 8.0) {
+            Some("occlusion.band_sigma")
+        } else if !(self.texture_sigma.is_finite() && (0.5..=8.0).contains(&self.texture_sigma)) {
+            Some("occlusion.texture_sigma")
+        } else if !non_negative(self.min_snr) {
+            Some("occlusion.min_snr")
+        } else if !(self.step_px.is_finite() && self.step_px > 0.0) {
+            Some("occlusion.step_px")
+        } else if !(self.reach.is_finite() && self.reach > 0.0 && self.reach <= 32.0) {
+            Some("occlusion.reach")
+        } else {
+            None
+        }
+    }
+}
+
+/// Per pixel: the energy of the gradient along x of `img`, pre-smoothed by `band_sigma`, over
+/// a Gaussian window of `texture_sigma` stands `min_snr` standard deviations of its spread on
+/// noise alone above what the noise gives (`noise`: the image's white-noise σ). The spread:
+/// the window averages about `N / A` independent squares (`N = 4π·texture_sigma²` pixels,
+/// `A = 4π·band_sigma²` the correlation area of the filtered noise), each of variance twice
+/// its mean's square.
+#[must_use]
+pub fn textured_along_x(
+    img: &Image,
+    noise: f32,
+    (band_sigma, texture_sigma): (f32, f32),
+    min_snr: f32,
+) -> Vec<bool> {
+    let (w, h) = img.dimensions();
+    let smooth = gaussian_blur(img, f64::from(band_sigma));
+    // The filter's gain on white noise: Σ c² of the separable kernel `G(y) · (G(x−1) − G(x+1)) / 2`.
+    let gain = if band_sigma > 0.0 {
+        let k = gaussian_kernel(f64::from(band_sigma));
+        let at = |i: isize| usize::try_from(i).ok().and_then(|i| k.get(i)).copied();
+        let along_y: f32 = k.iter().map(|g| g * g).sum();
+        let along_x: f32 = (-1..=k.len() as isize)
+            .map(|i| {
+                let d = (at(i - 1).unwrap_or(0.0) - at(i + 1).unwrap_or(0.0)) / 2.0;
+                d * d
+            })
+            .sum();
+        along_y * along_x
+    } else {
+        0.5
+    };
+    let mut energy = Image::zeros(w, h);
+    energy
+        .data_mut()
+        .par_chunks_mut(w)
+        .enumerate()
+        .for_each(|(y, row)| {
+            let s = &smooth.data()[y * w..][..w];
+            for x in 1..w.saturating_sub(1) {
+                let g = (s[x + 1] - s[x - 1]) / 2.0;
+                row[x] = g * g;
+            }
+        });
+    let energy = gaussian_blur(&energy, f64::from(texture_sigma));
+    let mean = noise * noise * gain;
+    let independent = (texture_sigma / band_sigma.max(0.5)).powi(2).max(1.0);
+    let threshold = mean * (1.0 + min_snr * (2.0 / independent).sqrt());
+    energy.data().par_iter().map(|&e| e > threshold).collect()
+}
+
+/// The measured featureless pixels (finite `disparity`, not `textured`) whose disparity is
+/// not pinned by texture on both sides along the row (see the module documentation):
+/// `reach_px` the anchors' reach in pixels.
+#[must_use]
+pub fn unanchored(
+    disparity: &Image,
+    textured: &[bool],
+    step_px: f32,
+    reach_px: usize,
+) -> Vec<bool> {
+    let (w, h) = disparity.dimensions();
+    let mut out = vec![false; w * h];
+    out.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+        let d = &disparity.data()[y * w..][..w];
+        let t = &textured[y * w..][..w];
+        let anchor = |x: usize| t[x] && d[x].is_finite();
+        // The nearest anchor at or before x, and at or after it.
+        let mut before = vec![None; w];
+        let mut last = None;
+        for (x, b) in before.iter_mut().enumerate() {
+            if anchor(x) {
+                last = Some(x);
+            }
+            *b = last;
+        }
+        let mut after = vec![None; w];
+        last = None;
+        for (x, a) in after.iter_mut().enumerate().rev() {
+            if anchor(x) {
+                last = Some(x);
+            }
+            *a = last;
+        }
+        for (x, out) in row.iter_mut().enumerate() {
+            if t[x] || !d[x].is_finite() {
+                continue;
+            }
+            let pinned = match (before[x], after[x]) {
+                (Some(l), Some(r)) if x - l <= reach_px && r - x <= reach_px => {
+                    let f = (x - l) as f32 / (r - l) as f32;
+                    let between = d[l] + f * (d[r] - d[l]);
+                    (d[x] - between).abs() <= step_px
+                }
+                _ => false,
+            };
+            *out = !pinned;
+        }
+    });
+    out
+}
+
+/// The test on the dense stage's left micrograph `a` (its real pixels `valid`) and measured
+/// disparity: the pixels to leave unknown. `matcher_sigma`: the matcher's window σ, pixels.
+#[must_use]
+pub fn occlusion_test(
+    a: &Image,
+    valid: &[bool],
+    disparity: &Image,
+    params: &OcclusionParams,
+    matcher_sigma: f32,
+) -> Vec<bool> {
+    let (w, h) = a.dimensions();
+    let Some(noise) = crate::vision::precision::noise_sigma(a, Some(valid)) else {
+        return vec![false; w * h];
+    };
+    #[allow(clippy::cast_possible_truncation)]
+    let textured = textured_along_x(
+        a,
+        noise as f32,
+        (params.band_sigma, params.texture_sigma),
+        params.min_snr,
+    );
+    // A reach of at most 32 σ: within usize.
+    #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
+    let reach_px = (params.reach * matcher_sigma).round().max(1.0) as usize;
+    unanchored(disparity, &textured, params.step_px, reach_px)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn row(d: &[f32]) -> Image {
+        Image::from_vec(d.len(), 1, d.to_vec()).unwrap()
+    }
+
+    /// Texture (every other pixel, and the last) up to x = `a` and from x = `b`, featureless
+    /// between.
+    fn textured_outside(a: usize, b: usize) -> Vec<bool> {
+        (0..64)
+            .map(|x| (x <= a || x >= b) && (x % 2 == 0 || x == 63))
+            .collect()
+    }
+
+    /// A raised feature (disparity 5) up to x = 30 lends its disparity to 6 featureless pixels
+    /// beyond its outline, the support (0) textured again from x = 50: the lent pixels, and the
+    /// featureless support pixels whose disparity is not the interpolation of both sides', are
+    /// left unknown; the textured pixels are kept.
+    #[test]
+    fn lent_disparity_beside_a_feature_is_left_unknown() {
+        let d: Vec<f32> = (0..64).map(|x| if x <= 36 { 5.0 } else { 0.0 }).collect();
+        let t = textured_outside(30, 50);
+        let out = unanchored(&row(&d), &t, 1.0, 24);
+        let masked: Vec<usize> = (0..64).filter(|&x| out[x]).collect();
+        // The interpolation falls by 0.25 a pixel from 5 at x = 30 to 0 at x = 50: 31..=36
+        // carry 5, off by more than 1 from x = 35; 37..=49 carry 0, off by more than 1 up to 45.
+        assert_eq!(masked, (35..=45).collect::<Vec<_>>(), "{masked:?}");
+        assert!(masked.iter().all(|&x| !t[x]));
+    }
+
+    /// Featureless pixels between two textures of one smooth surface are pinned: all kept.
+    #[test]
+    fn featureless_pixels_between_textures_of_one_surface_are_kept() {
+        let d: Vec<f32> = (0..64).map(|x| 2.0 + 0.05 * x as f32).collect();
+        let out = unanchored(&row(&d), &textured_outside(30, 50), 1.0, 24);
+        assert!(!out.contains(&true));
+    }
+
+    /// Without texture within reach on one side the disparity is an extrapolation: unknown.
+    #[test]
+    fn texture_on_one_side_only_does_not_pin_a_pixel() {
+        let d = vec![3.0f32; 64];
+        let t: Vec<bool> = (0..64).map(|x| x <= 30 && x % 2 == 0).collect();
+        let out = unanchored(&row(&d), &t, 1.0, 8);
+        let masked: Vec<usize> = (0..64).filter(|&x| out[x]).collect();
+        assert_eq!(masked, (31..64).collect::<Vec<_>>());
+        // A gap wider than twice the reach: none of its pixels has both anchors.
+        let out = unanchored(&row(&d), &textured_outside(30, 50), 1.0, 8);
+        let masked: Vec<usize> = (0..64).filter(|&x| out[x]).collect();
+        assert_eq!(masked, (31..=49).collect::<Vec<_>>(), "{masked:?}");
+        // Within reach of both, the same pixels are kept.
+        assert!(!unanchored(&row(&d), &textured_outside(30, 50), 1.0, 20).contains(&true));
+    }
+
+    /// Texture along x is found against the noise: a noisy flat image has (almost) none, a
+    /// vertical edge is textured on every row (and its window's reach beside it).
+    #[test]
+    fn texture_along_x_stands_out_of_the_noise() {
+        let (w, h) = (96, 64);
+        let mut state = 7u64;
+        let mut noise = || {
+            // Sum of four uniforms: near-Gaussian.
+            let mut s = 0.0f32;
+            for _ in 0..4 {
+                state = state
+                    .wrapping_mul(6_364_136_223_846_793_005)
+                    .wrapping_add(1_442_695_040_888_963_407);
+                s += ((state >> 40) as f32 / (1u64 << 24) as f32) - 0.5;
+            }
+            s * 0.01
+        };
+        let data: Vec<f32> = (0..w * h)
+            .map(|p| if p % w < 48 { 0.3 } else { 0.7 } + noise())
+            .collect();
+        let img = Image::from_vec(w, h, data).unwrap();
+        let sigma = crate::vision::precision::noise_sigma(&img, None).unwrap() as f32;
+        let t = textured_along_x(&img, sigma, (1.0, 1.5), 4.0);
+        let flat = (0..w * h)
+            .filter(|&p| (p % w).abs_diff(48) > 12 && p % w > 0 && p % w < w - 1)
+            .filter(|&p| t[p])
+            .count();
+        assert!(flat * 1000 < w * h, "{flat} noise pixels textured");
+        // The edge between columns 47 and 48: textured on every row.
+        assert!((0..h).all(|y| t[y * w + 47] && t[y * w + 48]));
+        // Without the noise figure scaled in, the threshold would not hold.
+        let t0 = textured_along_x(&img, sigma / 100.0, (1.0, 1.5), 4.0);
+        assert!(t0.iter().filter(|&&b| b).count() > w * h / 2);
+    }
+}
