@@ -9,7 +9,7 @@
 //! 5. `refine_to_full_resolution`: Lucas–Kanade on the intensities ([`refine`]);
 //! 6. `left_right_consistency` of the refined fields, the support test ([`support`]: texture
 //!    along the parallax against the noise floor, distinctiveness of the match), the anchor
-//!    test of featureless pixels ([`occlusion`]: texture on both sides along the parallax) and
+//!    test of featureless pixels ([`anchor`]: texture on both sides along the parallax) and
 //!    the per-pixel confidence, with the reason of every unknown pixel;
 //! 7. `bilateral_filtering` ([`fill`], then the bilateral grid, then optionally the detail
 //!    restoration of [`detail`]).
@@ -17,11 +17,11 @@
 //! Which of them act is the parameters' choice ([`DenseParams`]); the paper preset runs 2 at
 //! full resolution with integer flow, and 7 unweighted.
 
+pub mod anchor;
 pub mod consistency;
 pub mod dense_sift;
 mod error;
 pub mod fill;
-pub mod occlusion;
 mod params;
 pub mod reassign;
 pub mod refine;
@@ -750,9 +750,9 @@ fn left_right_consistency(
                 }
             });
     }
-    if params.occlusion.enabled {
+    if params.anchor.enabled {
         let sigma = crate::vision::pipeline::matcher_window_sigma(params) as f32;
-        let rims = occlusion::occlusion_test(&inputs.a, va, &raw, &params.occlusion, sigma);
+        let rims = anchor::anchor_test(&inputs.a, va, &raw, &params.anchor, sigma);
         mark_unknown(
             &mut raw,
             &mut confidence,

@@ -4,7 +4,7 @@
 use serde::{Deserialize, Serialize};
 
 use super::DenseError;
-use super::occlusion::OcclusionParams;
+use super::anchor::AnchorParams;
 use super::reassign::ReassignParams;
 use super::sift_flow::FlowParams;
 use super::slanted::SlantedParams;
@@ -48,7 +48,7 @@ pub struct DenseParams {
     /// Measure the flanks the left–right check rejects again with slanted windows (opt-in, `enabled = true`).
     pub slanted: SlantedParams,
     /// Leave unknown the featureless pixels texture on both sides along the parallax does not pin (opt-in, `enabled = true`).
-    pub occlusion: OcclusionParams,
+    pub anchor: AnchorParams,
     /// Peak memory of the stage, MiB: a larger rectified canvas is matched in overlapping tiles; 0 = never tile.
     pub memory_budget_mib: usize,
 }
@@ -78,7 +78,7 @@ impl DenseParams {
             detail: DetailParams::default(),
             support: SupportParams::default(),
             slanted: SlantedParams::default(),
-            occlusion: OcclusionParams::default(),
+            anchor: AnchorParams::default(),
             memory_budget_mib: 1024,
         };
         match preset {
@@ -140,7 +140,7 @@ impl DenseParams {
         if let Some(name) = self.slanted.invalid_field() {
             return bad(name, "out of its range (see the parameter table)");
         }
-        if let Some(name) = self.occlusion.invalid_field() {
+        if let Some(name) = self.anchor.invalid_field() {
             return bad(name, "out of its range (see the parameter table)");
         }
         Ok(())

@@ -34,10 +34,10 @@ use serde::{Deserialize, Serialize};
 use crate::vision::Image;
 use crate::vision::filter::blur::{gaussian_blur, gaussian_kernel};
 
-/// Parameters of the test (`[reconstruction.dense.occlusion]`).
+/// Parameters of the test (`[reconstruction.dense.anchor]`).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
-pub struct OcclusionParams {
+pub struct AnchorParams {
     /// Leave unknown the featureless pixels whose disparity texture on both sides along the parallax does not pin down (opt-in).
     pub enabled: bool,
     /// σ of the Gaussian pre-smoothing of the left micrograph before its gradient along the parallax, pixels; 0: none.
@@ -52,7 +52,7 @@ pub struct OcclusionParams {
     pub reach: f32,
 }
 
-impl Default for OcclusionParams {
+impl Default for AnchorParams {
     fn default() -> Self {
         Self {
             enabled: false,
@@ -65,21 +65,21 @@ impl Default for OcclusionParams {
     }
 }
 
-impl OcclusionParams {
+impl AnchorParams {
     /// The name of the first field out of range.
     #[must_use]
     pub fn invalid_field(&self) -> Option<&'static str> {
         let non_negative = |v: f32| v.is_finite() && v >= 0.0;
         if !(non_negative(self.band_sigma) && self.band_sigma <= 8.0) {
-            Some("occlusion.band_sigma")
+            Some("anchor.band_sigma")
         } else if !(self.texture_sigma.is_finite() && (0.5..=8.0).contains(&self.texture_sigma)) {
-            Some("occlusion.texture_sigma")
+            Some("anchor.texture_sigma")
         } else if !non_negative(self.min_snr) {
-            Some("occlusion.min_snr")
+            Some("anchor.min_snr")
         } else if !(self.step_px.is_finite() && self.step_px > 0.0) {
-            Some("occlusion.step_px")
+            Some("anchor.step_px")
         } else if !(self.reach.is_finite() && self.reach > 0.0 && self.reach <= 32.0) {
-            Some("occlusion.reach")
+            Some("anchor.reach")
         } else {
             None
         }
@@ -189,11 +189,11 @@ pub fn unanchored(
 /// The test on the dense stage's left micrograph `a` (its real pixels `valid`) and measured
 /// disparity: the pixels to leave unknown. `matcher_sigma`: the matcher's window σ, pixels.
 #[must_use]
-pub fn occlusion_test(
+pub fn anchor_test(
     a: &Image,
     valid: &[bool],
     disparity: &Image,
-    params: &OcclusionParams,
+    params: &AnchorParams,
     matcher_sigma: f32,
 ) -> Vec<bool> {
     let (w, h) = a.dimensions();
