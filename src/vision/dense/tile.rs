@@ -9,8 +9,9 @@
 //! coarse solution. What a tile cannot see is context beyond its border: the overlap
 //! ([`margins`]) covers the search window (vertical, and horizontal for the right image), the
 //! descriptor's extent, a few top-level pixels of BP context, the refinement window, the
-//! re-assignment band and the bilateral filter's support; the seam is a linear cross-fade over the
-//! inner half of the overlap.
+//! re-assignment band, the opt-in passes that judge the raw disparity (slanted, support, anchor)
+//! and the bilateral filter's support; the seam is a linear cross-fade over the inner half of
+//! the overlap.
 //!
 //! A rotated or sheared rectification leaves up to half the canvas outside the left micrograph
 //! ([`Coverage`]): tiles are cut down to the columns it covers, with their overlap, and strips
@@ -194,8 +195,39 @@ pub fn margins(params: &DenseParams, top_shift: f32, range: Option<(f64, f64)>) 
         0
     };
     let filter = (3.0 * params.bilateral.sigma_s).ceil() as usize;
-    let context = descriptor + bp_context + refine + reassign + filter;
+    let context = descriptor + bp_context + refine + reassign + filter + judging(params);
     (u_reach + context, v_reach + context)
+}
+
+/// The reach of the opt-in passes between the matching and the filter (the slanted
+/// re-measurement, the support and anchor tests): each reads the images and the raw
+/// disparity around a pixel, so a tile's core needs that much more context (0 when off).
+fn judging(params: &DenseParams) -> usize {
+    let sigma = crate::vision::pipeline::matcher_window_sigma(params);
+    let own = |window_sigma: f32| {
+        if window_sigma > 0.0 {
+            f64::from(window_sigma)
+        } else {
+            sigma
+        }
+    };
+    let mut reach = 0.0;
+    let q = &params.slanted;
+    if q.enabled {
+        reach += q.max_gap as f64 + 3.0 * own(q.window_sigma);
+    }
+    let s = &params.support;
+    if s.enabled {
+        reach += 3.0 * own(s.window_sigma) * f64::from(s.wider_window.max(1.0))
+            + s.reach_px as f64
+            + 3.0 * f64::from(s.band_sigma + s.own_sigma)
+            + f64::from(s.surface_reach) * sigma;
+    }
+    let a = &params.anchor;
+    if a.enabled {
+        reach += f64::from(a.reach) * sigma + 3.0 * f64::from(a.texture_sigma + a.band_sigma);
+    }
+    reach.ceil() as usize
 }
 
 /// Splits `n` pixels into `parts` runs of nearly equal length: the run starts and the end.
@@ -701,6 +733,39 @@ mod tests {
         p.flow.levels = 3;
         p.memory_budget_mib = budget_mib;
         p
+    }
+
+    /// The opt-in passes between matching and filter widen the overlap by their reach, each
+    /// alone and together, and only when they are on.
+    #[test]
+    fn the_overlap_covers_the_opt_in_passes_reach() {
+        let base = params(64);
+        let sigma = crate::vision::pipeline::matcher_window_sigma(&base);
+        let off = margins(&base, 0.0, Some((-4.0, 10.0)));
+        let grown = |p: &DenseParams| {
+            let m = margins(p, 0.0, Some((-4.0, 10.0)));
+            (m.0 - off.0, m.1 - off.1)
+        };
+        let mut anchor = base;
+        anchor.anchor.enabled = true;
+        anchor.anchor.reach = 40.0;
+        let a = grown(&anchor);
+        assert!(a.0 as f64 >= 40.0 * sigma && a.0 == a.1, "{a:?}");
+        let mut support = base;
+        support.support.enabled = true;
+        let s = grown(&support);
+        let wider = 3.0 * sigma * f64::from(support.support.wider_window);
+        assert!(
+            s.0 as f64 >= wider + support.support.reach_px as f64,
+            "{s:?}"
+        );
+        let mut slanted = base;
+        slanted.slanted.enabled = true;
+        assert!(grown(&slanted).0 >= slanted.slanted.max_gap, "slanted");
+        let mut all = anchor;
+        all.support = support.support;
+        all.slanted = slanted.slanted;
+        assert!(grown(&all).0 >= a.0 + s.0 + slanted.slanted.max_gap);
     }
 
     /// The cores partition the canvas, every padded tile holds the covered part of its core and
