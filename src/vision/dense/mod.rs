@@ -737,29 +737,21 @@ fn left_right_consistency(
             &params.support,
             crate::vision::pipeline::matcher_window_sigma(params) as f32,
         );
-        raw.data_mut()
-            .par_iter_mut()
-            .zip(confidence.data_mut().par_iter_mut())
-            .zip(unknown.par_iter_mut())
-            .zip(judged)
-            .for_each(|(((d, c), why), j)| {
-                if j != Unknown::Measured && d.is_finite() {
-                    *d = f32::NAN;
-                    *c = 0.0;
-                    *why = j;
-                }
-            });
+        mark_unknown(&mut raw, &mut confidence, &mut unknown, &judged);
     }
     if params.anchor.enabled {
         let sigma = crate::vision::pipeline::matcher_window_sigma(params) as f32;
-        let rims = anchor::anchor_test(&inputs.a, va, &raw, &params.anchor, sigma);
-        mark_unknown(
-            &mut raw,
-            &mut confidence,
-            &mut unknown,
-            &rims,
-            Unknown::NoTexture,
-        );
+        let rims: Vec<Unknown> = anchor::anchor_test(&inputs.a, va, &raw, &params.anchor, sigma)
+            .into_par_iter()
+            .map(|m| {
+                if m {
+                    Unknown::NoTexture
+                } else {
+                    Unknown::Measured
+                }
+            })
+            .collect();
+        mark_unknown(&mut raw, &mut confidence, &mut unknown, &rims);
     }
     Consistent {
         raw,
@@ -774,24 +766,23 @@ fn left_right_consistency(
     }
 }
 
-/// The pixels `which` marks, if measured, made unknown for reason `why`.
+/// The measured pixels whose verdict is not `Measured` made unknown for that reason.
 fn mark_unknown(
     raw: &mut Image,
     confidence: &mut Image,
     unknown: &mut [Unknown],
-    which: &[bool],
-    why: Unknown,
+    verdicts: &[Unknown],
 ) {
     raw.data_mut()
         .par_iter_mut()
         .zip(confidence.data_mut().par_iter_mut())
         .zip(unknown.par_iter_mut())
-        .zip(which)
-        .filter(|(((d, _), _), m)| **m && d.is_finite())
-        .for_each(|(((d, c), u), _)| {
+        .zip(verdicts)
+        .filter(|(((d, _), _), v)| **v != Unknown::Measured && d.is_finite())
+        .for_each(|(((d, c), u), &v)| {
             *d = f32::NAN;
             *c = 0.0;
-            *u = why;
+            *u = v;
         });
 }
 

@@ -789,13 +789,10 @@ mod tests {
         assert_eq!(r[20 * w + 50], Unknown::Measured);
     }
 
-    /// A flat floor beside a textured block: the floor pixels whose window (σ 3) reaches the
-    /// block's edge only at its rim, 2σ away, are not supported either (the matcher's window
-    /// alone: a wider one over this one smooth disparity may speak for them).
-    #[test]
-    fn texture_at_the_window_edge_does_not_support_a_flat_pixel() {
-        let (w, h) = (100, 30);
-        let mut k = 0x5555_u64;
+    /// A textured block left of x = 50 (x = 52 in the right micrograph, 2 px of disparity)
+    /// beside a flat floor of 0.3, with 1 % uniform noise seeded by `seed`.
+    fn block_beside_floor(w: usize, h: usize, seed: u64) -> (Image, Image) {
+        let mut k = seed;
         let mut noise = || 0.01 * (2.0 * uniform(&mut k) - 1.0);
         let tex = Texture::new(9);
         let a = Image::from_fn(w, h, |x, y| {
@@ -814,6 +811,16 @@ mod tests {
             };
             v + noise()
         });
+        (a, b)
+    }
+
+    /// A flat floor beside a textured block: the floor pixels whose window (σ 3) reaches the
+    /// block's edge only at its rim, 2σ away, are not supported either (the matcher's window
+    /// alone: a wider one over this one smooth disparity may speak for them).
+    #[test]
+    fn texture_at_the_window_edge_does_not_support_a_flat_pixel() {
+        let (w, h) = (100, 30);
+        let (a, b) = block_beside_floor(w, h, 0x5555);
         let valid = vec![true; w * h];
         let disparity = Image::filled(w, h, 2.0);
         let narrow = SupportParams {
@@ -997,25 +1004,7 @@ mod tests {
         assert!(lenient > strict + 0.03, "{strict} {lenient}");
         // A flat floor right of x = 50 beside a textured block, the disparity stepping there.
         let (w, h) = (100, 30);
-        let mut k = 0x5151_u64;
-        let mut noise = || 0.01 * (2.0 * uniform(&mut k) - 1.0);
-        let tex = Texture::new(9);
-        let a = Image::from_fn(w, h, |x, y| {
-            let v = if x < 50 {
-                tex.at(x as f64, y as f64) as f32
-            } else {
-                0.3
-            };
-            v + noise()
-        });
-        let b = Image::from_fn(w, h, |x, y| {
-            let v = if x < 52 {
-                tex.at(x as f64 - 2.0, y as f64) as f32
-            } else {
-                0.3
-            };
-            v + noise()
-        });
+        let (a, b) = block_beside_floor(w, h, 0x5151);
         let valid = vec![true; w * h];
         let disparity = Image::from_fn(w, h, |x, _| if x < 50 { 2.0 } else { 4.0 });
         let r = support_test((&a, &b), (&valid, &valid), (&disparity, None), &loose, 3.0);
