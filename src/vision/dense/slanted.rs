@@ -22,6 +22,10 @@
 //!   match leads back to `p`, or else the plane fitted from the right micrograph's own window
 //!   (started at the inverse plane, refined alone) does.
 //!
+//! Pixels in the strip the right micrograph never saw (left of where its first columns lead back
+//! to by the right-to-left field, or where every disparity the measured ends allow lands before
+//! its first column) are not tried: they become [`Unknown::NotSeen`].
+//!
 //! What passes is measured (reason [`Unknown::Measured`]), its confidence the NCC times the
 //! agreement of both directions.
 
@@ -100,6 +104,32 @@ struct Fields<'a> {
     v: &'a [f32],
     /// The right-to-left disparity on the right canvas, if matched both ways.
     backward: Option<&'a [f32]>,
+    /// Per row, the first left column the right micrograph sees ([`first_seen_columns`]).
+    first_seen: Vec<f32>,
+}
+
+/// How many of the right micrograph's first columns with data, per row, say where its edge lies
+/// on the left canvas.
+const EDGE_SAMPLES: usize = 16;
+
+/// Per row, the first left column the right micrograph sees: the least left column that its
+/// first [`EDGE_SAMPLES`] columns with data lead back to by the right-to-left field (the least,
+/// so that a wrong backward match can only make the strip narrower); `−∞` where the row has no
+/// such column. Left of it, a match that keeps the order along the row, as every plane with
+/// `|∂d/∂x| < 1` does (`max_slope` < 0.95), lands before the right micrograph's first column.
+fn first_seen_columns(backward: &[f32], vb: &[bool], (w, h): (usize, usize)) -> Vec<f32> {
+    (0..h)
+        .into_par_iter()
+        .map(|y| {
+            let row = y * w;
+            (0..w)
+                .filter(|&x| vb[row + x] && backward[row + x].is_finite())
+                .take(EDGE_SAMPLES)
+                .map(|x| x as f32 + backward[row + x])
+                .fold(f32::INFINITY, f32::min)
+        })
+        .map(|e| if e.is_finite() { e } else { f32::NEG_INFINITY })
+        .collect()
 }
 
 /// Figures of the slanted pass.
@@ -135,11 +165,16 @@ pub enum Fail {
     LeftRight,
     /// Not tried again at a later pass (no neighbour measured at the last one).
     Stale,
+    /// Outside what the right micrograph sees: left of the column where its first columns lead
+    /// back to, or with every disparity the measured ends allow landing before its first column
+    /// (the strip along the edge that the other micrograph never saw). Not measured, and reported
+    /// as [`Unknown::NotSeen`].
+    NotSeen,
 }
 
 impl Fail {
     /// The number of reasons.
-    pub const COUNT: usize = 9;
+    pub const COUNT: usize = 10;
 }
 
 /// A disparity plane about its pixel: `d + a δx + b δy`.
@@ -543,13 +578,6 @@ impl Context<'_> {
         let v = self.fields.v[p];
         let at = (x, y, if v.is_finite() { v } else { 0.0 });
         let params = self.params;
-        let (ca, cb) = (&self.coarse.0, &self.coarse.1);
-        let best = candidates
-            .iter()
-            .filter_map(|&c| ncc(ca, cb, &self.coarse_taps, at, c).map(|s| (s, c)))
-            .max_by(|l, r| l.0.total_cmp(&r.0))
-            .ok_or(Fail::NoCandidate)?
-            .1;
         // The disparity cannot change faster than the steepest plane allowed: the measured
         // pixels around the gap bound it (a match far off them is a mismatch, e.g. into what
         // the other micrograph does not see).
@@ -564,6 +592,19 @@ impl Context<'_> {
                 hi: i.hi.min(e + reach(o)),
             },
         );
+        // The strip the right micrograph never saw: no window there can match.
+        #[allow(clippy::cast_precision_loss)]
+        let xf = x as f32;
+        if xf + allowed.hi < 0.0 || xf < self.fields.first_seen[y] - self.lr_tolerance {
+            return Err(Fail::NotSeen);
+        }
+        let (ca, cb) = (&self.coarse.0, &self.coarse.1);
+        let best = candidates
+            .iter()
+            .filter_map(|&c| ncc(ca, cb, &self.coarse_taps, at, c).map(|s| (s, c)))
+            .max_by(|l, r| l.0.total_cmp(&r.0))
+            .ok_or(Fail::NoCandidate)?
+            .1;
         let beyond = |d: f32, slack: f32| allowed.beyond(d, slack);
         #[allow(clippy::cast_precision_loss)]
         let coarse_slack = params.iterations as f32;
@@ -705,6 +746,10 @@ pub(crate) fn measure_steep(
         start,
         v: v.data(),
         backward,
+        first_seen: backward.map_or_else(
+            || vec![f32::NEG_INFINITY; h],
+            |bw| first_seen_columns(bw, vb, (w, h)),
+        ),
     };
     let fields = &fields;
     #[allow(clippy::cast_possible_truncation)]
@@ -751,6 +796,7 @@ pub(crate) fn measure_steep(
     let mut pass_of = vec![0u8; w * h];
     let mut measured = 0;
     let mut last_fail = vec![Fail::Stale; w * h];
+    let mut not_seen = 0;
     for pass in 1..=params.passes.max(1) {
         // After the first pass only pixels beside a plane the last pass found have a new start.
         let fresh = |p: usize| {
@@ -790,6 +836,11 @@ pub(crate) fn measure_steep(
                     }
                     measured += 1;
                 }
+                Err(Fail::NotSeen) => {
+                    // Outside what the right micrograph sees: no later pass can measure it.
+                    unknown[p] = Unknown::NotSeen;
+                    not_seen += 1;
+                }
                 Err(why) => {
                     // A pixel not tried again keeps the reason of its last try.
                     if why != Fail::Stale {
@@ -808,6 +859,7 @@ pub(crate) fn measure_steep(
     for &p in &pending {
         failed[last_fail[p] as usize] += 1;
     }
+    failed[Fail::NotSeen as usize] = not_seen;
     tracing::debug!(examined, measured, ?failed, "slanted support");
     SlantedStats {
         examined,
@@ -971,5 +1023,93 @@ mod tests {
             stats.measured,
             stats.examined
         );
+    }
+
+    #[test]
+    fn the_strip_the_right_micrograph_never_saw_is_not_seen_and_not_measured() {
+        // The right micrograph sees the scene 20 px further left: left columns 0..20 never.
+        let layers = vec![Layer {
+            disparity: Box::new(|_, _| -20.0),
+            region: Box::new(|_, _| true),
+        }];
+        let pair = render(160, 64, Texture::new(3), &layers, 0.0, 0.01);
+        let (w, h) = pair.left.dimensions();
+        let dense = DenseParams {
+            slanted: SlantedParams {
+                enabled: true,
+                ..SlantedParams::default()
+            },
+            ..DenseParams::default()
+        };
+        // After the left–right check the first 32 columns are unknown, the rest measured.
+        let gap = |p: usize| p % w < 32;
+        let mut raw = Image::from_fn(w, h, |x, y| {
+            if gap(y * w + x) {
+                f32::NAN
+            } else {
+                pair.disparity.get(x, y)
+            }
+        });
+        let mut unknown: Vec<Unknown> = (0..w * h)
+            .map(|p| {
+                if gap(p) {
+                    Unknown::LeftRight
+                } else {
+                    Unknown::Measured
+                }
+            })
+            .collect();
+        let mut confidence = Image::filled(w, h, 1.0);
+        let valid = vec![true; w * h];
+        // The right-to-left field leads the right micrograph's first column to left column 20.
+        let backward = vec![20.0; w * h];
+        let stats = measure_steep(
+            (&pair.left, &pair.right),
+            (&valid, &valid),
+            (&vec![f32::NAN; w * h], &Image::zeros(w, h), Some(&backward)),
+            (&mut raw, &mut confidence, &mut unknown),
+            &dense,
+        );
+        let strip = |p: usize| p % w < 18;
+        for p in (0..w * h).filter(|&p| strip(p)) {
+            assert_eq!(unknown[p], Unknown::NotSeen, "pixel {p}");
+            assert!(raw.data()[p].is_nan());
+        }
+        assert_eq!(stats.failed[Fail::NotSeen as usize], 18 * h);
+        // Beside the strip, what the right micrograph sees is measured.
+        let seen = (0..w * h)
+            .filter(|&p| (22..32).contains(&(p % w)) && (8..h - 8).contains(&(p / w)))
+            .collect::<Vec<_>>();
+        let measured = seen
+            .iter()
+            .filter(|&&p| unknown[p] == Unknown::Measured)
+            .count();
+        assert!(
+            measured * 10 >= seen.len() * 9,
+            "{measured} of {}",
+            seen.len()
+        );
+        // Without a right-to-left field nothing tells the strip apart here: it is tried.
+        let mut raw2 = raw.clone();
+        for p in (0..w * h).filter(|&p| gap(p)) {
+            raw2.data_mut()[p] = f32::NAN;
+        }
+        let mut unknown2: Vec<Unknown> = (0..w * h)
+            .map(|p| {
+                if gap(p) {
+                    Unknown::LeftRight
+                } else {
+                    Unknown::Measured
+                }
+            })
+            .collect();
+        let stats = measure_steep(
+            (&pair.left, &pair.right),
+            (&valid, &valid),
+            (&vec![f32::NAN; w * h], &Image::zeros(w, h), None),
+            (&mut raw2, &mut Image::filled(w, h, 1.0), &mut unknown2),
+            &dense,
+        );
+        assert_eq!(stats.failed[Fail::NotSeen as usize], 0);
     }
 }
