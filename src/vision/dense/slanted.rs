@@ -22,6 +22,10 @@
 //!   match leads back to `p`, or else the plane fitted from the right micrograph's own window
 //!   (started at the inverse plane, refined alone) does.
 //!
+//! Pixels in the strip the right micrograph never saw (left of where its first columns lead back
+//! to by the right-to-left field, or where every disparity the measured ends allow lands before
+//! its first column) are not tried: they become [`Unknown::NotSeen`].
+//!
 //! What passes is measured (reason [`Unknown::Measured`]), its confidence the NCC times the
 //! agreement of both directions.
 
@@ -100,6 +104,32 @@ struct Fields<'a> {
     v: &'a [f32],
     /// The right-to-left disparity on the right canvas, if matched both ways.
     backward: Option<&'a [f32]>,
+    /// Per row, the first left column the right micrograph sees ([`first_seen_columns`]).
+    first_seen: Vec<f32>,
+}
+
+/// How many of the right micrograph's first columns with data, per row, say where its edge lies
+/// on the left canvas.
+const EDGE_SAMPLES: usize = 16;
+
+/// Per row, the first left column the right micrograph sees: the least left column that its
+/// first [`EDGE_SAMPLES`] columns with data lead back to by the right-to-left field (the least,
+/// so that a wrong backward match can only make the strip narrower); `−∞` where the row has no
+/// such column. Left of it, a match that keeps the order along the row, as every plane with
+/// `|∂d/∂x| < 1` does (`max_slope` < 0.95), lands before the right micrograph's first column.
+fn first_seen_columns(backward: &[f32], vb: &[bool], (w, h): (usize, usize)) -> Vec<f32> {
+    (0..h)
+        .into_par_iter()
+        .map(|y| {
+            let row = y * w;
+            (0..w)
+                .filter(|&x| vb[row + x] && backward[row + x].is_finite())
+                .take(EDGE_SAMPLES)
+                .map(|x| x as f32 + backward[row + x])
+                .fold(f32::INFINITY, f32::min)
+        })
+        .map(|e| if e.is_finite() { e } else { f32::NEG_INFINITY })
+        .collect()
 }
 
 /// Figures of the slanted pass.
@@ -135,11 +165,16 @@ pub enum Fail {
     LeftRight,
     /// Not tried again at a later pass (no neighbour measured at the last one).
     Stale,
+    /// Outside what the right micrograph sees: left of the column where its first columns lead
+    /// back to, or with every disparity the measured ends allow landing before its first column
+    /// (the strip along the edge that the other micrograph never saw). Not measured, and reported
+    /// as [`Unknown::NotSeen`].
+    NotSeen,
 }
 
 impl Fail {
     /// The number of reasons.
-    pub const COUNT: usize = 9;
+    pub const COUNT: usize = 10;
 }
 
 /// A disparity plane about its pixel: `d + a δx + b δy`.
@@ -155,7 +190,9 @@ struct View<'a> {
     w: usize,
     h: usize,
     img: Vec<f32>,
-    gx: Vec<f32>,
+    /// Per pixel the sample and the x gradient side by side (NaN where the micrograph has no
+    /// data): a bilinear read touches two cache lines instead of six.
+    packed: Vec<[f32; 2]>,
     valid: &'a [bool],
 }
 
@@ -164,7 +201,7 @@ impl<'a> View<'a> {
         let (w, h) = img.dimensions();
         let n = normalise_contrast(img, presmooth, normalise);
         let d = n.data();
-        let gx = (0..w * h)
+        let gx: Vec<f32> = (0..w * h)
             .into_par_iter()
             .map(|p| {
                 let x = p % w;
@@ -172,11 +209,18 @@ impl<'a> View<'a> {
                 (d[p - x + r] - d[p - x + l]) / (r - l).max(1) as f32
             })
             .collect();
+        let img = n.into_vec();
+        let packed = img
+            .par_iter()
+            .zip(&gx)
+            .zip(valid)
+            .map(|((&i, &g), &v)| if v { [i, g] } else { [f32::NAN; 2] })
+            .collect();
         Self {
             w,
             h,
-            img: n.into_vec(),
-            gx,
+            img,
+            packed,
             valid,
         }
     }
@@ -206,15 +250,22 @@ impl<'a> View<'a> {
         let (fx, fy) = (x - x0 as f32, y - y0 as f32);
         let p = y0 * self.w + x0;
         let q = p + self.w;
-        if !(self.valid[p] && self.valid[p + 1] && self.valid[q] && self.valid[q + 1]) {
+        let (t0, t1, b0, b1) = (
+            self.packed[p],
+            self.packed[p + 1],
+            self.packed[q],
+            self.packed[q + 1],
+        );
+        // A pixel without data is NaN in both entries: one test of the samples suffices.
+        if (t0[0] + t1[0] + b0[0] + b1[0]).is_nan() {
             return None;
         }
-        let lerp = |v: &[f32]| {
-            let top = v[p] + fx * (v[p + 1] - v[p]);
-            let bottom = v[q] + fx * (v[q + 1] - v[q]);
+        let lerp = |k: usize| {
+            let top = t0[k] + fx * (t1[k] - t0[k]);
+            let bottom = b0[k] + fx * (b1[k] - b0[k]);
             top + fy * (bottom - top)
         };
-        Some((lerp(&self.img), lerp(&self.gx)))
+        Some((lerp(0), lerp(1)))
     }
 }
 
@@ -309,21 +360,39 @@ fn gauss_newton(
     let total: f64 = taps.iter().map(|t| f64::from(t.2)).sum();
     let mut beta = 0.0f64;
     for k in 0..iterations {
-        let mut hm = Matrix4::<f64>::zeros();
+        // The normal equations' upper triangle (10 sums) and right side: J = (B_x, B_x δx,
+        // B_x δy, 1) is B_x (1, δx, δy) and 1, so every sum is a moment of w B_x² , w B_x or w.
+        let mut m = [0.0f64; 10];
         let mut g = Vector4::<f64>::zeros();
-        let mut s1 = 0.0f64;
         for (dx, dy, w, av, bv, bx) in window(src, dst, taps, at, plane) {
-            let w = f64::from(w);
-            let bx = f64::from(bx);
-            let j = Vector4::new(bx, bx * f64::from(dx), bx * f64::from(dy), 1.0);
+            let (w, bx, dx, dy) = (f64::from(w), f64::from(bx), f64::from(dx), f64::from(dy));
+            let (wb, wbb) = (w * bx, w * bx * bx);
             let r = f64::from(bv) + beta - f64::from(av);
-            hm += w * j * j.transpose();
-            g += w * r * j;
-            s1 += w;
+            m[0] += wbb;
+            m[1] += wbb * dx;
+            m[2] += wbb * dy;
+            m[3] += wb;
+            m[4] += wbb * dx * dx;
+            m[5] += wbb * dx * dy;
+            m[6] += wb * dx;
+            m[7] += wbb * dy * dy;
+            m[8] += wb * dy;
+            m[9] += w;
+            g[0] += wb * r;
+            g[1] += wb * dx * r;
+            g[2] += wb * dy * r;
+            g[3] += w * r;
         }
-        if s1 < 0.5 * total {
+        if m[9] < 0.5 * total {
             return Err(Fail::Lost);
         }
+        #[rustfmt::skip]
+        let hm = Matrix4::new(
+            m[0], m[1], m[2], m[3],
+            m[1], m[4], m[5], m[6],
+            m[2], m[5], m[7], m[8],
+            m[3], m[6], m[8], m[9],
+        );
         // A little damping keeps a window without texture along one direction solvable.
         let lam = 1e-3 * hm.trace() / 4.0 + 1e-9;
         let step = (hm + Matrix4::identity() * lam)
@@ -420,6 +489,11 @@ fn line(ends: [Option<(f32, f32)>; 2]) -> Option<(f32, f32)> {
     }
 }
 
+/// Candidate planes closer than this in disparity (pixels) and in both slopes are one: the
+/// coarse fit, which starts from the best, moves them by more in its first step.
+const SAME_D: f32 = 0.05;
+const SAME_SLOPE: f32 = 0.005;
+
 /// How far below `min_ncc` the coarse fit may correlate and still go on to the fine one.
 const COARSE_NCC_SLACK: f32 = 0.15;
 
@@ -485,20 +559,33 @@ impl Context<'_> {
             col.map_or(0.0, |c| c.1.clamp(-slope, slope)),
         );
         let mut out = Vec::with_capacity(12);
+        // Neighbours on one surface carry nearly the same plane: one of them is tried.
+        let push = |out: &mut Vec<Plane>, c: Plane| {
+            if !out.iter().any(|o| {
+                (o.d - c.d).abs() <= SAME_D
+                    && (o.a - c.a).abs() <= SAME_SLOPE
+                    && (o.b - c.b).abs() <= SAME_SLOPE
+            }) {
+                out.push(c);
+            }
+        };
         if let Some((d, _)) = row {
-            out.push(Plane { d, a, b });
+            push(&mut out, Plane { d, a, b });
         }
         if let Some((d, _)) = col {
-            out.push(Plane { d, a, b });
+            push(&mut out, Plane { d, a, b });
         }
         let s = self.fields.start[p];
         if s.is_finite() {
-            out.push(Plane { d: s, a, b });
-            out.push(Plane {
-                d: s,
-                a: 0.0,
-                b: 0.0,
-            });
+            push(&mut out, Plane { d: s, a, b });
+            push(
+                &mut out,
+                Plane {
+                    d: s,
+                    a: 0.0,
+                    b: 0.0,
+                },
+            );
         }
         for &(ox, oy) in &NEIGHBOURS {
             let (nx, ny) = (x as isize + ox, y as isize + oy);
@@ -507,10 +594,13 @@ impl Context<'_> {
             }
             if let Some(q) = planes[ny as usize * w + nx as usize] {
                 // The neighbour's plane, carried to this pixel.
-                out.push(Plane {
-                    d: q.d - q.a * ox as f32 - q.b * oy as f32,
-                    ..q
-                });
+                push(
+                    &mut out,
+                    Plane {
+                        d: q.d - q.a * ox as f32 - q.b * oy as f32,
+                        ..q
+                    },
+                );
             }
         }
         out
@@ -543,13 +633,6 @@ impl Context<'_> {
         let v = self.fields.v[p];
         let at = (x, y, if v.is_finite() { v } else { 0.0 });
         let params = self.params;
-        let (ca, cb) = (&self.coarse.0, &self.coarse.1);
-        let best = candidates
-            .iter()
-            .filter_map(|&c| ncc(ca, cb, &self.coarse_taps, at, c).map(|s| (s, c)))
-            .max_by(|l, r| l.0.total_cmp(&r.0))
-            .ok_or(Fail::NoCandidate)?
-            .1;
         // The disparity cannot change faster than the steepest plane allowed: the measured
         // pixels around the gap bound it (a match far off them is a mismatch, e.g. into what
         // the other micrograph does not see).
@@ -564,6 +647,19 @@ impl Context<'_> {
                 hi: i.hi.min(e + reach(o)),
             },
         );
+        // The strip the right micrograph never saw: no window there can match.
+        #[allow(clippy::cast_precision_loss)]
+        let xf = x as f32;
+        if xf + allowed.hi < 0.0 || xf < self.fields.first_seen[y] - self.lr_tolerance {
+            return Err(Fail::NotSeen);
+        }
+        let (ca, cb) = (&self.coarse.0, &self.coarse.1);
+        let best = candidates
+            .iter()
+            .filter_map(|&c| ncc(ca, cb, &self.coarse_taps, at, c).map(|s| (s, c)))
+            .max_by(|l, r| l.0.total_cmp(&r.0))
+            .ok_or(Fail::NoCandidate)?
+            .1;
         let beyond = |d: f32, slack: f32| allowed.beyond(d, slack);
         #[allow(clippy::cast_precision_loss)]
         let coarse_slack = params.iterations as f32;
@@ -705,6 +801,10 @@ pub(crate) fn measure_steep(
         start,
         v: v.data(),
         backward,
+        first_seen: backward.map_or_else(
+            || vec![f32::NEG_INFINITY; h],
+            |bw| first_seen_columns(bw, vb, (w, h)),
+        ),
     };
     let fields = &fields;
     #[allow(clippy::cast_possible_truncation)]
@@ -751,6 +851,7 @@ pub(crate) fn measure_steep(
     let mut pass_of = vec![0u8; w * h];
     let mut measured = 0;
     let mut last_fail = vec![Fail::Stale; w * h];
+    let mut not_seen = 0;
     for pass in 1..=params.passes.max(1) {
         // After the first pass only pixels beside a plane the last pass found have a new start.
         let fresh = |p: usize| {
@@ -790,6 +891,11 @@ pub(crate) fn measure_steep(
                     }
                     measured += 1;
                 }
+                Err(Fail::NotSeen) => {
+                    // Outside what the right micrograph sees: no later pass can measure it.
+                    unknown[p] = Unknown::NotSeen;
+                    not_seen += 1;
+                }
                 Err(why) => {
                     // A pixel not tried again keeps the reason of its last try.
                     if why != Fail::Stale {
@@ -808,6 +914,7 @@ pub(crate) fn measure_steep(
     for &p in &pending {
         failed[last_fail[p] as usize] += 1;
     }
+    failed[Fail::NotSeen as usize] = not_seen;
     tracing::debug!(examined, measured, ?failed, "slanted support");
     SlantedStats {
         examined,
@@ -971,5 +1078,93 @@ mod tests {
             stats.measured,
             stats.examined
         );
+    }
+
+    #[test]
+    fn the_strip_the_right_micrograph_never_saw_is_not_seen_and_not_measured() {
+        // The right micrograph sees the scene 20 px further left: left columns 0..20 never.
+        let layers = vec![Layer {
+            disparity: Box::new(|_, _| -20.0),
+            region: Box::new(|_, _| true),
+        }];
+        let pair = render(160, 64, Texture::new(3), &layers, 0.0, 0.01);
+        let (w, h) = pair.left.dimensions();
+        let dense = DenseParams {
+            slanted: SlantedParams {
+                enabled: true,
+                ..SlantedParams::default()
+            },
+            ..DenseParams::default()
+        };
+        // After the left–right check the first 32 columns are unknown, the rest measured.
+        let gap = |p: usize| p % w < 32;
+        let mut raw = Image::from_fn(w, h, |x, y| {
+            if gap(y * w + x) {
+                f32::NAN
+            } else {
+                pair.disparity.get(x, y)
+            }
+        });
+        let mut unknown: Vec<Unknown> = (0..w * h)
+            .map(|p| {
+                if gap(p) {
+                    Unknown::LeftRight
+                } else {
+                    Unknown::Measured
+                }
+            })
+            .collect();
+        let mut confidence = Image::filled(w, h, 1.0);
+        let valid = vec![true; w * h];
+        // The right-to-left field leads the right micrograph's first column to left column 20.
+        let backward = vec![20.0; w * h];
+        let stats = measure_steep(
+            (&pair.left, &pair.right),
+            (&valid, &valid),
+            (&vec![f32::NAN; w * h], &Image::zeros(w, h), Some(&backward)),
+            (&mut raw, &mut confidence, &mut unknown),
+            &dense,
+        );
+        let strip = |p: usize| p % w < 18;
+        for p in (0..w * h).filter(|&p| strip(p)) {
+            assert_eq!(unknown[p], Unknown::NotSeen, "pixel {p}");
+            assert!(raw.data()[p].is_nan());
+        }
+        assert_eq!(stats.failed[Fail::NotSeen as usize], 18 * h);
+        // Beside the strip, what the right micrograph sees is measured.
+        let seen = (0..w * h)
+            .filter(|&p| (22..32).contains(&(p % w)) && (8..h - 8).contains(&(p / w)))
+            .collect::<Vec<_>>();
+        let measured = seen
+            .iter()
+            .filter(|&&p| unknown[p] == Unknown::Measured)
+            .count();
+        assert!(
+            measured * 10 >= seen.len() * 9,
+            "{measured} of {}",
+            seen.len()
+        );
+        // Without a right-to-left field nothing tells the strip apart here: it is tried.
+        let mut raw2 = raw.clone();
+        for p in (0..w * h).filter(|&p| gap(p)) {
+            raw2.data_mut()[p] = f32::NAN;
+        }
+        let mut unknown2: Vec<Unknown> = (0..w * h)
+            .map(|p| {
+                if gap(p) {
+                    Unknown::LeftRight
+                } else {
+                    Unknown::Measured
+                }
+            })
+            .collect();
+        let stats = measure_steep(
+            (&pair.left, &pair.right),
+            (&valid, &valid),
+            (&vec![f32::NAN; w * h], &Image::zeros(w, h), None),
+            (&mut raw2, &mut Image::filled(w, h, 1.0), &mut unknown2),
+            &dense,
+        );
+        assert_eq!(stats.failed[Fail::NotSeen as usize], 0);
     }
 }
