@@ -460,7 +460,8 @@ pub fn render_case(case: &SimCase) -> Result<RenderedCase, SimEvalError> {
 }
 
 /// Writes a case's micrographs as 16-bit TIFFs with their tilt and pixel size
-/// (`<kind>_<w>x<h>_left.tif`, `…_right.tif`): inputs for `sdsem reconstruct`.
+/// (`<kind>_<w>x<h>_left.tif`, `…_right.tif`): inputs for `sdsem reconstruct`; and their
+/// ground truth, `…_truth.tif`, for `sdsem-eval score-height` ([`super::large`]).
 ///
 /// # Errors
 /// When the scene cannot be built or a file cannot be written.
@@ -489,6 +490,12 @@ pub fn write_case(
         write_micrograph_tiff(&path, img, &tags, SampleDepth::Bits16)?;
         out.push(path);
     }
+    super::large::write_truth(
+        &r.scene,
+        &r.left_view,
+        &r.right_view,
+        &dir.join(format!("{stem}_truth.tif")),
+    )?;
     Ok([out[0].clone(), out[1].clone()])
 }
 
@@ -1061,6 +1068,8 @@ pub struct DenseEvalArgs {
     pub dwell_us: Option<f64>,
     /// Write the selected cases' micrographs there instead of evaluating.
     pub write_pairs: Option<std::path::PathBuf>,
+    /// Render the selected cases at this size instead (same scene, field and seed).
+    pub size: Option<(usize, usize)>,
     /// Write each case's maps there (left micrograph, true and estimated
     /// height, error in disparity pixels) as PNGs.
     pub dump: Option<std::path::PathBuf>,
@@ -1180,6 +1189,8 @@ pub fn run(opts: &super::EvalOptions, args: &DenseEvalArgs) -> anyhow::Result<()
     .map(|c| SimCase {
         noiseless: args.noiseless,
         dwell_us: args.dwell_us.unwrap_or(DWELL_US),
+        width: args.size.map_or(c.width, |s| s.0),
+        height: args.size.map_or(c.height, |s| s.1),
         ..c
     })
     .collect();

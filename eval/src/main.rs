@@ -6,6 +6,7 @@
 mod acquisition;
 mod dense;
 mod flow;
+mod large;
 mod potamogeton;
 mod soak;
 mod sparse;
@@ -89,6 +90,14 @@ pub enum Which {
     /// Table 2, and the time per step at 1280×960.
     #[command(after_help = EVAL_SPARSE)]
     Sparse,
+    /// A height map (`sdsem reconstruct`'s height.tif) against a simulated pair's truth
+    /// (`dense --write-pairs`' `_truth.tif`): coverage, RMSE without the best plane, scale.
+    ScoreHeight {
+        /// The truth: float32 µm, NaN where the pair does not see the pixel in both.
+        truth: PathBuf,
+        /// The estimated height map on the same (left) grid.
+        height: PathBuf,
+    },
 }
 
 #[derive(Debug, Args)]
@@ -148,12 +157,28 @@ pub struct DenseArgs {
     /// Pixel dwell time of the rendered micrographs, µs (default 10): the scan noise falls as its square root.
     #[arg(long, value_name = "US", value_parser = positive_dwell, allow_hyphen_values = true)]
     pub dwell_us: Option<f64>,
-    /// Only write the selected cases' micrographs (16-bit TIFF with tilt and pixel size) into DIR.
+    /// Only write the selected cases' micrographs (16-bit TIFF with tilt and pixel size) and their true heights (`_truth.tif`) into DIR.
     #[arg(long, value_name = "DIR")]
     pub write_pairs: Option<PathBuf>,
+    /// Render the selected cases at WxH instead of their own size (same scene, field and seed; for the large-micrograph figures).
+    #[arg(long, value_name = "WxH", value_parser = parse_size)]
+    pub size: Option<(usize, usize)>,
     /// Also write each case's maps into DIR as PNGs: left micrograph, true and estimated height, error (disparity px).
     #[arg(long, value_name = "DIR")]
     pub dump: Option<PathBuf>,
+}
+
+/// A frame size `WxH`, each side 16 to 65536 pixels.
+fn parse_size(s: &str) -> Result<(usize, usize), String> {
+    let bad = || format!("the size must be WxH (e.g. 4096x3072), each side 16 to 65536, not {s}");
+    let (w, h) = s.split_once(['x', 'X', '×']).ok_or_else(bad)?;
+    let side = |v: &str| {
+        v.trim()
+            .parse::<usize>()
+            .ok()
+            .filter(|v| (16..=65536).contains(v))
+    };
+    Ok((side(w).ok_or_else(bad)?, side(h).ok_or_else(bad)?))
 }
 
 fn parse_mode(s: &str) -> Result<Preset, String> {
@@ -284,6 +309,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<ExitCode> {
                 noiseless: d.noiseless,
                 dwell_us: d.dwell_us,
                 write_pairs: d.write_pairs.clone(),
+                size: d.size,
                 dump: d.dump.clone(),
             },
         )?,
@@ -291,6 +317,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<ExitCode> {
             potamogeton::run(&opts, *mode, set, dump.as_deref())?;
         }
         Which::Sparse => sparse::run(&opts)?,
+        Which::ScoreHeight { truth, height } => large::run_score(truth, height, opts.json)?,
     }
     Ok(ExitCode::SUCCESS)
 }
@@ -356,7 +383,10 @@ const EVAL_DENSE: &str = "\
 Examples:
   sdsem-eval dense --quick
   sdsem-eval dense --true-rectification --only dome
-  sdsem-eval dense --dwell-us 40 --write-pairs pairs/";
+  sdsem-eval dense --dwell-us 40 --write-pairs pairs/
+  sdsem-eval dense --only \"dome 1280x960\" --size 4096x3072 --write-pairs large/
+      a large pair and its truth; then sdsem reconstruct …, and
+  sdsem-eval score-height large/dome_4096x3072_truth.tif out/height.tif";
 
 const EVAL_FLOW: &str = "\
 Examples:

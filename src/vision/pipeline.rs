@@ -20,7 +20,7 @@ use serde::Serialize;
 
 use super::Image;
 use super::datum::{Datum, apply_datum};
-use super::dense::tile::{Coverage, Rect, fits_budget};
+use super::dense::tile::{Coverage, Rect, fits_budget, scaled_for_size};
 use super::dense::{
     CanvasDisparity, DenseError, DenseParams, DenseStats, Unknown, dense_disparity_of_warped,
     dense_disparity_tiled,
@@ -229,7 +229,9 @@ pub fn reconstruct_observed(
     let range = established.range;
     let canvas = established.canvas;
     let (h_left, h_right) = (established.h_left, established.h_right);
-    let (disp, row_offset, sparse_ms, dense_ms) = if fits_budget(&params.dense, canvas) {
+    // A large micrograph's matcher one level coarser per halving (opt-in; unchanged by default).
+    let dense = scaled_for_size(&params.dense, left.len());
+    let (disp, row_offset, sparse_ms, dense_ms) = if fits_budget(&dense, canvas) {
         let (wl, wr) = rayon::join(
             || warp(left, &h_left, canvas.0, canvas.1),
             || warp(right, &h_right, canvas.0, canvas.1),
@@ -241,7 +243,7 @@ pub fn reconstruct_observed(
         let t = Instant::now();
         progress(Stage::Dense);
         // The rectified pair becomes the dense stage's working copy.
-        let disp = dense_disparity_of_warped(wl, wr, &params.dense, range)?;
+        let disp = dense_disparity_of_warped(wl, wr, &dense, range)?;
         let row_offset = match established.source {
             Established::Instrument { .. } => {
                 dense_rows(&disp.vertical, &disp.disparity, &disp.unknown)
@@ -269,7 +271,7 @@ pub fn reconstruct_observed(
             )
         };
         let coverage = left_coverage(left.dimensions(), &h_left, canvas);
-        let disp = dense_disparity_tiled(canvas, &coverage, source, &params.dense, range)?;
+        let disp = dense_disparity_tiled(canvas, &coverage, source, &dense, range)?;
         // Tiles keep no vertical flow, only samples of it for this check.
         let row_offset = match established.source {
             Established::Instrument { .. } => dense_rows_of_samples(&disp.row_samples, canvas),

@@ -51,6 +51,11 @@ pub struct DenseParams {
     pub anchor: AnchorParams,
     /// Peak memory of the stage, MiB: a larger rectified canvas is matched in overlapping tiles; 0 = never tile.
     pub memory_budget_mib: usize,
+    /// On a left micrograph above this many megapixels, raise `finest_level` and `levels` by one per
+    /// halving that brings it within them (and double the left–right tolerances), so the matcher's
+    /// windows span as much specimen as on a small micrograph (as SIFT's `sift_max_megapixels`
+    /// copy does); 0 = never (opt-in).
+    pub finest_max_megapixels: f64,
 }
 
 impl Default for DenseParams {
@@ -80,6 +85,7 @@ impl DenseParams {
             slanted: SlantedParams::default(),
             anchor: AnchorParams::default(),
             memory_budget_mib: 1024,
+            finest_max_megapixels: 0.0,
         };
         match preset {
             Preset::Improved => improved,
@@ -127,6 +133,9 @@ impl DenseParams {
         }
         if self.lr_tolerance_smooth.is_nan() || self.lr_tolerance_smooth < 0.0 {
             return bad("lr_tolerance_smooth", "must be non-negative");
+        }
+        if !(self.finest_max_megapixels.is_finite() && self.finest_max_megapixels >= 0.0) {
+            return bad("finest_max_megapixels", "must be finite and non-negative");
         }
         if let Some(name) = self.reassign.invalid_field() {
             return bad(name, "out of its range (see the parameter table)");

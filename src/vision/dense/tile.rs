@@ -144,6 +144,43 @@ pub fn estimated_bytes(params: &DenseParams, (width, height): (usize, usize)) ->
     width.saturating_mul(height).saturating_mul(per_pixel)
 }
 
+/// The halvings that bring `pixels` within `max_megapixels` (0 when it is 0): as many as
+/// SIFT's copy of the same micrograph has (`sparse::sift_bounded`).
+#[must_use]
+pub fn halvings(pixels: usize, max_megapixels: f64) -> usize {
+    // A count of pixels: a few million.
+    #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
+    let limit = (max_megapixels * 1e6) as usize;
+    let (mut n, mut k) = (pixels, 0);
+    while limit > 0 && n > limit {
+        n = n.div_ceil(4);
+        k += 1;
+    }
+    k
+}
+
+/// `params` for a left micrograph of `pixels` pixels: with `finest_max_megapixels` set and
+/// exceeded, the finest BP level and the pyramid's depth one deeper per halving, and the
+/// left–right tolerances (full-resolution pixels) twice as wide per halving. The matcher's
+/// windows are fixed in pixels of their level; on a micrograph of more pixels over the same
+/// field they would span less specimen, and where the texture is coarser than them the two
+/// directions' matches disagree (the simulated dome at 4096×3072: 6 % of its pixels failed the
+/// left–right check, 18 % at 8192×6144, against 0.4 % at 1280×960).
+#[must_use]
+pub fn scaled_for_size(params: &DenseParams, pixels: usize) -> DenseParams {
+    let k = halvings(pixels, params.finest_max_megapixels);
+    let mut p = *params;
+    if k > 0 {
+        p.flow.finest_level += k;
+        p.flow.levels += k;
+        // The left–right check compares at the matcher's level: the same tolerance there.
+        let f = (1u32 << k) as f32;
+        p.lr_tolerance *= f;
+        p.lr_tolerance_smooth *= f;
+    }
+    p
+}
+
 /// Whether the canvas is matched in one piece: within the budget, or tiling turned off (0).
 #[must_use]
 pub fn fits_budget(params: &DenseParams, canvas: (usize, usize)) -> bool {
@@ -733,6 +770,35 @@ mod tests {
         p.flow.levels = 3;
         p.memory_budget_mib = budget_mib;
         p
+    }
+
+    /// `finest_max_megapixels` deepens the matcher by one level per halving of the micrograph
+    /// (as many as SIFT's copy has), and changes nothing when off or when the micrograph fits.
+    #[test]
+    fn large_micrographs_are_matched_from_a_coarser_level_only_when_asked() {
+        assert_eq!(halvings(1280 * 960, 4.0), 0);
+        assert_eq!(halvings(4_000_000, 4.0), 0);
+        assert_eq!(halvings(4096 * 3072, 4.0), 1);
+        assert_eq!(halvings(8192 * 6144, 4.0), 2);
+        assert_eq!(halvings(8192 * 6144, 0.0), 0);
+        let off = DenseParams::preset(Preset::Improved);
+        assert_eq!(off.finest_max_megapixels, 0.0, "opt-in");
+        assert_eq!(scaled_for_size(&off, 8192 * 6144), off);
+        let on = DenseParams {
+            finest_max_megapixels: 4.0,
+            ..off
+        };
+        assert_eq!(scaled_for_size(&on, 1280 * 960), on);
+        let big = scaled_for_size(&on, 8192 * 6144);
+        assert_eq!(big.flow.finest_level, off.flow.finest_level + 2);
+        assert_eq!(big.flow.levels, off.flow.levels + 2);
+        assert_eq!(big.lr_tolerance, 4.0 * off.lr_tolerance);
+        assert!(big.validate().is_ok());
+        let bad = DenseParams {
+            finest_max_megapixels: -1.0,
+            ..off
+        };
+        assert!(bad.validate().is_err());
     }
 
     /// The opt-in passes between matching and filter widen the overlap by their reach, each
