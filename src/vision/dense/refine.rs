@@ -241,14 +241,21 @@ fn refine_level(
     // are taken where needed.
     let normalised =
         |img: &Image| normalise_contrast(img, params.presmooth_sigma, params.normalise_sigma);
-    let (na, (nb, (gbx, gby))) = rayon::join(
-        || normalised(a),
-        || {
-            let n = normalised(b);
-            let g = gradients(&n);
-            (n, g)
-        },
-    );
+    // The cross grid's range key (its serial sums) beside the normalisations.
+    let key = || {
+        (params.range_sigma > 0.0)
+            .then(|| range_key_smoothed(a.data(), w, h, params.range_key_sigma))
+    };
+    let (key, (na, (nb, (gbx, gby)))) = rayon::join(key, || {
+        rayon::join(
+            || normalised(a),
+            || {
+                let n = normalised(b);
+                let g = gradients(&n);
+                (n, g)
+            },
+        )
+    });
     let sb = Sampled {
         w: b.width(),
         h: b.height(),
@@ -283,11 +290,11 @@ fn refine_level(
     };
     // The cross grid's cells, reused by the start's sums (4 channels) and the iterations' (6).
     let mut grid: Vec<f32> = Vec::new();
-    let (xb, (u0, v0)): (Option<CrossGrid>, (Vec<f32>, Vec<f32>)) = if params.range_sigma > 0.0 {
+    let (xb, (u0, v0)): (Option<CrossGrid>, (Vec<f32>, Vec<f32>)) = if let Some(key) = key {
         // The sums of the start, produced and taken row by row while the grid is built.
         let (mut su, mut sv) = (vec![0f32; n], vec![0f32; n]);
         let g = CrossGrid::with_row_sums(
-            &range_key_smoothed(a.data(), w, h, params.range_key_sigma),
+            &key,
             (w, h),
             (params.window_sigma, params.range_sigma),
             &|y, row: &mut [[f32; 4]]| {
