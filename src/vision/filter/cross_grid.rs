@@ -79,7 +79,7 @@ impl CrossGrid {
         }
         let cells = |extent: f32, c: f32| (extent / c).floor() as usize + 2 + 2 * XB_PAD;
         let fz: Vec<f32> = key
-            .iter()
+            .par_iter()
             .map(|&k| (k - lo) / cell_r + XB_PAD as f32)
             .collect();
         let pad = XB_PAD as f32;
