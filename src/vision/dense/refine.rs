@@ -750,7 +750,7 @@ mod tests {
         let (w, h) = (61, 37);
         let field = |k: u32| -> Vec<f32> {
             (0..w * h)
-                .map(|p| ((p as u32 * 2_654_435_761 ^ k) % 1000) as f32 / 37.0)
+                .map(|p| (((p as u32).wrapping_mul(2_654_435_761) ^ k) % 1000) as f32 / 37.0)
                 .collect()
         };
         let start = || RefinedFlow {
