@@ -3,6 +3,7 @@
 //! Geometry follows DESIGN §3: x to the right, y down, pixel centres at integer
 //! coordinates, rows stored one after another (row-major).
 
+use rayon::prelude::*;
 use std::fmt;
 
 /// A single-channel image of `f32` samples, row-major.
@@ -29,10 +30,20 @@ impl Image {
     /// An image filled with `value`.
     #[must_use]
     pub fn filled(width: usize, height: usize, value: f32) -> Self {
+        let n = width * height;
+        let data = if value.to_bits() == 0 {
+            // Zeroed pages from the system, touched by their first writer.
+            vec![0.0; n]
+        } else {
+            // Written by both cores (a full-resolution map is millions of pixels).
+            let mut data = Vec::with_capacity(n);
+            data.par_extend(rayon::iter::repeat_n(value, n));
+            data
+        };
         Self {
             width,
             height,
-            data: vec![value; width * height],
+            data,
         }
     }
 
@@ -271,6 +282,21 @@ mod tests {
         let err = Image::from_vec(3, 2, vec![0.0; 5]).unwrap_err();
         assert_eq!(err.len, 5);
         assert!(err.to_string().contains("expected 3 × 2 = 6"));
+    }
+
+    #[test]
+    fn filled_holds_the_value_everywhere_on_any_number_of_threads() {
+        for threads in [1, 2, 3] {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            for value in [f32::NAN, -0.0, 0.0, 2.5] {
+                let img = pool.install(|| Image::filled(517, 9, value));
+                assert_eq!(img.dimensions(), (517, 9));
+                assert!(img.data().iter().all(|v| v.to_bits() == value.to_bits()));
+            }
+        }
     }
 
     #[test]

@@ -307,11 +307,31 @@ pub fn reconstruct_observed(
         tilt_axis_deg: geometry.tilt_axis_deg,
     };
     let (w, h) = left.dimensions();
-    let mut height_um = height_on_left_grid(&disp.disparity, &h_left, &h_right, &stereo, w, h)?;
-    let datum = apply_datum(&mut height_um, params.datum, geometry.pixel_size_um);
-    let confidence = left_grid_confidence(&disp.confidence, &disp.filled, &height_um, &h_left);
-    let unknown = left_grid_unknown(&disp.unknown, canvas, &height_um, &confidence, &h_left);
-    // The canvas maps (up to twice the micrograph's pixels) go before the precision's planes.
+    // The precision's measurements need the micrographs only: taken beside the depth stage,
+    // whose serial steps leave a core idle; scaled by its µm per disparity pixel after.
+    let (depth_stage, bound) = rayon::join(
+        || -> Result<_, ReconstructError> {
+            let mut height_um =
+                height_on_left_grid(&disp.disparity, &h_left, &h_right, &stereo, w, h)?;
+            let datum = apply_datum(&mut height_um, params.datum, geometry.pixel_size_um);
+            let confidence =
+                left_grid_confidence(&disp.confidence, &disp.filled, &height_um, &h_left);
+            let unknown =
+                left_grid_unknown(&disp.unknown, canvas, &height_um, &confidence, &h_left);
+            Ok((height_um, datum, confidence, unknown))
+        },
+        || {
+            precision::predict(
+                left,
+                right,
+                geometry.tilt_axis_deg,
+                matcher_window_sigma(&params.dense),
+                1.0,
+            )
+        },
+    );
+    let (height_um, datum, confidence, unknown) = depth_stage?;
+    // The canvas maps (up to twice the micrograph's pixels) go.
     let dense_stats = disp.stats;
     drop((disp.disparity, disp.confidence, disp.filled, disp.unknown));
     let depth = depth_report(&height_um, &stereo);
@@ -319,13 +339,11 @@ pub fn reconstruct_observed(
         return Err(ReconstructError::NoOverlap);
     }
     let depth_ms = ms(t);
-    let precision = precision::predict(
-        left,
-        right,
-        geometry.tilt_axis_deg,
-        matcher_window_sigma(&params.dense),
-        depth.um_per_disparity_px,
-    );
+    // The bound in disparity pixels (`predict` at 1 µm per pixel), in µm of height.
+    let precision = bound.map(|b| Precision {
+        height_um: b.disparity_px * depth.um_per_disparity_px,
+        ..b
+    });
 
     let map = |hm: &Matrix3<f64>, p: [f64; 2]| {
         let q = hm * Vector3::new(p[0], p[1], 1.0);

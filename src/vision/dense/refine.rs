@@ -241,14 +241,21 @@ fn refine_level(
     // are taken where needed.
     let normalised =
         |img: &Image| normalise_contrast(img, params.presmooth_sigma, params.normalise_sigma);
-    let (na, (nb, (gbx, gby))) = rayon::join(
-        || normalised(a),
-        || {
-            let n = normalised(b);
-            let g = gradients(&n);
-            (n, g)
-        },
-    );
+    // The cross grid's range key (its serial sums) beside the normalisations.
+    let key = || {
+        (params.range_sigma > 0.0)
+            .then(|| range_key_smoothed(a.data(), w, h, params.range_key_sigma))
+    };
+    let (key, (na, (nb, (gbx, gby)))) = rayon::join(key, || {
+        rayon::join(
+            || normalised(a),
+            || {
+                let n = normalised(b);
+                let g = gradients(&n);
+                (n, g)
+            },
+        )
+    });
     let sb = Sampled {
         w: b.width(),
         h: b.height(),
@@ -283,11 +290,11 @@ fn refine_level(
     };
     // The cross grid's cells, reused by the start's sums (4 channels) and the iterations' (6).
     let mut grid: Vec<f32> = Vec::new();
-    let (xb, (u0, v0)): (Option<CrossGrid>, (Vec<f32>, Vec<f32>)) = if params.range_sigma > 0.0 {
+    let (xb, (u0, v0)): (Option<CrossGrid>, (Vec<f32>, Vec<f32>)) = if let Some(key) = key {
         // The sums of the start, produced and taken row by row while the grid is built.
         let (mut su, mut sv) = (vec![0f32; n], vec![0f32; n]);
         let g = CrossGrid::with_row_sums(
-            &range_key_smoothed(a.data(), w, h, params.range_key_sigma),
+            &key,
             (w, h),
             (params.window_sigma, params.range_sigma),
             &|y, row: &mut [[f32; 4]]| {
@@ -470,13 +477,13 @@ fn refine_level(
         work.resize(4 * n, 0.0);
         work
     } else {
-        vec![0f32; 4 * n]
+        zeroed(4 * n)
     };
     let mut second = [grid, scratch.into_flattened()]
         .into_iter()
         .find(|b| b.len() >= 4 * n)
         .map_or_else(
-            || vec![0f32; 4 * n],
+            || zeroed(4 * n),
             |mut b| {
                 b.truncate(4 * n);
                 b
@@ -509,6 +516,14 @@ fn refine_level(
         })
         .collect();
     RefinedFlow { u, v, ncc, clamped }
+}
+
+/// `n` zeros written by both cores: memory glibc hands back from its arenas is cleared by
+/// `calloc` on one core (full-resolution planes of the refinement: a core idle meanwhile).
+fn zeroed(n: usize) -> Vec<f32> {
+    let mut v = Vec::with_capacity(n);
+    v.par_extend(rayon::iter::repeat_n(0f32, n));
+    v
 }
 
 /// Gives the pages of freed buffers back to the system before the full-resolution level, the
@@ -550,7 +565,7 @@ pub fn upsample_flow(
     // Level l+1's pixel i sits at 2i of level l (pyramid::halve_*): the exact
     // mapping is x/2; the ratio above only differs by the rounding of odd sizes.
     let half = wc == wf.div_ceil(2) && hc == hf.div_ceil(2);
-    let mut out = vec![0f32; wf * hf];
+    let mut out = zeroed(wf * hf);
     out.par_chunks_mut(wf).enumerate().for_each(|(y, row)| {
         let fy = if half {
             y as f32 / 2.0
@@ -701,16 +716,25 @@ pub fn upsample_refined(mut r: RefinedFlow, full: (usize, usize), level: usize) 
     for l in (0..level).rev() {
         let (wc, hc) = sizes[l + 1];
         let (wf, hf) = sizes[l];
-        let clamped: Vec<f32> = r.clamped.iter().map(|&c| f32::from(u8::from(c))).collect();
-        r = RefinedFlow {
-            u: upsample_flow(&r.u, wc, hc, wf, hf, 2.0),
-            v: upsample_flow(&r.v, wc, hc, wf, hf, 2.0),
-            ncc: upsample_flow(&r.ncc, wc, hc, wf, hf, 1.0),
-            clamped: upsample_flow(&clamped, wc, hc, wf, hf, 1.0)
-                .into_iter()
-                .map(|c| c > 0.0)
-                .collect(),
-        };
+        // The four fields side by side (each one's rows in parallel too).
+        let up = |f: &[f32], scale: f32| upsample_flow(f, wc, hc, wf, hf, scale);
+        let ((u, v), (ncc, clamped)) = rayon::join(
+            || rayon::join(|| up(&r.u, 2.0), || up(&r.v, 2.0)),
+            || {
+                rayon::join(
+                    || up(&r.ncc, 1.0),
+                    || {
+                        let clamped: Vec<f32> = r
+                            .clamped
+                            .par_iter()
+                            .map(|&c| f32::from(u8::from(c)))
+                            .collect();
+                        up(&clamped, 1.0).into_par_iter().map(|c| c > 0.0).collect()
+                    },
+                )
+            },
+        );
+        r = RefinedFlow { u, v, ncc, clamped };
     }
     r
 }
@@ -718,6 +742,41 @@ pub fn upsample_refined(mut r: RefinedFlow, full: (usize, usize), level: usize) 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The four fields are upsampled side by side and each one's rows in parallel: the same
+    /// values, bit for bit, on any number of threads.
+    #[test]
+    fn upsampling_a_refined_flow_is_the_same_on_any_number_of_threads() {
+        let (w, h) = (61, 37);
+        let field = |k: u32| -> Vec<f32> {
+            (0..w * h)
+                .map(|p| (((p as u32).wrapping_mul(2_654_435_761) ^ k) % 1000) as f32 / 37.0)
+                .collect()
+        };
+        let start = || RefinedFlow {
+            u: field(1),
+            v: field(2),
+            ncc: field(3),
+            clamped: (0..w * h).map(|p| p % 7 == 0).collect(),
+        };
+        let on = |threads: usize| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap()
+                .install(|| upsample_refined(start(), (4 * w - 3, 4 * h - 1), 2))
+        };
+        let bits = |r: &RefinedFlow| {
+            let b = |f: &[f32]| f.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+            (b(&r.u), b(&r.v), b(&r.ncc), r.clamped.clone())
+        };
+        let one = bits(&on(1));
+        assert_eq!(one.0.len(), (4 * w - 3) * (4 * h - 1));
+        assert!(one.3.iter().any(|&c| c) && one.3.iter().any(|&c| !c));
+        for threads in [2, 3, 4] {
+            assert_eq!(bits(&on(threads)), one, "{threads} threads");
+        }
+    }
 
     use crate::testing::Texture;
 

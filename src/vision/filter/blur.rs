@@ -294,7 +294,8 @@ fn blur_taps<const C: usize>(
 
 /// [`blur`] of one plane.
 pub(crate) fn blur_plane(src: &[f32], w: usize, h: usize, sigma: f32) -> Vec<f32> {
-    let mut buf = src.to_vec();
+    // The copy by both cores (a full-resolution plane).
+    let mut buf: Vec<f32> = src.par_iter().copied().collect();
     let mut scratch = vec![0f32; buf.len()];
     blur_plane_in_place(&mut buf, &mut scratch, w, h, sigma);
     buf

@@ -79,7 +79,7 @@ impl CrossGrid {
         }
         let cells = |extent: f32, c: f32| (extent / c).floor() as usize + 2 + 2 * XB_PAD;
         let fz: Vec<f32> = key
-            .iter()
+            .par_iter()
             .map(|&k| (k - lo) / cell_r + XB_PAD as f32)
             .collect();
         let pad = XB_PAD as f32;
@@ -249,7 +249,9 @@ impl CrossGrid {
         grid.clear();
         // Exactly: the 6-channel sums follow the 4-channel ones in the same buffer.
         grid.reserve_exact(slab * ny * C);
-        grid.resize(slab * ny * C, 0.0);
+        // Zeroed by both cores: tens of MB at full resolution, whose clearing (and first touch)
+        // on one core alone left the other idle.
+        grid.par_extend(rayon::iter::repeat_n(0.0, slab * ny * C));
         let cell = self.cell;
         let pad = XB_PAD as f32;
         let run = run.max(1);
@@ -555,7 +557,7 @@ pub(crate) fn range_key(img: &[f32], w: usize, h: usize) -> Vec<f32> {
 /// (the windows stay whole on a textured surface) and keeps the contrast of larger regions.
 pub(crate) fn range_key_smoothed(img: &[f32], w: usize, h: usize, sigma: f32) -> Vec<f32> {
     let finite: Vec<f32> = img
-        .iter()
+        .par_iter()
         .map(|&v| if v.is_finite() { v } else { 0.0 })
         .collect();
     let spread = |s: &[f32]| {
@@ -576,7 +578,7 @@ pub(crate) fn range_key_smoothed(img: &[f32], w: usize, h: usize, sigma: f32) ->
         spread(&blur_plane(&finite, w, h, XB_KEY_PRESMOOTH)).1
     };
     let inv = if var > 0.0 { 1.0 / var.sqrt() } else { 1.0 };
-    s.iter()
+    s.par_iter()
         .map(|&v| ((f64::from(v) - mean) * inv) as f32)
         .collect()
 }

@@ -950,7 +950,9 @@ impl<'a> DualLayerBp<'a> {
             }
             let mut snapshot = std::mem::take(&mut spare);
             for (s, l) in snapshot.iter_mut().zip(&self.labels) {
-                s.clone_from(l);
+                // Copied by both cores, into the room of an earlier snapshot.
+                s.clear();
+                s.par_extend(l.par_iter().copied());
             }
             pending = Some(snapshot);
             if let (Some(p), Some(prev)) = (patience, previous.as_mut()) {

@@ -380,7 +380,9 @@ impl Engine {
                 )
             };
             let (f, b) = forward_and_backward(forward, both.then_some(backward));
-            drop((da, db));
+            // Freed side by side: returning the pages of the finest level's descriptors (tens
+            // of MB each) took one core alone.
+            rayon::join(|| drop(da), || drop(db));
             let mask_b = masks_b[l].as_deref();
             let mask_a = masks_a[l].as_deref();
             let (f, b) = if l == self.finest {
