@@ -11,8 +11,8 @@
 //!    along the parallax against the noise floor, distinctiveness of the match), the anchor
 //!    test of featureless pixels ([`anchor`]: texture on both sides along the parallax) and
 //!    the per-pixel confidence, with the reason of every unknown pixel;
-//! 7. `bilateral_filtering` ([`fill`], then the bilateral grid, then optionally the detail
-//!    restoration of [`detail`]).
+//! 7. `bilateral_filtering` ([`fill`], then the bilateral grid, then optionally the twicing
+//!    and the detail restoration of [`detail`]).
 //!
 //! Which of them act is the parameters' choice ([`DenseParams`]); the paper preset runs 2 at
 //! full resolution with integer flow, and 7 unweighted.
