@@ -11,8 +11,8 @@
 //!    along the parallax against the noise floor, distinctiveness of the match), the anchor
 //!    test of featureless pixels ([`anchor`]: texture on both sides along the parallax) and
 //!    the per-pixel confidence, with the reason of every unknown pixel;
-//! 7. `bilateral_filtering` ([`fill`], then the bilateral grid, then optionally the detail
-//!    restoration of [`detail`]).
+//! 7. `bilateral_filtering` ([`fill`], then the bilateral grid, then optionally the twicing
+//!    and the detail restoration of [`detail`]).
 //!
 //! Which of them act is the parameters' choice ([`DenseParams`]); the paper preset runs 2 at
 //! full resolution with integer flow, and 7 unweighted.
@@ -819,22 +819,36 @@ fn bilateral_filtering(
         Image::from_vec(w, h, wt).expect("the size of the confidence")
     });
     let (mut disparity, grid) = bilateral_filter(&to_filter, weights.as_ref(), &params.bilateral);
-    if params.detail.enabled {
+    let measured: Vec<bool> = filled.iter().map(|f| !f).collect();
+    let d = &params.detail;
+    // Twicing: the detail the filter removed, smoothed, is what the restoration judges (or
+    // what is put back whole without it): pixel-scale noise stays removed either way.
+    let twiced = (d.twicing_sigma > 0.0).then(|| {
+        detail::twice(
+            (&to_filter, &disparity),
+            weights.as_ref(),
+            &measured,
+            d.twicing_sigma,
+            d.max_px,
+        )
+    });
+    let noise = d.enabled.then(|| {
         let window = crate::vision::pipeline::matcher_window_sigma(params) as f32;
         let pair = (&inputs.a, &inputs.b);
-        if let Some(noise) =
-            detail::disparity_noise_variance(pair, (&inputs.va, &inputs.vb), window)
-        {
-            let measured: Vec<bool> = filled.iter().map(|f| !f).collect();
-            let d = &params.detail;
+        detail::disparity_noise_variance(pair, (&inputs.va, &inputs.vb), window)
+    });
+    match (noise.flatten(), twiced) {
+        (Some(noise), twiced) => {
             disparity = detail::restore_detail(
-                (&to_filter, &disparity),
+                (twiced.as_ref().unwrap_or(&to_filter), &disparity),
                 &noise,
                 &measured,
                 params.bilateral.sigma_s,
                 (d.noise_scale, d.max_px),
             );
         }
+        (None, Some(t)) => disparity = t,
+        (None, None) => {}
     }
     Filtered {
         disparity,
