@@ -54,7 +54,7 @@ pub struct DenseParams {
     /// On a left micrograph above this many megapixels, raise `finest_level` and `levels` by one per
     /// halving that brings it within them (and double the left–right tolerances), so the matcher's
     /// windows span as much specimen as on a small micrograph (as SIFT's `sift_max_megapixels`
-    /// copy does); 0 = never (opt-in).
+    /// copy does); 0 = never (paper 0).
     pub finest_max_megapixels: f64,
 }
 
@@ -85,7 +85,7 @@ impl DenseParams {
             slanted: SlantedParams::default(),
             anchor: AnchorParams::default(),
             memory_budget_mib: 1024,
-            finest_max_megapixels: 0.0,
+            finest_max_megapixels: 4.0,
         };
         match preset {
             Preset::Improved => improved,
@@ -95,6 +95,7 @@ impl DenseParams {
                 vertical_window: 2,
                 search_from_sparse: false,
                 left_right_check: false,
+                finest_max_megapixels: 0.0,
                 weighted_filter: false,
                 reassign: ReassignParams {
                     enabled: false,

@@ -773,16 +773,27 @@ mod tests {
     }
 
     /// `finest_max_megapixels` deepens the matcher by one level per halving of the micrograph
-    /// (as many as SIFT's copy has), and changes nothing when off or when the micrograph fits.
+    /// (as many as SIFT's copy has), and changes nothing when off or when the micrograph fits;
+    /// the improved preset has it at SIFT's 4 MP, the paper's pipeline never.
     #[test]
-    fn large_micrographs_are_matched_from_a_coarser_level_only_when_asked() {
+    fn large_micrographs_are_matched_from_a_coarser_level() {
         assert_eq!(halvings(1280 * 960, 4.0), 0);
         assert_eq!(halvings(4_000_000, 4.0), 0);
         assert_eq!(halvings(4096 * 3072, 4.0), 1);
         assert_eq!(halvings(8192 * 6144, 4.0), 2);
         assert_eq!(halvings(8192 * 6144, 0.0), 0);
-        let off = DenseParams::preset(Preset::Improved);
-        assert_eq!(off.finest_max_megapixels, 0.0, "opt-in");
+        assert_eq!(
+            DenseParams::preset(Preset::Improved).finest_max_megapixels,
+            4.0
+        );
+        assert_eq!(
+            DenseParams::preset(Preset::Paper).finest_max_megapixels,
+            0.0
+        );
+        let off = DenseParams {
+            finest_max_megapixels: 0.0,
+            ..DenseParams::preset(Preset::Improved)
+        };
         assert_eq!(scaled_for_size(&off, 8192 * 6144), off);
         let on = DenseParams {
             finest_max_megapixels: 4.0,
