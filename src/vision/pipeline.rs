@@ -307,33 +307,38 @@ pub fn reconstruct_observed(
         tilt_axis_deg: geometry.tilt_axis_deg,
     };
     let (w, h) = left.dimensions();
-    // The precision's measurements need the micrographs only: taken beside the depth stage,
-    // whose serial steps leave a core idle; scaled by its µm per disparity pixel after.
-    let (depth_stage, bound) = rayon::join(
-        || -> Result<_, ReconstructError> {
-            let mut height_um =
-                height_on_left_grid(&disp.disparity, &h_left, &h_right, &stereo, w, h)?;
-            let datum = apply_datum(&mut height_um, params.datum, geometry.pixel_size_um);
-            let confidence =
-                left_grid_confidence(&disp.confidence, &disp.filled, &height_um, &h_left);
-            let unknown =
-                left_grid_unknown(&disp.unknown, canvas, &height_um, &confidence, &h_left);
-            Ok((height_um, datum, confidence, unknown))
-        },
-        || {
-            precision::predict(
-                left,
-                right,
-                geometry.tilt_axis_deg,
-                matcher_window_sigma(&params.dense),
-                1.0,
-            )
-        },
-    );
+    let depth_stage = || -> Result<_, ReconstructError> {
+        let mut height_um = height_on_left_grid(&disp.disparity, &h_left, &h_right, &stereo, w, h)?;
+        let datum = apply_datum(&mut height_um, params.datum, geometry.pixel_size_um);
+        let confidence = left_grid_confidence(&disp.confidence, &disp.filled, &height_um, &h_left);
+        let unknown = left_grid_unknown(&disp.unknown, canvas, &height_um, &confidence, &h_left);
+        Ok((height_um, datum, confidence, unknown))
+    };
+    // The precision's bound in disparity pixels (at 1 µm per pixel): it needs the micrographs
+    // only. Beside the depth stage, whose serial steps leave a core idle, when the canvas fit
+    // the memory budget; after the canvas maps are freed otherwise (its planes would meet them:
+    // 8192×6144 peaked at 2.6 GiB side by side, 1.9 GiB in turn).
+    let predict = || {
+        precision::predict(
+            left,
+            right,
+            geometry.tilt_axis_deg,
+            matcher_window_sigma(&params.dense),
+            1.0,
+        )
+    };
+    let side_by_side = fits_budget(&dense, canvas);
+    let (depth_stage, bound) = if side_by_side {
+        let (d, b) = rayon::join(depth_stage, predict);
+        (d, Some(b))
+    } else {
+        (depth_stage(), None)
+    };
     let (height_um, datum, confidence, unknown) = depth_stage?;
     // The canvas maps (up to twice the micrograph's pixels) go.
     let dense_stats = disp.stats;
     drop((disp.disparity, disp.confidence, disp.filled, disp.unknown));
+    let bound = bound.unwrap_or_else(predict);
     let depth = depth_report(&height_um, &stereo);
     if depth.valid_fraction == 0.0 {
         return Err(ReconstructError::NoOverlap);
