@@ -943,6 +943,32 @@ mod tests {
         render(256, 96, Texture::new(5), &layers, 0.0, 0.01)
     }
 
+    /// The stage's state after the left–right check: the pixels `gap` picks unknown (their
+    /// reason left-right), the rest measured at the pair's true disparity.
+    fn after_left_right(
+        pair: &crate::testing::SyntheticPair,
+        gap: impl Fn(usize) -> bool,
+    ) -> (Image, Vec<Unknown>) {
+        let (w, h) = pair.left.dimensions();
+        let raw = Image::from_fn(w, h, |x, y| {
+            if gap(y * w + x) {
+                f32::NAN
+            } else {
+                pair.disparity.get(x, y)
+            }
+        });
+        let unknown = (0..w * h)
+            .map(|p| {
+                if gap(p) {
+                    Unknown::LeftRight
+                } else {
+                    Unknown::Measured
+                }
+            })
+            .collect();
+        (raw, unknown)
+    }
+
     /// The flank's pixels away from its ends (where the plane is exact) and the border.
     fn on_flank(p: usize, w: usize) -> bool {
         let (x, y) = (p % w, p / w);
@@ -962,23 +988,7 @@ mod tests {
         };
         // The stage's state after the left–right check: the flank unknown, the rest measured,
         // no forward start and no backward field on the flank to lean on.
-        let flank_px = |p: usize| (70..130).contains(&(p % w));
-        let mut raw = Image::from_fn(w, h, |x, y| {
-            if flank_px(y * w + x) {
-                f32::NAN
-            } else {
-                pair.disparity.get(x, y)
-            }
-        });
-        let mut unknown: Vec<Unknown> = (0..w * h)
-            .map(|p| {
-                if flank_px(p) {
-                    Unknown::LeftRight
-                } else {
-                    Unknown::Measured
-                }
-            })
-            .collect();
+        let (mut raw, mut unknown) = after_left_right(&pair, |p| (70..130).contains(&(p % w)));
         let mut confidence = Image::filled(w, h, 1.0);
         let start = vec![f32::NAN; w * h];
         let backward = vec![f32::NAN; w * h];
@@ -1098,22 +1108,7 @@ mod tests {
         };
         // After the left–right check the first 32 columns are unknown, the rest measured.
         let gap = |p: usize| p % w < 32;
-        let mut raw = Image::from_fn(w, h, |x, y| {
-            if gap(y * w + x) {
-                f32::NAN
-            } else {
-                pair.disparity.get(x, y)
-            }
-        });
-        let mut unknown: Vec<Unknown> = (0..w * h)
-            .map(|p| {
-                if gap(p) {
-                    Unknown::LeftRight
-                } else {
-                    Unknown::Measured
-                }
-            })
-            .collect();
+        let (mut raw, mut unknown) = after_left_right(&pair, gap);
         let mut confidence = Image::filled(w, h, 1.0);
         let valid = vec![true; w * h];
         // The right-to-left field leads the right micrograph's first column to left column 20.

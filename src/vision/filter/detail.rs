@@ -242,6 +242,15 @@ mod tests {
             }
     }
 
+    /// RMS error against `relief` away from the bar (columns 5–24, rows 0–7).
+    fn flat(im: &Image) -> f32 {
+        let s: f32 = (5..25)
+            .flat_map(|x| (0..8).map(move |y| (x, y)))
+            .map(|(x, y)| (im.get(x, y) - relief(x, y)).powi(2))
+            .sum();
+        (s / 160.0).sqrt()
+    }
+
     fn rms_against(im: &Image, truth: impl Fn(usize, usize) -> f32) -> f32 {
         let (w, h) = im.dimensions();
         let s: f32 = (0..h)
@@ -285,13 +294,6 @@ mod tests {
         assert!(err_o < 0.6 * err_raw, "{err_o} vs raw {err_raw}");
         assert!(err_o < err_s, "{err_o} vs smoothed {err_s}");
         // Away from the bar, as smooth as the filter alone.
-        let flat = |im: &Image| {
-            let s: f32 = (5..25)
-                .flat_map(|x| (0..8).map(move |y| (x, y)))
-                .map(|(x, y)| (im.get(x, y) - relief(x, y)).powi(2))
-                .sum();
-            (s / 160.0).sqrt()
-        };
         assert!(
             flat(&out) < 1.3 * flat(&smooth),
             "{} vs {}",
@@ -334,13 +336,6 @@ mod tests {
         };
         let (b_s, b_o) = (bar(&smooth), bar(&out));
         assert!(b_o > b_s + 0.2, "bar {b_o} vs smoothed {b_s}");
-        let flat = |im: &Image| {
-            let s: f32 = (5..25)
-                .flat_map(|x| (0..8).map(move |y| (x, y)))
-                .map(|(x, y)| (im.get(x, y) - relief(x, y)).powi(2))
-                .sum();
-            (s / 160.0).sqrt()
-        };
         assert!(
             flat(&out) < 0.6 * flat(&raw),
             "{} vs raw {}",
