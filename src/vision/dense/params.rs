@@ -41,7 +41,7 @@ pub struct DenseParams {
     pub reassign: ReassignParams,
     /// The bilateral grid filter of the disparity (Paris & Durand 2009).
     pub bilateral: BilateralParams,
-    /// Put back the relief the bilateral filter removed: where it stands out of the predicted noise (opt-in, `enabled = true`), smoothed (opt-in, `twicing_sigma`).
+    /// Put back the relief the bilateral filter removed: beyond the predicted noise (`enabled`) or smoothed (`twicing_sigma`); both opt-in.
     pub detail: DetailParams,
     /// Leave unknown what the micrographs cannot tell: texture, distinctiveness (opt-in, `enabled = true`).
     pub support: SupportParams,

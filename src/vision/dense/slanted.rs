@@ -1140,19 +1140,7 @@ mod tests {
             seen.len()
         );
         // Without a right-to-left field nothing tells the strip apart here: it is tried.
-        let mut raw2 = raw.clone();
-        for p in (0..w * h).filter(|&p| gap(p)) {
-            raw2.data_mut()[p] = f32::NAN;
-        }
-        let mut unknown2: Vec<Unknown> = (0..w * h)
-            .map(|p| {
-                if gap(p) {
-                    Unknown::LeftRight
-                } else {
-                    Unknown::Measured
-                }
-            })
-            .collect();
+        let (mut raw2, mut unknown2) = after_left_right(&pair, gap);
         let stats = measure_steep(
             (&pair.left, &pair.right),
             (&valid, &valid),
