@@ -718,6 +718,11 @@ fn left_right_consistency(
                 *c = ambiguity[p] * agreement[p];
             }
         });
+    if start.is_none() {
+        if let Some(bw) = &backward_u {
+            mark_never_seen(&mut unknown, bw.data(), vb, (w, h), params.lr_tolerance);
+        }
+    }
     if let Some(start) = &start {
         let backward = backward_u.as_ref().map(Image::data);
         let out = (&mut raw, &mut confidence, &mut unknown[..]);
@@ -764,6 +769,32 @@ fn left_right_consistency(
         clamped,
         unknown,
     }
+}
+
+/// The pixels the left–right check rejected in the strip the right micrograph never saw (left
+/// of the first column it sees, less the tolerance) relabelled [`Unknown::NotSeen`]: no match
+/// exists there, so the reason is the view, not a disagreement. The slanted pass, when on, does
+/// the same for the pixels it cannot measure.
+fn mark_never_seen(
+    unknown: &mut [Unknown],
+    backward: &[f32],
+    vb: &[bool],
+    (w, h): (usize, usize),
+    lr_tolerance: f32,
+) {
+    let first_seen = slanted::first_seen_columns(backward, vb, (w, h));
+    unknown
+        .par_chunks_mut(w)
+        .zip(&first_seen)
+        .for_each(|(row, &first)| {
+            let edge = first - lr_tolerance;
+            for (x, why) in row.iter_mut().enumerate() {
+                #[allow(clippy::cast_precision_loss)]
+                if *why == Unknown::LeftRight && (x as f32) < edge {
+                    *why = Unknown::NotSeen;
+                }
+            }
+        });
 }
 
 /// The measured pixels whose verdict is not `Measured` made unknown for that reason.
@@ -952,6 +983,37 @@ mod tests {
         let mut p = DenseParams::preset(preset);
         p.flow.levels = 3;
         p
+    }
+
+    #[test]
+    fn rejected_pixels_left_of_what_the_right_micrograph_sees_are_not_seen() {
+        // The right micrograph's columns lead back to left columns 20 px further right: left
+        // columns 0..20 were never seen. The third row has no right data, so no edge is known.
+        let (w, h) = (60, 3);
+        let backward = vec![20.0; w * h];
+        let vb: Vec<bool> = (0..w * h).map(|p| p / w < 2).collect();
+        let mut unknown: Vec<Unknown> = (0..w * h)
+            .map(|p| {
+                if p % w < 30 {
+                    Unknown::LeftRight
+                } else {
+                    Unknown::Measured
+                }
+            })
+            .collect();
+        unknown[5] = Unknown::Measured;
+        mark_never_seen(&mut unknown, &backward, &vb, (w, h), 2.0);
+        for (p, why) in unknown.iter().enumerate() {
+            let (x, y) = (p % w, p / w);
+            let expected = if p == 5 || x >= 30 {
+                Unknown::Measured
+            } else if y < 2 && x < 18 {
+                Unknown::NotSeen
+            } else {
+                Unknown::LeftRight
+            };
+            assert_eq!(*why, expected, "pixel ({x}, {y})");
+        }
     }
 
     fn errors(d: &Image, truth: &Image, visible: &[bool]) -> (Vec<f32>, usize) {

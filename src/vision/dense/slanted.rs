@@ -117,7 +117,11 @@ const EDGE_SAMPLES: usize = 16;
 /// so that a wrong backward match can only make the strip narrower); `−∞` where the row has no
 /// such column. Left of it, a match that keeps the order along the row, as every plane with
 /// `|∂d/∂x| < 1` does (`max_slope` < 0.95), lands before the right micrograph's first column.
-fn first_seen_columns(backward: &[f32], vb: &[bool], (w, h): (usize, usize)) -> Vec<f32> {
+pub(super) fn first_seen_columns(
+    backward: &[f32],
+    vb: &[bool],
+    (w, h): (usize, usize),
+) -> Vec<f32> {
     (0..h)
         .into_par_iter()
         .map(|y| {
