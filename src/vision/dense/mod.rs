@@ -718,10 +718,8 @@ fn left_right_consistency(
                 *c = ambiguity[p] * agreement[p];
             }
         });
-    if start.is_none() {
-        if let Some(bw) = &backward_u {
-            mark_never_seen(&mut unknown, bw.data(), vb, (w, h), params.lr_tolerance);
-        }
+    if let (None, Some(bw)) = (&start, &backward_u) {
+        mark_never_seen(&mut unknown, bw.data(), vb, (w, h), params.lr_tolerance);
     }
     if let Some(start) = &start {
         let backward = backward_u.as_ref().map(Image::data);
