@@ -92,6 +92,17 @@ impl DescriptorImage {
             .expect("slice of DESCRIPTOR_LEN bytes")
     }
 
+    /// The descriptors of row `y`, `DESCRIPTOR_LEN` bytes per pixel.
+    ///
+    /// # Panics
+    /// When the row lies outside the image.
+    #[must_use]
+    #[inline]
+    pub fn row(&self, y: usize) -> &[u8] {
+        let n = self.width * DESCRIPTOR_LEN;
+        &self.data[y * n..(y + 1) * n]
+    }
+
     /// All descriptors, row-major.
     #[must_use]
     pub fn data(&self) -> &[u8] {
@@ -146,6 +157,75 @@ pub fn l1_distance(a: &[u8; DESCRIPTOR_LEN], b: &[u8; DESCRIPTOR_LEN]) -> u32 {
             .zip(b)
             .map(|(&x, &y)| u32::from(x.abs_diff(y)))
             .sum()
+    }
+}
+
+/// One descriptor kept in registers for the [`l1_distance`]s of a window of candidates against
+/// it (the data term compares every pixel with 15 to 105 of them): loaded once, not per pair.
+#[derive(Clone, Copy)]
+pub struct L1Query {
+    #[cfg(target_arch = "x86_64")]
+    lanes: [std::arch::x86_64::__m128i; DESCRIPTOR_LEN / 16],
+    #[cfg(not(target_arch = "x86_64"))]
+    bytes: [u8; DESCRIPTOR_LEN],
+}
+
+impl L1Query {
+    /// The query of descriptor `a`.
+    #[must_use]
+    #[inline(always)]
+    pub fn new(a: &[u8; DESCRIPTOR_LEN]) -> Self {
+        #[cfg(target_arch = "x86_64")]
+        {
+            use std::arch::x86_64::{__m128i, _mm_loadu_si128};
+            // SAFETY: SSE2 is part of the x86-64 baseline; `i · 16 + 16 ≤ DESCRIPTOR_LEN`, and
+            // `_mm_loadu_si128` accepts unaligned addresses.
+            let lanes = std::array::from_fn(|i| unsafe {
+                _mm_loadu_si128(a.as_ptr().add(i * 16).cast::<__m128i>())
+            });
+            Self { lanes }
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        {
+            Self { bytes: *a }
+        }
+    }
+
+    /// [`l1_distance`] of the query and `b` (the same sum).
+    #[must_use]
+    #[inline(always)]
+    pub fn distance(&self, b: &[u8; DESCRIPTOR_LEN]) -> u32 {
+        #[cfg(target_arch = "x86_64")]
+        {
+            use std::arch::x86_64::{
+                __m128i, _mm_add_epi64, _mm_cvtsi128_si64, _mm_loadu_si128, _mm_sad_epu8,
+                _mm_unpackhi_epi64,
+            };
+            // SAFETY: as in `new`; the sums of absolute differences are exact integers, so
+            // the order of the additions does not matter.
+            let total = unsafe {
+                let sad = |i: usize| {
+                    _mm_sad_epu8(
+                        self.lanes[i],
+                        _mm_loadu_si128(b.as_ptr().add(i * 16).cast::<__m128i>()),
+                    )
+                };
+                let s01 = _mm_add_epi64(sad(0), sad(1));
+                let s23 = _mm_add_epi64(sad(2), sad(3));
+                let s45 = _mm_add_epi64(sad(4), sad(5));
+                let s67 = _mm_add_epi64(sad(6), sad(7));
+                let acc = _mm_add_epi64(_mm_add_epi64(s01, s23), _mm_add_epi64(s45, s67));
+                _mm_cvtsi128_si64(_mm_add_epi64(acc, _mm_unpackhi_epi64(acc, acc)))
+            };
+            // At most 128 · 255.
+            #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
+            let t = total as u32;
+            t
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        {
+            l1_distance(&self.bytes, b)
+        }
     }
 }
 

@@ -490,6 +490,9 @@ impl Sweep<'_> {
             (5, 3) => self.strip::<5, 3>(rows),
             (3, 5) => self.strip::<3, 5>(rows),
             (5, 5) => self.strip::<5, 5>(rows),
+            // The improved preset's middle level (half windows 4 and 1).
+            (9, 3) => self.strip::<9, 3>(rows),
+            (3, 9) => self.strip::<3, 9>(rows),
             (21, 5) => self.strip::<21, 5>(rows),
             (5, 21) => self.strip::<5, 21>(rows),
             (21, 21) => self.strip::<21, 21>(rows),
@@ -847,18 +850,35 @@ impl<'a> DualLayerBp<'a> {
 
     /// Beliefs of layer `k` at pixel `p`: range term plus every incoming message (once a step
     /// has set the messages).
+    #[inline]
     fn belief(&self, k: usize, p: usize, out: &mut [f32]) {
-        let n = self.space.states(k);
+        match self.space.states(k) {
+            3 => self.belief_of::<3>(k, p, out),
+            5 => self.belief_of::<5>(k, p, out),
+            9 => self.belief_of::<9>(k, p, out),
+            21 => self.belief_of::<21>(k, p, out),
+            _ => self.belief_of::<0>(k, p, out),
+        }
+    }
+
+    /// [`Self::belief`] with `N` states known at compile time (0: read them from the label
+    /// space). Slot after slot, each label's sum in the same order as the sweeps' (range term,
+    /// then the messages from the left, right, up, down and the other layer).
+    #[inline(always)]
+    fn belief_of<const N: usize>(&self, k: usize, p: usize, out: &mut [f32]) {
+        let n = if N > 0 { N } else { self.space.states(k) };
         let node = &self.msgs[k][p * SLOTS * n..(p + 1) * SLOTS * n];
         // The flow of label `l` is `base + l` (`LabelSpace::flow`).
         let base = self.space.offset[k][p] - self.space.window[k] as i32;
         let gamma = self.weights.gamma;
-        for (l, o) in out[..n].iter_mut().enumerate() {
-            let mut b = gamma * (base + l as i32).unsigned_abs() as f32;
-            for slot in node.chunks_exact(n) {
-                b += slot[l];
+        let out = &mut out[..n];
+        for (l, o) in out.iter_mut().enumerate() {
+            *o = gamma * (base + l as i32).unsigned_abs() as f32;
+        }
+        for slot in node.chunks_exact(n) {
+            for (o, &m) in out.iter_mut().zip(slot) {
+                *o += m;
             }
-            *o = b;
         }
     }
 

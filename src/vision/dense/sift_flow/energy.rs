@@ -13,7 +13,7 @@
 
 use rayon::prelude::*;
 
-use crate::vision::dense::dense_sift::{DescriptorImage, l1_distance};
+use crate::vision::dense::dense_sift::{DESCRIPTOR_LEN, DescriptorImage, L1Query};
 use crate::vision::pages;
 
 /// Parameters of eq. (10) at one pyramid level.
@@ -210,35 +210,54 @@ impl DataTerm {
         let (w2, h2) = (s2.width() as i64, s2.height() as i64);
         let per_pixel = nu * nv;
         let mut cost = pages::zeroed::<u16>(w * h * per_pixel);
+        let w2u = s2.width();
+        let (wu, wv) = (space.window[0] as i64, space.window[1] as i64);
         cost.par_chunks_mut(w * per_pixel)
             .enumerate()
             .for_each(|(y, row)| {
-                for x in 0..w {
+                let (off_u, off_v) = (
+                    &space.offset[0][y * w..(y + 1) * w],
+                    &space.offset[1][y * w..(y + 1) * w],
+                );
+                for (x, out) in row.chunks_exact_mut(per_pixel).enumerate() {
                     let p = y * w + x;
-                    let out = &mut row[x * per_pixel..(x + 1) * per_pixel];
                     if valid1.is_some_and(|m| !m[p]) {
                         // Left out of the median below; zero at the end.
                         out.fill(OUTSIDE);
                         continue;
                     }
-                    let a = s1.at(x, y);
-                    for lv in 0..nv {
-                        let y2 = y as i64 + i64::from(space.flow(1, p, lv));
-                        for lu in 0..nu {
-                            let x2 = x as i64 + i64::from(space.flow(0, p, lu));
-                            let inside = x2 >= 0 && x2 < w2 && y2 >= 0 && y2 < h2;
-                            out[lv * nu + lu] = if !inside {
+                    let a = L1Query::new(s1.at(x, y));
+                    // The match of labels (0, 0); label l adds l (`LabelSpace::flow`).
+                    let x2_0 = x as i64 + i64::from(off_u[x]) - wu;
+                    let y2_0 = y as i64 + i64::from(off_v[x]) - wv;
+                    for (lv, out_v) in out.chunks_exact_mut(nu).enumerate() {
+                        let y2 = y2_0 + lv as i64;
+                        if y2 < 0 || y2 >= h2 {
+                            out_v.fill(OUTSIDE);
+                            continue;
+                        }
+                        // Inside the image: the cast is in range.
+                        #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
+                        let yy = y2 as usize;
+                        let row2 = s2.row(yy);
+                        let valid_row = valid2.map(|m| &m[yy * w2u..(yy + 1) * w2u]);
+                        for (lu, o) in out_v.iter_mut().enumerate() {
+                            let x2 = x2_0 + lu as i64;
+                            *o = if x2 < 0 || x2 >= w2 {
                                 OUTSIDE
                             } else {
-                                // Inside the image: the casts are in range.
+                                // Inside the image: the cast is in range.
                                 #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
-                                let (xx, yy) = (x2 as usize, y2 as usize);
-                                if valid2.is_some_and(|m| !m[yy * s2.width() + xx]) {
+                                let xx = x2 as usize;
+                                if valid_row.is_some_and(|m| !m[xx]) {
                                     OUTSIDE
                                 } else {
+                                    let b = row2[xx * DESCRIPTOR_LEN..(xx + 1) * DESCRIPTOR_LEN]
+                                        .try_into()
+                                        .expect("DESCRIPTOR_LEN bytes");
                                     // At most 32 640: fits.
                                     #[allow(clippy::cast_possible_truncation)]
-                                    let c = l1_distance(a, s2.at(xx, yy)) as u16;
+                                    let c = a.distance(b) as u16;
                                     c
                                 }
                             };
@@ -295,16 +314,17 @@ impl DataTerm {
         };
         let mut offset = [vec![0i32; cw * ch], vec![0i32; cw * ch]];
         for (coarse, fine) in offset.iter_mut().zip(&space.offset) {
-            for cy in 0..ch {
-                for cx in 0..cw {
+            // Row by row on every core (each mean its own: the same values).
+            coarse.par_chunks_mut(cw).enumerate().for_each(|(cy, row)| {
+                for (cx, o) in row.iter_mut().enumerate() {
                     let (sum, n) = children(cx, cy)
                         .fold((0i64, 0i64), |(s, n), p| (s + i64::from(fine[p]), n + 1));
                     // A mean of i32 offsets.
                     #[allow(clippy::cast_possible_truncation)]
                     let mean = (sum as f64 / n as f64).round() as i32;
-                    coarse[cy * cw + cx] = mean;
+                    *o = mean;
                 }
-            }
+            });
         }
         let coarse_space = LabelSpace {
             width: cw,
@@ -889,6 +909,64 @@ mod tests {
                 }
             } else {
                 assert!(c.iter().all(|&x| x == 0), "pixel {p} has a data term");
+            }
+        }
+    }
+
+    /// Every entry of the data term by its definition: the L1 distance of the descriptors at the
+    /// pixel and at its match, `OUTSIDE` (then the median) beyond the second image or on its
+    /// invalid pixels, 0 on the first image's invalid pixels; per-pixel offsets that reach past
+    /// every side, a second image of another size.
+    #[test]
+    fn data_term_matches_its_definition() {
+        use crate::vision::dense::dense_sift::{DenseSiftParams, dense_sift, l1_distance};
+        let image = |w: usize, h: usize, seed: usize| {
+            crate::vision::Image::from_vec(
+                w,
+                h,
+                (0..w * h)
+                    .map(|p| ((p * 7919 + seed) % 101) as f32 / 101.0)
+                    .collect(),
+            )
+            .unwrap()
+        };
+        let (w, h, w2, h2) = (23, 17, 19, 21);
+        let d1 = dense_sift(&image(w, h, 3), &DenseSiftParams { cell_size: 1 });
+        let d2 = dense_sift(&image(w2, h2, 11), &DenseSiftParams { cell_size: 1 });
+        let space = LabelSpace {
+            width: w,
+            height: h,
+            window: [3, 2],
+            offset: [
+                (0..w * h).map(|p| (p * 13 % 11) as i32 - 5).collect(),
+                (0..w * h).map(|p| (p * 5 % 7) as i32 - 3).collect(),
+            ],
+        };
+        let valid1: Vec<bool> = (0..w * h).map(|p| p % 9 != 4).collect();
+        let valid2: Vec<bool> = (0..w2 * h2).map(|p| p % 7 != 2).collect();
+        let (nu, nv) = (space.states(0), space.states(1));
+        for (m1, m2) in [(None, None), (Some(&valid1[..]), Some(&valid2[..]))] {
+            let data = DataTerm::compute(&d1, &d2, &space, m1, m2, None);
+            for p in 0..w * h {
+                let (x, y) = ((p % w) as i32, (p / w) as i32);
+                for lv in 0..nv {
+                    for lu in 0..nu {
+                        let got = data.cost[(p * nv + lv) * nu + lu];
+                        if m1.is_some_and(|m| !m[p]) {
+                            assert_eq!(got, 0, "pixel {p}");
+                            continue;
+                        }
+                        let (x2, y2) = (x + space.flow(0, p, lu), y + space.flow(1, p, lv));
+                        let inside = (0..w2 as i32).contains(&x2) && (0..h2 as i32).contains(&y2);
+                        let want = if inside && m2.is_none_or(|m| m[y2 as usize * w2 + x2 as usize])
+                        {
+                            l1_distance(d1.at(p % w, p / w), d2.at(x2 as usize, y2 as usize)) as u16
+                        } else {
+                            data.outside_cost
+                        };
+                        assert_eq!(got, want, "pixel {p} labels ({lu}, {lv})");
+                    }
+                }
             }
         }
     }

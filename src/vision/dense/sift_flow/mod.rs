@@ -246,8 +246,10 @@ impl Engine {
             cell_size: p.cell_size,
         };
         let sizes = level_sizes(a, b, levels);
-        let masks_a = mask_pyramid(valid_a, a.width(), a.height(), levels);
-        let masks_b = mask_pyramid(valid_b, b.width(), b.height(), levels);
+        let (masks_a, masks_b) = rayon::join(
+            || mask_pyramid(valid_a, a.width(), a.height(), levels),
+            || mask_pyramid(valid_b, b.width(), b.height(), levels),
+        );
 
         // Halved: descriptors at full resolution, their images blurred and
         // subsampled (reference code). Per level: an image pyramid,
@@ -766,37 +768,48 @@ pub(crate) fn fill_non_finite_in_place(img: &mut Image) {
     if img.data().iter().all(|v| v.is_finite()) {
         return;
     }
-    let (sum, n) = img
-        .data()
-        .iter()
-        .filter(|v| v.is_finite())
-        .fold((0f64, 0usize), |(s, n), &v| (s + f64::from(v), n + 1));
-    let mean = if n == 0 { 0.0 } else { (sum / n as f64) as f32 };
     let w = img.width();
-    let mut left = vec![None; w];
-    for y in 0..img.height() {
-        let row = img.row_mut(y);
-        let mut last = None;
-        for x in 0..w {
-            if row[x].is_finite() {
-                last = Some(x);
+    // The mean fills rows without a finite sample only: summed when there is one.
+    let row_without = img
+        .data()
+        .chunks_exact(w)
+        .any(|row| !row.iter().any(|v| v.is_finite()));
+    let mean = if row_without {
+        let (sum, n) = img
+            .data()
+            .iter()
+            .filter(|v| v.is_finite())
+            .fold((0f64, 0usize), |(s, n), &v| (s + f64::from(v), n + 1));
+        if n == 0 { 0.0 } else { (sum / n as f64) as f32 }
+    } else {
+        0.0
+    };
+    // Rows on every core: each is filled from its own samples (or the mean).
+    img.data_mut().par_chunks_mut(w).for_each_init(
+        || vec![None; w],
+        |left, row| {
+            let mut last = None;
+            for x in 0..w {
+                if row[x].is_finite() {
+                    last = Some(x);
+                }
+                left[x] = last;
             }
-            left[x] = last;
-        }
-        let mut next = None;
-        for x in (0..w).rev() {
-            if row[x].is_finite() {
-                next = Some(x);
-                continue;
+            let mut next = None;
+            for x in (0..w).rev() {
+                if row[x].is_finite() {
+                    next = Some(x);
+                    continue;
+                }
+                row[x] = match (left[x], next) {
+                    (Some(l), Some(r)) => row[if x - l <= r - x { l } else { r }],
+                    (Some(l), None) => row[l],
+                    (None, Some(r)) => row[r],
+                    (None, None) => mean,
+                };
             }
-            row[x] = match (left[x], next) {
-                (Some(l), Some(r)) => row[if x - l <= r - x { l } else { r }],
-                (Some(l), None) => row[l],
-                (None, Some(r)) => row[r],
-                (None, None) => mean,
-            };
-        }
-    }
+        },
+    );
 }
 
 #[cfg(test)]

@@ -133,14 +133,18 @@ pub fn halve_descriptors(d: &DescriptorImage) -> DescriptorImage {
 pub fn halve_mask(mask: &[bool], w: usize, h: usize) -> Vec<bool> {
     let (w2, h2) = (half_size(w), half_size(h));
     let mut out = vec![false; w2 * h2];
-    for y2 in 0..h2 {
-        for x2 in 0..w2 {
-            let (x, y) = (2 * x2, 2 * y2);
-            let (x1, y1) = ((x + 1).min(w - 1), (y + 1).min(h - 1));
-            out[y2 * w2 + x2] =
-                mask[y * w + x] && mask[y * w + x1] && mask[y1 * w + x] && mask[y1 * w + x1];
-        }
-    }
+    // Row by row on every core (the full-resolution canvas's mask is millions of pixels).
+    out.par_chunks_mut(w2.max(1))
+        .enumerate()
+        .for_each(|(y2, row)| {
+            let y = 2 * y2;
+            let y1 = (y + 1).min(h - 1);
+            for (x2, o) in row.iter_mut().enumerate() {
+                let x = 2 * x2;
+                let x1 = (x + 1).min(w - 1);
+                *o = mask[y * w + x] && mask[y * w + x1] && mask[y1 * w + x] && mask[y1 * w + x1];
+            }
+        });
     out
 }
 
