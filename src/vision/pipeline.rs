@@ -231,6 +231,21 @@ pub fn reconstruct_observed(
     let (h_left, h_right) = (established.h_left, established.h_right);
     // A large micrograph's matcher one level coarser per halving (opt-in; unchanged by default).
     let dense = scaled_for_size(&params.dense, left.len());
+    // The precision's bound in disparity pixels (at 1 µm per pixel): it needs the micrographs
+    // only. When the canvas fits the memory budget it runs beside the dense stage, whose serial
+    // steps (pyramids, warm starts, the filters' splats) leave a core idle, and no core waits on
+    // its own serial steps (selections) at the end; otherwise after the canvas maps are freed
+    // (its planes would meet them: 8192×6144 peaked at 2.6 GiB side by side, 1.9 GiB in turn).
+    let predict = || {
+        precision::predict(
+            left,
+            right,
+            geometry.tilt_axis_deg,
+            matcher_window_sigma(&params.dense),
+            1.0,
+        )
+    };
+    let mut bound = None;
     let (disp, row_offset, sparse_ms, dense_ms) = if fits_budget(&dense, canvas) {
         let (wl, wr) = rayon::join(
             || warp(left, &h_left, canvas.0, canvas.1),
@@ -243,7 +258,9 @@ pub fn reconstruct_observed(
         let t = Instant::now();
         progress(Stage::Dense);
         // The rectified pair becomes the dense stage's working copy.
-        let disp = dense_disparity_of_warped(wl, wr, &dense, range)?;
+        let (disp, b) = rayon::join(|| dense_disparity_of_warped(wl, wr, &dense, range), predict);
+        bound = Some(b);
+        let disp = disp?;
         let row_offset = match established.source {
             Established::Instrument { .. } => {
                 dense_rows(&disp.vertical, &disp.disparity, &disp.unknown)
@@ -307,39 +324,24 @@ pub fn reconstruct_observed(
         tilt_axis_deg: geometry.tilt_axis_deg,
     };
     let (w, h) = left.dimensions();
-    let depth_stage = || -> Result<_, ReconstructError> {
-        let mut height_um = height_on_left_grid(&disp.disparity, &h_left, &h_right, &stereo, w, h)?;
-        let datum = apply_datum(&mut height_um, params.datum, geometry.pixel_size_um);
-        let confidence = left_grid_confidence(&disp.confidence, &disp.filled, &height_um, &h_left);
-        let unknown = left_grid_unknown(&disp.unknown, canvas, &height_um, &confidence, &h_left);
-        Ok((height_um, datum, confidence, unknown))
-    };
-    // The precision's bound in disparity pixels (at 1 µm per pixel): it needs the micrographs
-    // only. Beside the depth stage, whose serial steps leave a core idle, when the canvas fit
-    // the memory budget; after the canvas maps are freed otherwise (its planes would meet them:
-    // 8192×6144 peaked at 2.6 GiB side by side, 1.9 GiB in turn).
-    let predict = || {
-        precision::predict(
-            left,
-            right,
-            geometry.tilt_axis_deg,
-            matcher_window_sigma(&params.dense),
-            1.0,
-        )
-    };
-    let side_by_side = fits_budget(&dense, canvas);
-    let (depth_stage, bound) = if side_by_side {
-        let (d, b) = rayon::join(depth_stage, predict);
-        (d, Some(b))
-    } else {
-        (depth_stage(), None)
-    };
-    let (height_um, datum, confidence, unknown) = depth_stage?;
+    let mut height_um = height_on_left_grid(&disp.disparity, &h_left, &h_right, &stereo, w, h)?;
+    let datum = apply_datum(&mut height_um, params.datum, geometry.pixel_size_um);
+    let confidence = left_grid_confidence(&disp.confidence, &disp.filled, &height_um, &h_left);
+    let unknown = left_grid_unknown(&disp.unknown, canvas, &height_um, &confidence, &h_left);
     // The canvas maps (up to twice the micrograph's pixels) go.
     let dense_stats = disp.stats;
-    drop((disp.disparity, disp.confidence, disp.filled, disp.unknown));
-    let bound = bound.unwrap_or_else(predict);
-    let depth = depth_report(&height_um, &stereo);
+    let maps = (disp.disparity, disp.confidence, disp.filled, disp.unknown);
+    let (bound, depth) = match bound {
+        // Unmapped on one core while the other ranks the heights (both are serial).
+        Some(bound) => {
+            let ((), depth) = rayon::join(|| drop(maps), || depth_report(&height_um, &stereo));
+            (bound, depth)
+        }
+        None => {
+            drop(maps);
+            (predict(), depth_report(&height_um, &stereo))
+        }
+    };
     if depth.valid_fraction == 0.0 {
         return Err(ReconstructError::NoOverlap);
     }

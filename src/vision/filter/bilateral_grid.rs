@@ -149,7 +149,21 @@ pub fn bilateral_filter(
             if a.is_finite() { a.max(0.0) } else { 0.0 }
         })
     };
-    let Some((lo, hi)) = values.finite_range() else {
+    // The finite range by both cores (a minimum and a maximum: the same in any order, up to
+    // the sign of a zero, which no cell index or weight below can tell).
+    let range = values
+        .data()
+        .par_chunks(w.max(1))
+        .filter_map(|row| {
+            row.iter().copied().filter(|v| v.is_finite()).fold(
+                None,
+                |acc: Option<(f32, f32)>, v| {
+                    Some(acc.map_or((v, v), |(lo, hi)| (lo.min(v), hi.max(v))))
+                },
+            )
+        })
+        .reduce_with(|(a, b), (c, d)| (a.min(c), b.max(d)));
+    let Some((lo, hi)) = range else {
         return (
             values.clone(),
             GridInfo {
@@ -291,13 +305,20 @@ pub fn bilateral_filter(
             },
         )
         .collect();
-    let mut out = values.clone();
-    for ((x0, y0), tile) in results {
-        let tw = (x0 + tile_px).min(w) - x0;
-        for (r, row) in tile.chunks(tw).enumerate() {
-            out.data_mut()[(y0 + r) * w + x0..(y0 + r) * w + x0 + tw].copy_from_slice(row);
-        }
-    }
+    // The tiles into place, a band of tile rows per task (the tiles cover the image).
+    let mut out = Image::zeros(w, h);
+    let per_band = w.div_ceil(tile_px);
+    out.data_mut()
+        .par_chunks_mut(tile_px * w)
+        .zip(results.par_chunks(per_band))
+        .for_each(|(band, tiles)| {
+            for ((x0, _), tile) in tiles {
+                let tw = (x0 + tile_px).min(w) - x0;
+                for (r, row) in tile.chunks(tw).enumerate() {
+                    band[r * w + x0..r * w + x0 + tw].copy_from_slice(row);
+                }
+            }
+        });
     let info = GridInfo {
         nx,
         ny,

@@ -51,7 +51,8 @@ pub(crate) struct CrossGrid {
     norm: Vec<f32>,
 }
 
-/// Runs of grid rows splatted at once, per thread (the sums do not depend on it).
+/// Runs of grid rows splatted, and blurred along y, at once per thread (the sums do not
+/// depend on it).
 const XB_RUNS_PER_THREAD: usize = 4;
 
 impl CrossGrid {
@@ -370,7 +371,12 @@ impl CrossGrid {
                     }
                 },
             );
-        blur_y_in_place(grid, nx, &extents, rayon::current_num_threads());
+        blur_y_in_place(
+            grid,
+            nx,
+            &extents,
+            XB_RUNS_PER_THREAD * rayon::current_num_threads(),
+        );
     }
 
     /// Slice: `row` takes the trilinear interpolation of the blurred `grid`
@@ -468,9 +474,10 @@ impl Extent {
 /// `XB_PAD` rows from either end, in place: row `gy` becomes `Σ_t k_t · g[gy + t − 2]`
 /// of the rows before the pass, summed in the order of `t` (the same bits as a pass
 /// into a second grid). A row adds only the box of its [`Extent`] (+0 outside).
-/// The rows are cut into `chunks` runs that blur at the same
-/// time; each keeps the two original rows before its current one, and the two rows
-/// past its end are copied before any run starts, so the result does not depend on `chunks`.
+/// The rows are cut into `chunks` runs of about the same work (the boxes their taps add:
+/// a rotated canvas's rows differ widely) that blur at the same time; each keeps the two
+/// original rows before its current one, and the two rows past its end are copied before any
+/// run starts, so the result does not depend on `chunks` or on where the runs are cut.
 fn blur_y_in_place<const C: usize>(
     grid: &mut [[f32; C]],
     nx: usize,
@@ -485,10 +492,31 @@ fn blur_y_in_place<const C: usize>(
     let (first, end) = (XB_PAD, ny - XB_PAD);
     let rows = end - first;
     let chunks = chunks.clamp(1, rows);
-    let bounds: Vec<(usize, usize)> = (0..chunks)
-        .map(|i| (first + i * rows / chunks, first + (i + 1) * rows / chunks))
-        .filter(|(a, b)| b > a)
+    // Each row's work: the cells its five taps add, and its own row's clearing and swap.
+    let area = |e: &Extent| {
+        if e.is_empty() {
+            0
+        } else {
+            e.x.len() * e.z.len()
+        }
+    };
+    let work: Vec<usize> = (first..end)
+        .map(|gy| slab / 8 + 1 + extents[gy - 2..=gy + 2].iter().map(area).sum::<usize>())
         .collect();
+    let total: usize = work.iter().sum();
+    let mut bounds: Vec<(usize, usize)> = Vec::with_capacity(chunks);
+    let (mut a, mut done) = (first, 0usize);
+    for (gy, &w) in (first..end).zip(&work) {
+        done += w;
+        // Cut after row gy once the run reaches its share of the total.
+        if done * chunks >= total * (bounds.len() + 1) && bounds.len() + 1 < chunks {
+            bounds.push((a, gy + 1));
+            a = gy + 1;
+        }
+    }
+    if a < end {
+        bounds.push((a, end));
+    }
     let row = |g: &[[f32; C]], j: usize| g[j * slab..(j + 1) * slab].to_vec();
     // Per run: the original rows a − 2, a − 1 (before it) and b, b + 1 (after it).
     let halos: Vec<[Vec<[f32; C]>; 4]> = bounds
@@ -784,7 +812,56 @@ mod tests {
                 };
                 ny
             ];
-            for chunks in [1, 2, 3, 5, 64] {
+            // Boxes of data that differ from row to row (a rotated canvas): zeros outside,
+            // as the splat leaves them; the runs are cut by the work of the boxes.
+            let boxes: Vec<Extent> = (0..ny)
+                .map(|gy| match gy % 4 {
+                    0 => Extent::EMPTY,
+                    1 => Extent {
+                        x: 0..slab,
+                        z: 0..1,
+                    },
+                    _ => Extent {
+                        x: gy % slab..slab,
+                        z: 0..1,
+                    },
+                })
+                .collect();
+            let sparse: Vec<[f32; 3]> = grid
+                .iter()
+                .enumerate()
+                .map(|(i, &v)| {
+                    if boxes[i / slab].x.contains(&(i % slab)) {
+                        v
+                    } else {
+                        [0.0; 3]
+                    }
+                })
+                .collect();
+            let mut sparse_reference = sparse.clone();
+            for gy in XB_PAD..ny - XB_PAD {
+                let out = &mut sparse_reference[gy * slab..(gy + 1) * slab];
+                out.fill([0f32; 3]);
+                for (t, &k) in XB_KERNEL.iter().enumerate() {
+                    let j = gy + t - 2;
+                    for (o, v) in out.iter_mut().zip(&sparse[j * slab..(j + 1) * slab]) {
+                        for (a, &b) in o.iter_mut().zip(v) {
+                            *a += k * b;
+                        }
+                    }
+                }
+            }
+            for chunks in [1, 2, 3, 5, 8, 64] {
+                let mut fast = sparse.clone();
+                blur_y_in_place(&mut fast, slab, &boxes, chunks);
+                let bits = |g: &[[f32; 3]]| -> Vec<u32> {
+                    g.iter().flatten().map(|v| v.to_bits()).collect()
+                };
+                assert_eq!(
+                    bits(&fast),
+                    bits(&sparse_reference),
+                    "boxes: slab {slab}, {ny} rows, {chunks} runs"
+                );
                 let mut fast = grid.clone();
                 blur_y_in_place(&mut fast, slab, &all, chunks);
                 let bits = |g: &[[f32; 3]]| -> Vec<u32> {
