@@ -49,6 +49,7 @@ use self::refine::{RefinedFlow, upsample_flow};
 use self::sift_flow::{Engine, EngineRun, FlowStats, LevelReport};
 use crate::vision::Image;
 use crate::vision::filter::bilateral_grid::{GridInfo, bilateral_filter};
+use crate::vision::filter::cross_grid::range_key_smoothed;
 use crate::vision::filter::detail;
 use crate::vision::rectify::warp::Warped;
 
@@ -733,12 +734,27 @@ fn left_right_consistency(
         );
     }
     if params.support.enabled {
-        let judged = support::support_test(
+        // The refinement's edge-aware windows, for `support.edge_aware`: its key image.
+        let refine = params.flow.refinement().filter(|r| r.range_sigma > 0.0);
+        let key = refine
+            .filter(|_| params.support.edge_aware)
+            .map(|r| range_key_smoothed(inputs.a.data(), w, h, r.range_key_sigma));
+        let edge = key
+            .as_deref()
+            .zip(refine)
+            .map(|(key, r)| support::EdgeWindows {
+                key,
+                range_sigma: r.range_sigma,
+            });
+        let judged = support::support_test_with(
             (&inputs.a, &inputs.b),
             (va, vb),
             (&raw, Some(&v)),
             &params.support,
-            crate::vision::pipeline::matcher_window_sigma(params) as f32,
+            (
+                crate::vision::pipeline::matcher_window_sigma(params) as f32,
+                edge,
+            ),
         );
         mark_unknown(&mut raw, &mut confidence, &mut unknown, &judged);
     }
@@ -754,6 +770,19 @@ fn left_right_consistency(
                 }
             })
             .collect();
+        mark_unknown(&mut raw, &mut confidence, &mut unknown, &rims);
+    }
+    if params.support.enabled && params.support.rim_px > 0.0 {
+        let key_sigma = params.flow.refine.range_key_sigma;
+        let key = (params.support.rim_range > 0.0)
+            .then(|| range_key_smoothed(inputs.a.data(), w, h, key_sigma));
+        let rims = support::featureless_rims(
+            &unknown,
+            (w, h),
+            (params.support.rim_px, params.support.rim_share),
+            &[Unknown::NoTexture],
+            key.as_deref().map(|k| (k, params.support.rim_range)),
+        );
         mark_unknown(&mut raw, &mut confidence, &mut unknown, &rims);
     }
     Consistent {

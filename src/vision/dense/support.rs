@@ -52,6 +52,43 @@ use serde::{Deserialize, Serialize};
 
 use crate::vision::Image;
 use crate::vision::filter::blur::blur_plane;
+use crate::vision::filter::cross_grid::CrossGrid;
+
+/// The edge-aware windows of the intensity refinement ([`super::refine`]): its range key (the
+/// left micrograph smoothed, in units of its standard deviation) and range σ in key units.
+#[derive(Debug, Clone, Copy)]
+pub struct EdgeWindows<'a> {
+    pub key: &'a [f32],
+    pub range_sigma: f32,
+}
+
+/// Per pixel the sums of `produce(q)` over the edge-aware window of σ `sigma` at each pixel
+/// (the cross grid's weights: Gaussian in space times Gaussian in the key's difference); ratios
+/// of two channels are window means over whatever the second one weighs.
+fn edge_sums<const C: usize>(
+    edge: &EdgeWindows,
+    (w, h): (usize, usize),
+    sigma: f32,
+    produce: impl Fn(usize) -> [f32; C] + Sync,
+) -> Vec<[f32; C]> {
+    let mut out = vec![[0f32; C]; w * h];
+    let mut grid = Vec::new();
+    let _ = CrossGrid::with_row_sums(
+        edge.key,
+        (w, h),
+        (sigma, edge.range_sigma),
+        &|y, row: &mut [[f32; C]]| {
+            for (x, s) in row.iter_mut().enumerate() {
+                *s = produce(y * w + x);
+            }
+        },
+        None,
+        &mut grid,
+        out.par_chunks_mut(w),
+        |_, sums, row: &mut [[f32; C]]| row.copy_from_slice(sums),
+    );
+    out
+}
 
 /// Parameters of the support test (`[reconstruction.dense.support]`).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -92,6 +129,14 @@ pub struct SupportParams {
     /// Least correlation at the match over the matcher's window, in standard deviations of
     /// its spread on noise alone, for the wider window to speak for a pixel (0: none).
     pub wider_min_significance: f32,
+    /// Judge texture and its centroid also over the refinement's edge-aware windows (`refine.range_sigma`), where it decided the disparity; both windows must pass (opt-in).
+    pub edge_aware: bool,
+    /// Leave unknown the measured pixels within this many pixels of a featureless unknown one (the blurred outline of a raised feature moves with it); 0: none (opt-in).
+    pub rim_px: f32,
+    /// Only featureless pixels within this much of the pixel's brightness make a rim (the smoothed left micrograph in its standard deviations, as `refine.range_sigma`); 0: any.
+    pub rim_range: f32,
+    /// Only featureless pixels with at least this share of featureless pixels in a Gaussian window of σ `rim_px` around them make a rim (a wide support, not specks amid texture); 0: any.
+    pub rim_share: f32,
 }
 
 impl Default for SupportParams {
@@ -113,6 +158,10 @@ impl Default for SupportParams {
             own_sigma: 0.0,
             surface_reach: 2.0,
             wider_min_significance: 0.0,
+            edge_aware: false,
+            rim_px: 0.0,
+            rim_range: 0.0,
+            rim_share: 0.0,
         }
     }
 }
@@ -153,6 +202,12 @@ impl SupportParams {
             Some("support.surface_reach")
         } else if !non_negative(self.wider_min_significance) {
             Some("support.wider_min_significance")
+        } else if !(non_negative(self.rim_px) && self.rim_px <= 32.0) {
+            Some("support.rim_px")
+        } else if !non_negative(self.rim_range) {
+            Some("support.rim_range")
+        } else if !(non_negative(self.rim_share) && self.rim_share <= 1.0) {
+            Some("support.rim_share")
         } else {
             None
         }
@@ -339,6 +394,28 @@ pub fn support_test(
     params: &SupportParams,
     sigma: f32,
 ) -> Vec<Unknown> {
+    support_test_with(
+        (a, b),
+        (va, vb),
+        (disparity, vertical),
+        params,
+        (sigma, None),
+    )
+}
+
+/// [`support_test`], and with `edge` (and `params.edge_aware`) the texture and its centroid
+/// judged over the refinement's edge-aware windows as well: beside a bright feature on a
+/// featureless support the plain window holds the feature's texture, but the window that
+/// refined the pixel's disparity excludes it and holds none.
+#[must_use]
+pub fn support_test_with(
+    (a, b): (&Image, &Image),
+    (va, vb): (&[bool], &[bool]),
+    (disparity, vertical): (&Image, Option<&Image>),
+    params: &SupportParams,
+    (sigma, edge): (f32, Option<EdgeWindows>),
+) -> Vec<Unknown> {
+    let edge = edge.filter(|e| params.edge_aware && e.range_sigma > 0.0);
     let sigma = if params.window_sigma > 0.0 {
         params.window_sigma
     } else {
@@ -446,18 +523,29 @@ pub fn support_test(
             || correlation(&band, s),
             || raw.as_ref().map(|r| correlation(r, s)),
         );
-        let textured = (0..w * h)
+        let pass = |rho: f32, rho_raw: Option<f32>| {
+            let info = information(rho, gain_band, n)
+                .max(rho_raw.map_or(0.0, |r| information(r, gain_raw, n)));
+            rho.is_finite() && rho >= min_rho && info * max_var >= 1.0
+        };
+        let mut textured: Vec<bool> = (0..w * h)
             .into_par_iter()
-            .map(|q| {
-                let rho = rho_band[q];
-                let info = information(rho, gain_band, n).max(
-                    rho_raw
-                        .as_ref()
-                        .map_or(0.0, |r| information(r[q], gain_raw, n)),
-                );
-                rho.is_finite() && rho >= min_rho && info * max_var >= 1.0
-            })
+            .map(|q| pass(rho_band[q], rho_raw.as_ref().map(|r| r[q])))
             .collect();
+        // Over the edge-aware window too (the same N: its weights keep part of the window,
+        // so the thresholds are, if anything, lenient).
+        if let Some(e) = &edge {
+            let rho_edge = |pl: &Planes| -> Vec<f32> {
+                edge_sums(e, (w, h), s, |q| [pl.gab[q], pl.gaa[q], pl.gbb[q], pl.m[q]])
+                    .into_par_iter()
+                    .map(|[ab, aa, bb, _]| ab / (aa * bb).sqrt())
+                    .collect()
+            };
+            let (eb, er) = rayon::join(|| rho_edge(&band), || raw.as_ref().map(rho_edge));
+            textured.par_iter_mut().enumerate().for_each(|(q, t)| {
+                *t &= pass(eb[q], er.as_ref().map(|r| r[q]));
+            });
+        }
         (textured, rho_band)
     };
     // 2. Where the texture lies: the window's centroid of the band's texture energy g_a g_b
@@ -503,24 +591,34 @@ pub fn support_test(
                 if v.is_finite() { v.sqrt() } else { 0.0 }
             })
         };
+        // The same centroid over the edge-aware window, if any.
+        let edge_moments = edge
+            .as_ref()
+            .map(|e| edge_sums(e, (w, h), s, |q| [energy[q], at_x[q], at_y[q]]));
         (0..w * h)
             .into_par_iter()
             .map(|q| {
-                let (ox, oy) = (
-                    mx[q] / me[q] - ((q % w) as f32 - cx),
-                    my[q] / me[q] - ((q / w) as f32 - cy),
-                );
-                let r2 = ox * ox + oy * oy;
-                let near = r2 <= max_offset * max_offset;
-                let ok = if wide {
-                    near && step[q] <= params.wider_max_step_px
-                } else if step[q] > params.max_step_px {
-                    let limit = own_offset + params.step_offset_z * standard_error(q);
-                    r2 <= limit * limit
-                } else {
-                    near
+                let ok = |me: f32, mx: f32, my: f32| {
+                    let (ox, oy) = (
+                        mx / me - ((q % w) as f32 - cx),
+                        my / me - ((q / w) as f32 - cy),
+                    );
+                    let r2 = ox * ox + oy * oy;
+                    let near = r2 <= max_offset * max_offset;
+                    let ok = if wide {
+                        near && step[q] <= params.wider_max_step_px
+                    } else if step[q] > params.max_step_px {
+                        let limit = own_offset + params.step_offset_z * standard_error(q);
+                        r2 <= limit * limit
+                    } else {
+                        near
+                    };
+                    me > 0.0 && ok
                 };
-                me[q] > 0.0 && ok
+                ok(me[q], mx[q], my[q])
+                    && edge_moments
+                        .as_ref()
+                        .is_none_or(|m| ok(m[q][0], m[q][1], m[q][2]))
             })
             .collect()
     };
@@ -707,6 +805,62 @@ pub fn support_test(
                 Unknown::Ambiguous
             } else {
                 Unknown::NoTexture
+            }
+        })
+        .collect()
+}
+
+/// The rims of the featureless areas: per pixel [`Unknown::NoTexture`] where a measured pixel
+/// (`Measured` in `unknown`) lies within `rim_px` pixels (Euclidean) of a pixel left unknown as
+/// `reasons` name (no texture, and optionally more), else [`Unknown::Measured`]. Beside a
+/// raised feature on a featureless support the image's blur spreads the feature's outline a
+/// few pixels onto the support; that band moves with the feature, so the matcher gives the
+/// support there the feature's disparity, and no window can tell which surface it lies on.
+/// With `key` (an image and a largest difference), only featureless pixels whose key differs
+/// from the pixel's by at most that much count: the unknown spreads over what looks like the
+/// featureless area, not across the outline into the feature. With `min_share` > 0, only
+/// featureless pixels with at least that share of featureless pixels in a Gaussian window of σ
+/// `rim_px` around them count: a wide support, not specks amid a weak texture.
+#[must_use]
+pub fn featureless_rims(
+    unknown: &[Unknown],
+    (w, h): (usize, usize),
+    (rim_px, min_share): (f32, f32),
+    reasons: &[Unknown],
+    key: Option<(&[f32], f32)>,
+) -> Vec<Unknown> {
+    let share = (min_share > 0.0).then(|| {
+        let ind: Vec<f32> = unknown
+            .par_iter()
+            .map(|u| f32::from(u8::from(reasons.contains(u))))
+            .collect();
+        blur_plane(&ind, w, h, rim_px.max(0.5))
+    });
+    #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
+    let r = rim_px.floor() as isize;
+    let disk: Vec<(isize, isize)> = (-r..=r)
+        .flat_map(|dy| (-r..=r).map(move |dx| (dx, dy)))
+        .filter(|&(dx, dy)| ((dx * dx + dy * dy) as f32) <= rim_px * rim_px)
+        .collect();
+    let featureless = |q: usize, x: isize, y: isize| {
+        if x < 0 || y < 0 || x as usize >= w || y as usize >= h {
+            return false;
+        }
+        let f = y as usize * w + x as usize;
+        reasons.contains(&unknown[f])
+            && key.is_none_or(|(k, most)| (k[f] - k[q]).abs() <= most)
+            && share.as_ref().is_none_or(|s| s[f] >= min_share)
+    };
+    (0..w * h)
+        .into_par_iter()
+        .map(|q| {
+            let (x, y) = ((q % w) as isize, (q / w) as isize);
+            let near = unknown[q] == Unknown::Measured
+                && disk.iter().any(|&(dx, dy)| featureless(q, x + dx, y + dy));
+            if near {
+                Unknown::NoTexture
+            } else {
+                Unknown::Measured
             }
         })
         .collect()
@@ -1025,6 +1179,74 @@ mod tests {
         // Smoothing lowers the noise's gain and widens its correlation.
         let (c1, a1) = band_gain(1.0);
         assert!(c1 < 0.1 && a1 > 2.0, "{c1} {a1}");
+    }
+
+    /// A textured block raised 6 px of disparity above a featureless floor (disparity 0),
+    /// both micrographs blurred (σ 1.2 px, the beam) so that the block's outline spreads onto
+    /// the floor, under 1 % noise, matched by the whole dense stage.
+    fn raised_block_on_a_featureless_floor() -> (usize, usize, Image, Image, Vec<bool>) {
+        let (w, h) = (256, 160);
+        let tex = Texture::new(21);
+        let block = |x: f64, y: f64| (96.0..160.0).contains(&x) && (48.0..112.0).contains(&y);
+        // The floor is a flat grey: the same at any disparity (its truth is 0).
+        let scene = |shift: f64| {
+            Image::from_fn(w, h, |x, y| {
+                let (x, y) = (x as f64 - shift, y as f64);
+                if block(x, y) {
+                    (0.55 + 0.35 * tex.at(x, y)) as f32
+                } else {
+                    0.25
+                }
+            })
+        };
+        let mut k = 0x0f1e_2d3c_u64;
+        let mut noisy = |img: Image| {
+            let mut img = crate::vision::filter::blur::gaussian_blur(&img, 1.2);
+            for v in img.data_mut() {
+                *v += gaussian(&mut k, 0.01);
+            }
+            img
+        };
+        let a = noisy(scene(0.0));
+        let b = noisy(scene(6.0));
+        // The floor's pixels (true disparity 0).
+        let floor: Vec<bool> = (0..w * h)
+            .map(|p| !block((p % w) as f64, (p / w) as f64))
+            .collect();
+        (w, h, a, b, floor)
+    }
+
+    /// On the floor the featureless pixels beside the block take its disparity (the
+    /// refinement's windows and the outline's blur); with the rims left unknown (and the
+    /// support and anchor tests) no floor pixel is reported more than 1 px off, while most of
+    /// the block stays measured.
+    #[test]
+    #[ignore = "fails as yet: with rim_px 5 and rim_range 1.5, 112 floor pixels are reported > 1 px off (809 without the rim test)"]
+    fn no_floor_pixel_beside_a_raised_block_is_reported_off() {
+        let (w, h, a, b, floor) = raised_block_on_a_featureless_floor();
+        let run = |rim_px: f32| {
+            let mut p = crate::vision::dense::DenseParams::default();
+            p.flow.levels = 3;
+            p.support.enabled = true;
+            p.support.rim_px = rim_px;
+            p.support.rim_range = 1.5;
+            p.anchor.enabled = true;
+            let out = crate::vision::dense::dense_disparity(&a, &b, None, None, &p).unwrap();
+            let d = out.raw.data();
+            let off = (0..w * h)
+                .filter(|&q| floor[q] && d[q].is_finite() && d[q].abs() > 1.0)
+                .count();
+            let inner = (60..100)
+                .flat_map(|y| (104..150).map(move |x| y * w + x))
+                .filter(|&q| (d[q] - 6.0).abs() <= 1.0)
+                .count();
+            (off, inner as f64 / (40.0 * 46.0))
+        };
+        let (off_before, _) = run(0.0);
+        let (off, block_measured) = run(5.0);
+        assert!(off_before > 0, "the rims are reported without the rim test");
+        assert_eq!(off, 0, "{off} floor pixels off (before {off_before})");
+        assert!(block_measured > 0.8, "{block_measured}");
     }
 
     #[test]
