@@ -1246,7 +1246,10 @@ mod tests {
         let (off, block_measured) = run(5.0);
         assert!(off_before > 0, "the rims are reported without the rim test");
         eprintln!("floor pixels off {off_before} -> {off}, block measured {block_measured:.3}");
-        assert!(4 * off < off_before, "{off} floor pixels off (before {off_before})");
+        assert!(
+            4 * off < off_before,
+            "{off} floor pixels off (before {off_before})"
+        );
         assert!(block_measured > 0.4, "{block_measured}");
     }
 
