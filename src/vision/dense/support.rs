@@ -129,13 +129,17 @@ pub struct SupportParams {
     /// Least correlation at the match over the matcher's window, in standard deviations of
     /// its spread on noise alone, for the wider window to speak for a pixel (0: none).
     pub wider_min_significance: f32,
-    /// Judge texture and its centroid also over the refinement's edge-aware windows (`refine.range_sigma`), where it decided the disparity; both windows must pass (opt-in).
+    /// Judge texture and its centroid also over the refinement's edge-aware windows, which
+    /// decided the disparity; both windows must pass (opt-in).
     pub edge_aware: bool,
-    /// Leave unknown the measured pixels within this many pixels of a featureless unknown one (the blurred outline of a raised feature moves with it); 0: none (opt-in).
+    /// Leave unknown the measured pixels within this many pixels of a featureless one (a raised
+    /// feature's blurred outline moves with it); 0: none (opt-in).
     pub rim_px: f32,
-    /// Only featureless pixels within this much of the pixel's brightness make a rim (the smoothed left micrograph in its standard deviations, as `refine.range_sigma`); 0: any.
+    /// Only featureless pixels within this much of the pixel's brightness (in standard deviations
+    /// of the smoothed left micrograph) make a rim; 0: any.
     pub rim_range: f32,
-    /// Only featureless pixels with at least this share of featureless pixels in a Gaussian window of σ `rim_px` around them make a rim (a wide support, not specks amid texture); 0: any.
+    /// Only featureless pixels with at least this share of featureless pixels in a Gaussian
+    /// window of σ `rim_px` make a rim (a wide support, not specks); 0: any.
     pub rim_share: f32,
 }
 
