@@ -38,7 +38,7 @@ use crate::vision::filter::blur::{gaussian_blur, gaussian_kernel};
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct AnchorParams {
-    /// Leave unknown the featureless pixels whose disparity texture on both sides along the parallax does not pin down (opt-in).
+    /// Leave unknown the featureless pixels whose disparity texture on both sides along the parallax does not pin down (improved; paper: off).
     pub enabled: bool,
     /// σ of the Gaussian pre-smoothing of the left micrograph before its gradient along the parallax, pixels; 0: none.
     pub band_sigma: f32,
@@ -61,14 +61,14 @@ pub struct AnchorParams {
 impl Default for AnchorParams {
     fn default() -> Self {
         Self {
-            enabled: false,
+            enabled: true,
             band_sigma: 1.0,
             texture_sigma: 3.0,
             min_snr: 4.0,
             step_px: 1.0,
             reach: 3.0,
             both_images: false,
-            min_region: 0.0,
+            min_region: 8.0,
         }
     }
 }
