@@ -38,7 +38,7 @@ use crate::vision::filter::blur::{gaussian_blur, gaussian_kernel};
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct AnchorParams {
-    /// Leave unknown the featureless pixels whose disparity texture on both sides along the parallax does not pin down (opt-in).
+    /// Leave unknown the featureless pixels whose disparity texture on both sides along the parallax does not pin down (improved; paper: off).
     pub enabled: bool,
     /// σ of the Gaussian pre-smoothing of the left micrograph before its gradient along the parallax, pixels; 0: none.
     pub band_sigma: f32,
@@ -50,17 +50,25 @@ pub struct AnchorParams {
     pub step_px: f32,
     /// How far along the row the anchors may lie, in matcher σ.
     pub reach: f32,
+    /// A pixel is textured where either micrograph shows texture at the match (the right one
+    /// at `x + d`): one micrograph's gradient undersells low-contrast texture.
+    pub both_images: bool,
+    /// Judge only featureless regions (4-connected) of at least this many matcher windows
+    /// (`π·(2σ)²` pixels each): a support, not specks amid weak texture; 0: all.
+    pub min_region: f32,
 }
 
 impl Default for AnchorParams {
     fn default() -> Self {
         Self {
-            enabled: false,
+            enabled: true,
             band_sigma: 1.0,
             texture_sigma: 3.0,
             min_snr: 4.0,
             step_px: 1.0,
             reach: 3.0,
+            both_images: false,
+            min_region: 8.0,
         }
     }
 }
@@ -80,6 +88,8 @@ impl AnchorParams {
             Some("anchor.step_px")
         } else if !(self.reach.is_finite() && self.reach > 0.0 && self.reach <= 32.0) {
             Some("anchor.reach")
+        } else if !non_negative(self.min_region) {
+            Some("anchor.min_region")
         } else {
             None
         }
@@ -99,6 +109,25 @@ pub fn textured_along_x(
     (band_sigma, texture_sigma): (f32, f32),
     min_snr: f32,
 ) -> Vec<bool> {
+    let (energy, gain) = gradient_energy(img, (band_sigma, texture_sigma));
+    let threshold = threshold(
+        noise * noise * gain,
+        (band_sigma, texture_sigma),
+        min_snr,
+        1.0,
+    );
+    energy.data().par_iter().map(|&e| e > threshold).collect()
+}
+
+/// The energy threshold: the noise's `mean` energy plus `min_snr` standard deviations of its
+/// spread over `images` independent micrographs' windows.
+fn threshold(mean: f32, (band_sigma, texture_sigma): (f32, f32), min_snr: f32, images: f32) -> f32 {
+    let independent = images * (texture_sigma / band_sigma.max(0.5)).powi(2).max(1.0);
+    mean * (1.0 + min_snr * (2.0 / independent).sqrt())
+}
+
+/// The windowed energy of the pre-smoothed gradient along x, and the filter's gain on white noise.
+fn gradient_energy(img: &Image, (band_sigma, texture_sigma): (f32, f32)) -> (Image, f32) {
     let (w, h) = img.dimensions();
     let smooth = gaussian_blur(img, f64::from(band_sigma));
     // The filter's gain on white noise: Σ c² of the separable kernel `G(y) · (G(x−1) − G(x+1)) / 2`.
@@ -128,11 +157,44 @@ pub fn textured_along_x(
                 row[x] = g * g;
             }
         });
-    let energy = gaussian_blur(&energy, f64::from(texture_sigma));
-    let mean = noise * noise * gain;
-    let independent = (texture_sigma / band_sigma.max(0.5)).powi(2).max(1.0);
-    let threshold = mean * (1.0 + min_snr * (2.0 / independent).sqrt());
-    energy.data().par_iter().map(|&e| e > threshold).collect()
+    (gaussian_blur(&energy, f64::from(texture_sigma)), gain)
+}
+
+/// As [`textured_along_x`] on both micrographs at once: the mean of the left energy and the
+/// right one at the match (`disparity` along x, rounded); half the noise's spread. Where the
+/// match is unknown or off the right image, the left one alone.
+#[must_use]
+pub fn textured_along_x_both(
+    (a, b): (&Image, &Image),
+    (noise_a, noise_b): (f32, f32),
+    disparity: &Image,
+    (band_sigma, texture_sigma): (f32, f32),
+    min_snr: f32,
+) -> Vec<bool> {
+    let (w, _) = a.dimensions();
+    let sigmas = (band_sigma, texture_sigma);
+    let (ea, gain) = gradient_energy(a, sigmas);
+    let (eb, _) = gradient_energy(b, sigmas);
+    let one = threshold(noise_a * noise_a * gain, sigmas, min_snr, 1.0);
+    let mean = 0.5 * (noise_a * noise_a + noise_b * noise_b) * gain;
+    let two = threshold(mean, sigmas, min_snr, 2.0);
+    let wb = b.dimensions().0;
+    ea.data()
+        .par_iter()
+        .zip(disparity.data().par_iter())
+        .enumerate()
+        .map(|(p, (&e, &d))| {
+            let xb = (p % w) as f32 + d;
+            // `xb` finite and within the row: its rounding is a column.
+            #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
+            let q = (d.is_finite() && xb >= 0.0 && xb <= (wb - 1) as f32)
+                .then(|| (p / w) * wb + (xb + 0.5) as usize);
+            match q.and_then(|q| eb.data().get(q)) {
+                Some(&f) => 0.5 * (e + f) > two,
+                None => e > one,
+            }
+        })
+        .collect()
 }
 
 /// The measured featureless pixels (finite `disparity`, not `textured`) whose disparity is
@@ -142,6 +204,18 @@ pub fn textured_along_x(
 pub fn unanchored(
     disparity: &Image,
     textured: &[bool],
+    step_px: f32,
+    reach_px: usize,
+) -> Vec<bool> {
+    unanchored_in(disparity, textured, None, step_px, reach_px)
+}
+
+/// [`unanchored`], judging only the featureless pixels in `judged` (all when `None`).
+#[must_use]
+pub fn unanchored_in(
+    disparity: &Image,
+    textured: &[bool],
+    judged: Option<&[bool]>,
     step_px: f32,
     reach_px: usize,
 ) -> Vec<bool> {
@@ -169,7 +243,7 @@ pub fn unanchored(
             *a = last;
         }
         for (x, out) in row.iter_mut().enumerate() {
-            if t[x] || !d[x].is_finite() {
+            if t[x] || !d[x].is_finite() || judged.is_some_and(|j| !j[y * w + x]) {
                 continue;
             }
             let pinned = match (before[x], after[x]) {
@@ -186,31 +260,93 @@ pub fn unanchored(
     out
 }
 
-/// The test on the dense stage's left micrograph `a` (its real pixels `valid`) and measured
+/// The featureless pixels (not `textured`) in 4-connected featureless regions of at least
+/// `min_px` pixels.
+#[must_use]
+pub fn large_featureless(textured: &[bool], (w, h): (usize, usize), min_px: usize) -> Vec<bool> {
+    let mut label = vec![usize::MAX; w * h];
+    let mut out = vec![false; w * h];
+    let mut stack = Vec::new();
+    let mut members = Vec::new();
+    for start in 0..w * h {
+        if textured[start] || label[start] != usize::MAX {
+            continue;
+        }
+        label[start] = start;
+        stack.push(start);
+        members.clear();
+        while let Some(q) = stack.pop() {
+            members.push(q);
+            let (x, y) = (q % w, q / w);
+            let mut visit = |n: usize| {
+                if !textured[n] && label[n] == usize::MAX {
+                    label[n] = start;
+                    stack.push(n);
+                }
+            };
+            if x > 0 {
+                visit(q - 1);
+            }
+            if x + 1 < w {
+                visit(q + 1);
+            }
+            if y > 0 {
+                visit(q - w);
+            }
+            if y + 1 < h {
+                visit(q + w);
+            }
+        }
+        if members.len() >= min_px {
+            for &q in &members {
+                out[q] = true;
+            }
+        }
+    }
+    out
+}
+
+/// The test on the dense stage's micrographs `a`, `b` (their real pixels `valid`) and measured
 /// disparity: the pixels to leave unknown. `matcher_sigma`: the matcher's window σ, pixels.
 #[must_use]
 pub fn anchor_test(
-    a: &Image,
-    valid: &[bool],
+    (a, b): (&Image, &Image),
+    (va, vb): (&[bool], &[bool]),
     disparity: &Image,
     params: &AnchorParams,
     matcher_sigma: f32,
 ) -> Vec<bool> {
     let (w, h) = a.dimensions();
-    let Some(noise) = crate::vision::precision::noise_sigma(a, Some(valid)) else {
+    let Some(noise) = crate::vision::precision::noise_sigma(a, Some(va)) else {
         return vec![false; w * h];
     };
+    let sigmas = (params.band_sigma, params.texture_sigma);
     #[allow(clippy::cast_possible_truncation)]
-    let textured = textured_along_x(
-        a,
-        noise as f32,
-        (params.band_sigma, params.texture_sigma),
-        params.min_snr,
-    );
+    let textured = match crate::vision::precision::noise_sigma(b, Some(vb)) {
+        Some(noise_b) if params.both_images => textured_along_x_both(
+            (a, b),
+            (noise as f32, noise_b as f32),
+            disparity,
+            sigmas,
+            params.min_snr,
+        ),
+        _ => textured_along_x(a, noise as f32, sigmas, params.min_snr),
+    };
     // A reach of at most 32 σ: within usize.
     #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
     let reach_px = (params.reach * matcher_sigma).round().max(1.0) as usize;
-    unanchored(disparity, &textured, params.step_px, reach_px)
+    // A matcher window: π·(2σ)² pixels.
+    #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
+    let min_px =
+        (params.min_region * std::f32::consts::PI * (2.0 * matcher_sigma).powi(2)) as usize;
+    let judged = (min_px > 0).then(|| large_featureless(&textured, (w, h), min_px));
+    unanchored_in(
+        disparity,
+        &textured,
+        judged.as_deref(),
+        params.step_px,
+        reach_px,
+    )
 }
 
 #[cfg(test)]
@@ -302,5 +438,27 @@ mod tests {
         // Without the noise figure scaled in, the threshold would not hold.
         let t0 = textured_along_x(&img, sigma / 100.0, (1.0, 1.5), 4.0);
         assert!(t0.iter().filter(|&&b| b).count() > w * h / 2);
+    }
+
+    /// A large featureless region is judged, a speck amid texture is not.
+    #[test]
+    fn only_large_featureless_regions_are_judged() {
+        let (w, h) = (40, 20);
+        // Featureless: columns 0..15 (a support of 300 px) and a 2x2 speck at (30, 10).
+        let textured: Vec<bool> = (0..w * h)
+            .map(|q| {
+                let (x, y) = (q % w, q / w);
+                x >= 15 && !((30..32).contains(&x) && (10..12).contains(&y))
+            })
+            .collect();
+        let big = large_featureless(&textured, (w, h), 20);
+        assert!(big[5 * w + 3] && big[19 * w + 14]);
+        assert!(
+            !big[10 * w + 30] && !big[11 * w + 31],
+            "the speck is judged"
+        );
+        assert!(!big[10 * w + 20], "a textured pixel is judged");
+        let all = large_featureless(&textured, (w, h), 1);
+        assert!(all[10 * w + 30]);
     }
 }

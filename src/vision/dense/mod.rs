@@ -760,19 +760,26 @@ fn left_right_consistency(
     }
     if params.anchor.enabled {
         let sigma = crate::vision::pipeline::matcher_window_sigma(params) as f32;
-        let rims: Vec<Unknown> = anchor::anchor_test(&inputs.a, va, &raw, &params.anchor, sigma)
-            .into_par_iter()
-            .map(|m| {
-                if m {
-                    Unknown::NoTexture
-                } else {
-                    Unknown::Measured
-                }
-            })
-            .collect();
+        let rims: Vec<Unknown> = anchor::anchor_test(
+            (&inputs.a, &inputs.b),
+            (va, vb),
+            &raw,
+            &params.anchor,
+            sigma,
+        )
+        .into_par_iter()
+        .map(|m| {
+            if m {
+                Unknown::NoTexture
+            } else {
+                Unknown::Measured
+            }
+        })
+        .collect();
         mark_unknown(&mut raw, &mut confidence, &mut unknown, &rims);
     }
-    if params.support.enabled && params.support.rim_px > 0.0 {
+    // The rims beside featureless pixels, from the support test's or the anchor test's.
+    if (params.support.enabled || params.anchor.enabled) && params.support.rim_px > 0.0 {
         let key_sigma = params.flow.refine.range_key_sigma;
         let key = (params.support.rim_range > 0.0)
             .then(|| range_key_smoothed(inputs.a.data(), w, h, key_sigma));

@@ -109,6 +109,10 @@ impl DenseParams {
                     enabled: false,
                     ..DetailParams::default()
                 },
+                anchor: AnchorParams {
+                    enabled: false,
+                    ..AnchorParams::default()
+                },
                 ..improved
             },
         }
