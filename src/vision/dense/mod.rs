@@ -23,6 +23,7 @@ pub mod dense_sift;
 mod error;
 pub mod fill;
 mod params;
+pub mod plateau;
 pub mod reassign;
 pub mod refine;
 pub mod sift_flow;
@@ -732,6 +733,10 @@ fn left_right_consistency(
             out,
             params,
         );
+    }
+    if params.slanted.plateau {
+        let out = (&mut raw, &mut confidence, &mut unknown[..]);
+        plateau::measure_plateaus((&inputs.a, &inputs.b), (va, vb), out, &params.slanted);
     }
     if params.support.enabled {
         // The refinement's edge-aware windows, for `support.edge_aware`: its key image.

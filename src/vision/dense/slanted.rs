@@ -54,6 +54,22 @@ pub struct SlantedParams {
     pub passes: usize,
     /// Longest gap along a row or column whose measured ends give a starting plane, pixels.
     pub max_gap: usize,
+    /// Re-measure bright, flat plateaus with windows that leave out their outline (opt-in;
+    /// [`super::plateau`]).
+    pub plateau: bool,
+    /// Half-width of the plateau pass's box window, pixels.
+    pub plateau_radius: usize,
+    /// Largest gradient of a plateau pixel, per pixel, in the brightness range's units.
+    pub plateau_max_gradient: f32,
+    /// Disparities searched beyond the field's range over the plateaus, pixels.
+    pub plateau_reach: f32,
+    /// Least NCC of a plateau pixel's best match for it to take that disparity.
+    pub plateau_min_ncc: f32,
+    /// Bright pixels within this of a measured plateau pixel take the plateau's mean
+    /// disparity there (its rim), pixels (0: none).
+    pub plateau_rim_px: usize,
+    /// With plateaus measured, leave the dark, flat pixels between them unknown (no texture).
+    pub plateau_floor_unknown: bool,
 }
 
 impl Default for SlantedParams {
@@ -66,6 +82,13 @@ impl Default for SlantedParams {
             iterations: 6,
             passes: 2,
             max_gap: 128,
+            plateau: false,
+            plateau_radius: 16,
+            plateau_max_gradient: 0.07,
+            plateau_reach: 3.0,
+            plateau_min_ncc: 0.2,
+            plateau_rim_px: 5,
+            plateau_floor_unknown: false,
         }
     }
 }
@@ -88,6 +111,16 @@ impl SlantedParams {
             Some("slanted.passes")
         } else if self.max_gap > 4096 {
             Some("slanted.max_gap")
+        } else if !(1..=64).contains(&self.plateau_radius) {
+            Some("slanted.plateau_radius")
+        } else if !(self.plateau_max_gradient > 0.0 && self.plateau_max_gradient <= 1.0) {
+            Some("slanted.plateau_max_gradient")
+        } else if !(0.0..=32.0).contains(&self.plateau_reach) {
+            Some("slanted.plateau_reach")
+        } else if !(-1.0..=1.0).contains(&self.plateau_min_ncc) {
+            Some("slanted.plateau_min_ncc")
+        } else if self.plateau_rim_px > 32 {
+            Some("slanted.plateau_rim_px")
         } else {
             None
         }
