@@ -88,7 +88,7 @@ impl AnchorParams {
             Some("anchor.step_px")
         } else if !(self.reach.is_finite() && self.reach > 0.0 && self.reach <= 32.0) {
             Some("anchor.reach")
-        } else if !non_negative(self.min_region) {
+        } else if !non_negative(self.min_region) || self.min_region > 1000.0 {
             Some("anchor.min_region")
         } else {
             None

@@ -263,6 +263,12 @@ fn judging(params: &DenseParams) -> usize {
     let a = &params.anchor;
     if a.enabled {
         reach += f64::from(a.reach) * sigma + 3.0 * f64::from(a.texture_sigma + a.band_sigma);
+        // A featureless region of `min_region` windows (π (2σ)² each) spans about its square's
+        // side: with that much context a tile sees such a region across its border whole.
+        reach += (f64::from(a.min_region) * std::f64::consts::PI).sqrt() * 2.0 * sigma;
+    }
+    if (s.enabled || a.enabled) && s.rim_px > 0.0 {
+        reach += 3.0 * f64::from(s.rim_px);
     }
     reach.ceil() as usize
 }
@@ -816,7 +822,9 @@ mod tests {
     /// alone and together, and only when they are on.
     #[test]
     fn the_overlap_covers_the_opt_in_passes_reach() {
-        let base = params(64);
+        let mut base = params(64);
+        // The anchor test is on in the improved preset: all off for the reference.
+        base.anchor.enabled = false;
         let sigma = crate::vision::pipeline::matcher_window_sigma(&base);
         let off = margins(&base, 0.0, Some((-4.0, 10.0)));
         let grown = |p: &DenseParams| {
@@ -828,6 +836,11 @@ mod tests {
         anchor.anchor.reach = 40.0;
         let a = grown(&anchor);
         assert!(a.0 as f64 >= 40.0 * sigma && a.0 == a.1, "{a:?}");
+        // Its featureless regions of `min_region` windows are seen whole across a border.
+        let mut regions = anchor;
+        regions.anchor.min_region = 4.0 * anchor.anchor.min_region.max(1.0);
+        let r = grown(&regions);
+        assert!(r.0 > a.0, "{r:?} against {a:?}");
         let mut support = base;
         support.support.enabled = true;
         let s = grown(&support);
