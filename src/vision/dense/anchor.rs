@@ -321,9 +321,14 @@ pub fn anchor_test(
         return vec![false; w * h];
     };
     let sigmas = (params.band_sigma, params.texture_sigma);
+    // The right micrograph's noise only when it is judged too.
+    let noise_b = params
+        .both_images
+        .then(|| crate::vision::precision::noise_sigma(b, Some(vb)))
+        .flatten();
     #[allow(clippy::cast_possible_truncation)]
-    let textured = match crate::vision::precision::noise_sigma(b, Some(vb)) {
-        Some(noise_b) if params.both_images => textured_along_x_both(
+    let textured = match noise_b {
+        Some(noise_b) => textured_along_x_both(
             (a, b),
             (noise as f32, noise_b as f32),
             disparity,
