@@ -264,23 +264,24 @@ pub fn unanchored_in(
 /// `min_px` pixels.
 #[must_use]
 pub fn large_featureless(textured: &[bool], (w, h): (usize, usize), min_px: usize) -> Vec<bool> {
-    let mut label = vec![usize::MAX; w * h];
+    // Visited flags, not labels: each region is marked as it closes (1 byte per pixel, not 8).
+    let mut seen = vec![false; w * h];
     let mut out = vec![false; w * h];
     let mut stack = Vec::new();
     let mut members = Vec::new();
     for start in 0..w * h {
-        if textured[start] || label[start] != usize::MAX {
+        if textured[start] || seen[start] {
             continue;
         }
-        label[start] = start;
+        seen[start] = true;
         stack.push(start);
         members.clear();
         while let Some(q) = stack.pop() {
             members.push(q);
             let (x, y) = (q % w, q / w);
             let mut visit = |n: usize| {
-                if !textured[n] && label[n] == usize::MAX {
-                    label[n] = start;
+                if !textured[n] && !seen[n] {
+                    seen[n] = true;
                     stack.push(n);
                 }
             };
