@@ -639,8 +639,9 @@ fn left_grid_confidence(
         if !(x >= 0.0 && y >= 0.0 && x <= (cw - 1) as f64 && y <= (ch - 1) as f64) {
             return 0.0;
         }
+        // Non-negative (tested above): truncation is the floor, without a library call.
         #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
-        let (x0, y0) = (x.floor() as usize, y.floor() as usize);
+        let (x0, y0) = (x as usize, y as usize);
         let (x1, y1) = ((x0 + 1).min(cw - 1), (y0 + 1).min(ch - 1));
         #[allow(clippy::cast_possible_truncation)]
         let (fx, fy) = ((x - x0 as f64) as f32, (y - y0 as f64) as f32);

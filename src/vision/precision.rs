@@ -42,47 +42,49 @@ pub fn noise_sigma(img: &Image, valid: Option<&[bool]>) -> Option<f64> {
         return None;
     }
     let d = img.data();
-    let ok = |q: usize| valid.is_none_or(|m| m[q]) && d[q].is_finite();
-    // Row by row: a column of three usable pixels per x first, then the 3×3 neighbourhoods
-    // whose three columns are usable (each pixel judged once per row, not nine times).
-    let responses: Vec<f32> = (1..h - 1)
+    // Row by row: per x, whether its column of three pixels is usable (one pass that
+    // vectorises), then the responses of the neighbourhoods whose three columns are.
+    let responses: Vec<Vec<f32>> = (1..h - 1)
         .into_par_iter()
-        .flat_map_iter(|y| {
-            let column: Vec<bool> = (0..w)
-                .map(|x| ok((y - 1) * w + x) && ok(y * w + x) && ok((y + 1) * w + x))
-                .collect();
-            let (up, mid, down) = (
-                &d[(y - 1) * w..][..w],
-                &d[y * w..][..w],
-                &d[(y + 1) * w..][..w],
-            );
+        .map(|y| {
+            let rows = [(y - 1) * w, y * w, (y + 1) * w].map(|start| start..start + w);
+            let [up, mid, down] = rows.clone().map(|r| &d[r]);
+            let finite = |x: usize| up[x].is_finite() & mid[x].is_finite() & down[x].is_finite();
+            let column: Vec<bool> = match valid {
+                Some(m) => {
+                    let [mu, mm, md] = rows.map(|r| &m[r]);
+                    (0..w).map(|x| mu[x] & mm[x] & md[x] & finite(x)).collect()
+                }
+                None => (0..w).map(finite).collect(),
+            };
             (1..w - 1)
-                .filter(move |&x| column[x - 1] && column[x] && column[x + 1])
-                .map(move |x| {
+                .filter(|&x| column[x - 1] & column[x] & column[x + 1])
+                .map(|x| {
                     let (a, b, c) = (up[x - 1], up[x], up[x + 1]);
                     let (e, f, g) = (mid[x - 1], mid[x], mid[x + 1]);
                     let (i, j, k) = (down[x - 1], down[x], down[x + 1]);
                     (a + c + i + k - 2.0 * (b + e + g + j) + 4.0 * f).abs()
                 })
+                .collect()
         })
         .collect();
-    if responses.len() < 64 {
+    let n: usize = responses.iter().map(Vec::len).sum();
+    if n < 64 {
         return None;
     }
-    let median = kth_smallest(&responses, responses.len() / 2);
+    let median = kth_smallest(&responses, n / 2);
     Some(MAD_TO_SIGMA * f64::from(median) / KERNEL_NORM)
 }
 
-/// The element of rank `k` (0-based) of `values` in the order of [`f32::total_cmp`]: the same
-/// element as a selection on the whole list, without its serial pass over it. That order is
-/// the order of the bits with the sign bit flipped (all bits, for a negative value), so a
-/// parallel count of the top 16 of them finds the bin that holds rank `k`, and a selection
-/// among that bin's few values the element.
-pub(crate) fn kth_smallest(values: &[f32], k: usize) -> f32 {
+/// The element of rank `k` (0-based) of the values of `parts` together, in the order of
+/// [`f32::total_cmp`]: the element a selection on one list of them all finds, without its
+/// serial pass. That order is the order of the bits with the sign bit flipped (all bits, for
+/// a negative value), so a parallel count of the top 16 of them finds the bin that holds rank
+/// `k`, and a selection among that bin's few values the element.
+fn kth_smallest<P: AsRef<[f32]> + Sync>(parts: &[P], k: usize) -> f32 {
     const SHIFT: u32 = 16;
     const BINS: usize = 1 << 16;
     const CHUNK: usize = 1 << 16;
-    assert!(k < values.len(), "rank {k} of {} values", values.len());
     let key = |v: f32| {
         let bits = v.to_bits();
         if bits >> 31 == 1 {
@@ -92,8 +94,8 @@ pub(crate) fn kth_smallest(values: &[f32], k: usize) -> f32 {
         }
     };
     let bin = |v: f32| (key(v) >> SHIFT) as usize;
-    let counts = values
-        .par_chunks(CHUNK)
+    let chunks = || parts.par_iter().flat_map(|p| p.as_ref().par_chunks(CHUNK));
+    let counts = chunks()
         .fold(
             || vec![0u32; BINS],
             |mut counts, chunk| {
@@ -112,11 +114,10 @@ pub(crate) fn kth_smallest(values: &[f32], k: usize) -> f32 {
     while rank >= counts[at] as usize {
         rank -= counts[at] as usize;
         at += 1;
+        assert!(at < BINS, "rank {k} beyond the values");
     }
-    let mut members: Vec<f32> = values
-        .par_iter()
-        .copied()
-        .filter(|&v| bin(v) == at)
+    let mut members: Vec<f32> = chunks()
+        .flat_map_iter(|chunk| chunk.iter().copied().filter(|&v| bin(v) == at))
         .collect();
     *members.select_nth_unstable_by(rank, f32::total_cmp).1
 }
@@ -214,7 +215,7 @@ pub fn disparity_bound(
         return None;
     }
     let mid = means.len() - 1 - means.len() / 2;
-    let mean = f64::from(kth_smallest(&means, mid));
+    let mean = f64::from(kth_smallest(&[means], mid));
     let median = if mean > 0.0 {
         (2.0 * noise_var / (n_eff * mean)).sqrt()
     } else {
@@ -336,7 +337,8 @@ mod tests {
     }
 
     /// The counted selection finds the element a selection on the whole list finds, bit for
-    /// bit, at every rank: signed zeros, infinities, NaNs, ties and values sharing a bin.
+    /// bit, at every rank and however the values are split: signed zeros, infinities, NaNs,
+    /// ties and values sharing a bin.
     #[test]
     fn counted_selection_equals_the_selection_of_the_whole_list() {
         let mut rng = Rng::new(5);
@@ -360,9 +362,13 @@ mod tests {
         let mut sorted = values.clone();
         sorted.sort_unstable_by(f32::total_cmp);
         for k in (0..values.len()).step_by(997).chain([0, values.len() - 1]) {
+            let whole = kth_smallest(&[&values], k);
+            assert_eq!(whole.to_bits(), sorted[k].to_bits(), "rank {k}");
+            // The same values in parts of any sizes (empty ones too).
+            let parts: Vec<&[f32]> = values.chunks(1 + k % 5000).chain([&[][..]]).collect();
             assert_eq!(
-                kth_smallest(&values, k).to_bits(),
-                sorted[k].to_bits(),
+                kth_smallest(&parts, k).to_bits(),
+                whole.to_bits(),
                 "rank {k}"
             );
         }
