@@ -81,7 +81,7 @@ pub fn noise_sigma(img: &Image, valid: Option<&[bool]>) -> Option<f64> {
 /// serial pass. That order is the order of the bits with the sign bit flipped (all bits, for
 /// a negative value), so a parallel count of the top 16 of them finds the bin that holds rank
 /// `k`, and a selection among that bin's few values the element.
-fn kth_smallest<P: AsRef<[f32]> + Sync>(parts: &[P], k: usize) -> f32 {
+pub(crate) fn kth_smallest<P: AsRef<[f32]> + Sync>(parts: &[P], k: usize) -> f32 {
     const SHIFT: u32 = 16;
     const BINS: usize = 1 << 16;
     const CHUNK: usize = 1 << 16;
@@ -94,15 +94,35 @@ fn kth_smallest<P: AsRef<[f32]> + Sync>(parts: &[P], k: usize) -> f32 {
         }
     };
     let bin = |v: f32| (key(v) >> SHIFT) as usize;
-    let chunks = || parts.par_iter().flat_map(|p| p.as_ref().par_chunks(CHUNK));
-    let counts = chunks()
-        .fold(
-            || vec![0u32; BINS],
-            |mut counts, chunk| {
-                chunk.iter().for_each(|&v| counts[bin(v)] += 1);
-                counts
-            },
-        )
+    // Pieces of at most CHUNK values, gathered into groups of about CHUNK values each: one
+    // histogram per group (not per part: a histogram per image row cleared 0.3 GB a call).
+    let pieces: Vec<&[f32]> = parts
+        .iter()
+        .flat_map(|p| p.as_ref().chunks(CHUNK))
+        .collect();
+    let mut starts = vec![0];
+    let mut filled = 0;
+    for (i, piece) in pieces.iter().enumerate() {
+        if filled >= CHUNK {
+            starts.push(i);
+            filled = 0;
+        }
+        filled += piece.len();
+    }
+    let groups: Vec<&[&[f32]]> = starts
+        .iter()
+        .zip(starts.iter().skip(1).chain([&pieces.len()]))
+        .map(|(&a, &b)| &pieces[a..b])
+        .collect();
+    let counts = groups
+        .par_iter()
+        .map(|group| {
+            let mut counts = vec![0u32; BINS];
+            for &v in group.iter().copied().flatten() {
+                counts[bin(v)] += 1;
+            }
+            counts
+        })
         .reduce(
             || vec![0u32; BINS],
             |mut a, b| {
@@ -116,8 +136,9 @@ fn kth_smallest<P: AsRef<[f32]> + Sync>(parts: &[P], k: usize) -> f32 {
         at += 1;
         assert!(at < BINS, "rank {k} beyond the values");
     }
-    let mut members: Vec<f32> = chunks()
-        .flat_map_iter(|chunk| chunk.iter().copied().filter(|&v| bin(v) == at))
+    let mut members: Vec<f32> = pieces
+        .par_iter()
+        .flat_map_iter(|piece| piece.iter().copied().filter(|&v| bin(v) == at))
         .collect();
     *members.select_nth_unstable_by(rank, f32::total_cmp).1
 }

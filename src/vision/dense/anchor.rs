@@ -548,7 +548,7 @@ mod tests {
             .map(|q| q / w < h - 1 && q % w % 2 == 1)
             .collect();
         let big = large_featureless(&comb, (w, h), 5 * 5 + w);
-        assert!((0..w * h).all(|q| big[q] == !comb[q]));
+        assert!((0..w * h).all(|q| big[q] != comb[q]));
         assert_eq!(big, large_featureless_by_flood(&comb, (w, h), 5 * 5 + w));
     }
 
