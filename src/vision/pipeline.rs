@@ -639,8 +639,9 @@ fn left_grid_confidence(
         if !(x >= 0.0 && y >= 0.0 && x <= (cw - 1) as f64 && y <= (ch - 1) as f64) {
             return 0.0;
         }
+        // Non-negative (tested above): truncation is the floor, without a library call.
         #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
-        let (x0, y0) = (x.floor() as usize, y.floor() as usize);
+        let (x0, y0) = (x as usize, y as usize);
         let (x1, y1) = ((x0 + 1).min(cw - 1), (y0 + 1).min(ch - 1));
         #[allow(clippy::cast_possible_truncation)]
         let (fx, fy) = ((x - x0 as f64) as f32, (y - y0 as f64) as f32);
@@ -789,13 +790,13 @@ fn rows(m: &Matrix3<f64>) -> [[f64; 3]; 3] {
 }
 
 fn depth_report(height: &Image, g: &StereoGeometry) -> DepthReport {
-    let mut finite: Vec<f32> = height
+    let finite: Vec<f32> = height
         .data()
         .par_iter()
         .copied()
         .filter(|v| v.is_finite())
         .collect();
-    let (p01, p99) = percentiles_01_99(&mut finite);
+    let (p01, p99) = percentiles_01_99(&finite);
     DepthReport {
         valid_fraction: finite.len() as f64 / height.len().max(1) as f64,
         height_p01_um: p01,
@@ -805,23 +806,17 @@ fn depth_report(height: &Image, g: &StereoGeometry) -> DepthReport {
 }
 
 /// The 1st and 99th percentile of `v` (the values at ranks `round((n − 1)·q)` of its sorted
-/// order), `NaN` when empty. Two selections instead of a sort: the same values, in linear time.
-/// Reorders `v`.
-fn percentiles_01_99(v: &mut [f32]) -> (f64, f64) {
+/// order), `NaN` when empty. Two counted selections instead of a sort: the same values, in
+/// linear time on both cores.
+fn percentiles_01_99(v: &[f32]) -> (f64, f64) {
     if v.is_empty() {
         return (f64::NAN, f64::NAN);
     }
     #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
     let rank = |q: f64| ((v.len() - 1) as f64 * q).round() as usize;
     let (lo, hi) = (rank(0.01), rank(0.99));
-    let (below, &mut p99, _) = v.select_nth_unstable_by(hi, f32::total_cmp);
-    // Every value of rank below `hi` is in `below`, at the same rank.
-    let p01 = if lo < hi {
-        *below.select_nth_unstable_by(lo, f32::total_cmp).1
-    } else {
-        p99
-    };
-    (f64::from(p01), f64::from(p99))
+    let at = |k: usize| f64::from(crate::vision::precision::kth_smallest(&[v], k));
+    (at(lo), at(hi))
 }
 
 #[cfg(test)]
@@ -884,13 +879,13 @@ mod tests {
             let mut sorted = v.clone();
             sorted.sort_by(f32::total_cmp);
             let at = |q: f64| f64::from(sorted[((n - 1) as f64 * q).round() as usize]);
-            let (p01, p99) = percentiles_01_99(&mut v.clone());
+            let (p01, p99) = percentiles_01_99(&v);
             assert_eq!(
                 (p01.to_bits(), p99.to_bits()),
                 (at(0.01).to_bits(), at(0.99).to_bits())
             );
         }
-        assert!(percentiles_01_99(&mut []).0.is_nan());
+        assert!(percentiles_01_99(&[]).0.is_nan());
     }
 
     #[test]

@@ -42,37 +42,105 @@ pub fn noise_sigma(img: &Image, valid: Option<&[bool]>) -> Option<f64> {
         return None;
     }
     let d = img.data();
-    let ok = |q: usize| valid.is_none_or(|m| m[q]) && d[q].is_finite();
-    let mut responses: Vec<f32> = (1..h - 1)
+    // Row by row: per x, whether its column of three pixels is usable (one pass that
+    // vectorises), then the responses of the neighbourhoods whose three columns are.
+    let responses: Vec<Vec<f32>> = (1..h - 1)
         .into_par_iter()
-        .flat_map_iter(|y| {
-            (1..w - 1).filter_map(move |x| {
-                let q = y * w + x;
-                let around = [
-                    q - w - 1,
-                    q - w,
-                    q - w + 1,
-                    q - 1,
-                    q,
-                    q + 1,
-                    q + w - 1,
-                    q + w,
-                    q + w + 1,
-                ];
-                if !around.iter().all(|&r| ok(r)) {
-                    return None;
+        .map(|y| {
+            let rows = [(y - 1) * w, y * w, (y + 1) * w].map(|start| start..start + w);
+            let [up, mid, down] = rows.clone().map(|r| &d[r]);
+            let finite = |x: usize| up[x].is_finite() & mid[x].is_finite() & down[x].is_finite();
+            let column: Vec<bool> = match valid {
+                Some(m) => {
+                    let [mu, mm, md] = rows.map(|r| &m[r]);
+                    (0..w).map(|x| mu[x] & mm[x] & md[x] & finite(x)).collect()
                 }
-                let [a, b, c, e, f, g, i, j, k] = around.map(|r| d[r]);
-                Some((a + c + i + k - 2.0 * (b + e + g + j) + 4.0 * f).abs())
-            })
+                None => (0..w).map(finite).collect(),
+            };
+            (1..w - 1)
+                .filter(|&x| column[x - 1] & column[x] & column[x + 1])
+                .map(|x| {
+                    let (a, b, c) = (up[x - 1], up[x], up[x + 1]);
+                    let (e, f, g) = (mid[x - 1], mid[x], mid[x + 1]);
+                    let (i, j, k) = (down[x - 1], down[x], down[x + 1]);
+                    (a + c + i + k - 2.0 * (b + e + g + j) + 4.0 * f).abs()
+                })
+                .collect()
         })
         .collect();
-    if responses.len() < 64 {
+    let n: usize = responses.iter().map(Vec::len).sum();
+    if n < 64 {
         return None;
     }
-    let mid = responses.len() / 2;
-    let (_, median, _) = responses.select_nth_unstable_by(mid, f32::total_cmp);
-    Some(MAD_TO_SIGMA * f64::from(*median) / KERNEL_NORM)
+    let median = kth_smallest(&responses, n / 2);
+    Some(MAD_TO_SIGMA * f64::from(median) / KERNEL_NORM)
+}
+
+/// The element of rank `k` (0-based) of the values of `parts` together, in the order of
+/// [`f32::total_cmp`]: the element a selection on one list of them all finds, without its
+/// serial pass. That order is the order of the bits with the sign bit flipped (all bits, for
+/// a negative value), so a parallel count of the top 16 of them finds the bin that holds rank
+/// `k`, and a selection among that bin's few values the element.
+pub(crate) fn kth_smallest<P: AsRef<[f32]> + Sync>(parts: &[P], k: usize) -> f32 {
+    const SHIFT: u32 = 16;
+    const BINS: usize = 1 << 16;
+    const CHUNK: usize = 1 << 16;
+    let key = |v: f32| {
+        let bits = v.to_bits();
+        if bits >> 31 == 1 {
+            !bits
+        } else {
+            bits | 1 << 31
+        }
+    };
+    let bin = |v: f32| (key(v) >> SHIFT) as usize;
+    // Pieces of at most CHUNK values, gathered into groups of about CHUNK values each: one
+    // histogram per group (not per part: a histogram per image row cleared 0.3 GB a call).
+    let pieces: Vec<&[f32]> = parts
+        .iter()
+        .flat_map(|p| p.as_ref().chunks(CHUNK))
+        .collect();
+    let mut starts = vec![0];
+    let mut filled = 0;
+    for (i, piece) in pieces.iter().enumerate() {
+        if filled >= CHUNK {
+            starts.push(i);
+            filled = 0;
+        }
+        filled += piece.len();
+    }
+    let groups: Vec<&[&[f32]]> = starts
+        .iter()
+        .zip(starts.iter().skip(1).chain([&pieces.len()]))
+        .map(|(&a, &b)| &pieces[a..b])
+        .collect();
+    let counts = groups
+        .par_iter()
+        .map(|group| {
+            let mut counts = vec![0u32; BINS];
+            for &v in group.iter().copied().flatten() {
+                counts[bin(v)] += 1;
+            }
+            counts
+        })
+        .reduce(
+            || vec![0u32; BINS],
+            |mut a, b| {
+                a.iter_mut().zip(&b).for_each(|(a, b)| *a += b);
+                a
+            },
+        );
+    let (mut at, mut rank) = (0, k);
+    while rank >= counts[at] as usize {
+        rank -= counts[at] as usize;
+        at += 1;
+        assert!(at < BINS, "rank {k} beyond the values");
+    }
+    let mut members: Vec<f32> = pieces
+        .par_iter()
+        .flat_map_iter(|piece| piece.iter().copied().filter(|&v| bin(v) == at))
+        .collect();
+    *members.select_nth_unstable_by(rank, f32::total_cmp).1
 }
 
 /// The predicted precision of a pair, for report.json.
@@ -158,7 +226,7 @@ pub fn disparity_bound(
     let n_eff = 4.0 * std::f64::consts::PI * window_sigma * window_sigma;
     // The bound falls as the mean gradient energy rises (monotone also as rounded), so the
     // median bound is the bound of the mirrored order statistic of the means.
-    let mut means: Vec<f32> = (0..w * h)
+    let means: Vec<f32> = (0..w * h)
         .into_par_iter()
         .filter(|&q| counted(q) && planes[q][1] > 1e-3)
         .map(|q| planes[q][0] / planes[q][1])
@@ -168,8 +236,7 @@ pub fn disparity_bound(
         return None;
     }
     let mid = means.len() - 1 - means.len() / 2;
-    let (_, mean, _) = means.select_nth_unstable_by(mid, f32::total_cmp);
-    let mean = f64::from(*mean);
+    let mean = f64::from(kth_smallest(&[means], mid));
     let median = if mean > 0.0 {
         (2.0 * noise_var / (n_eff * mean)).sqrt()
     } else {
@@ -287,6 +354,44 @@ mod tests {
                 "{threads} threads"
             );
             assert_eq!(p.height_um.to_bits(), one.height_um.to_bits());
+        }
+    }
+
+    /// The counted selection finds the element a selection on the whole list finds, bit for
+    /// bit, at every rank and however the values are split: signed zeros, infinities, NaNs,
+    /// ties and values sharing a bin.
+    #[test]
+    fn counted_selection_equals_the_selection_of_the_whole_list() {
+        let mut rng = Rng::new(5);
+        let mut values: Vec<f32> = (0..3000)
+            .map(|i| match i % 7 {
+                0 => (rng.gauss() * 1e-3) as f32,
+                1 => 1.0 + (rng.gauss() * 1e-6) as f32,
+                2 => [
+                    0.0,
+                    -0.0,
+                    f32::INFINITY,
+                    f32::NEG_INFINITY,
+                    f32::NAN,
+                    -f32::NAN,
+                ][i % 6],
+                3 => 0.25,
+                _ => (rng.gauss() * 100.0) as f32,
+            })
+            .collect();
+        values.extend((0..200_000).map(|_| rng.gauss().abs() as f32));
+        let mut sorted = values.clone();
+        sorted.sort_unstable_by(f32::total_cmp);
+        for k in (0..values.len()).step_by(997).chain([0, values.len() - 1]) {
+            let whole = kth_smallest(&[&values], k);
+            assert_eq!(whole.to_bits(), sorted[k].to_bits(), "rank {k}");
+            // The same values in parts of any sizes (empty ones too).
+            let parts: Vec<&[f32]> = values.chunks(1 + k % 5000).chain([&[][..]]).collect();
+            assert_eq!(
+                kth_smallest(&parts, k).to_bits(),
+                whole.to_bits(),
+                "rank {k}"
+            );
         }
     }
 

@@ -225,29 +225,26 @@ pub fn unanchored_in(
         let d = &disparity.data()[y * w..][..w];
         let t = &textured[y * w..][..w];
         let anchor = |x: usize| t[x] && d[x].is_finite();
-        // The nearest anchor at or before x, and at or after it.
-        let mut before = vec![None; w];
-        let mut last = None;
-        for (x, b) in before.iter_mut().enumerate() {
-            if anchor(x) {
-                last = Some(x);
-            }
-            *b = last;
-        }
-        let mut after = vec![None; w];
-        last = None;
+        // The nearest anchor at or after x (`usize::MAX`: none); the one at or before it is
+        // carried along the row below.
+        let mut after = vec![usize::MAX; w];
+        let mut next = usize::MAX;
         for (x, a) in after.iter_mut().enumerate().rev() {
             if anchor(x) {
-                last = Some(x);
+                next = x;
             }
-            *a = last;
+            *a = next;
         }
+        let mut before = None;
         for (x, out) in row.iter_mut().enumerate() {
+            if anchor(x) {
+                before = Some(x);
+            }
             if t[x] || !d[x].is_finite() || judged.is_some_and(|j| !j[y * w + x]) {
                 continue;
             }
-            let pinned = match (before[x], after[x]) {
-                (Some(l), Some(r)) if x - l <= reach_px && r - x <= reach_px => {
+            let pinned = match (before, after[x]) {
+                (Some(l), r) if r != usize::MAX && x - l <= reach_px && r - x <= reach_px => {
                     let f = (x - l) as f32 / (r - l) as f32;
                     let between = d[l] + f * (d[r] - d[l]);
                     (d[x] - between).abs() <= step_px
@@ -262,48 +259,86 @@ pub fn unanchored_in(
 
 /// The featureless pixels (not `textured`) in 4-connected featureless regions of at least
 /// `min_px` pixels.
+///
+/// By runs, not pixels: each row's featureless runs are found in parallel, a union–find joins
+/// the runs that share a column with a run of the row above (serial, over the runs only), and
+/// the runs of large regions are marked in parallel.
 #[must_use]
 pub fn large_featureless(textured: &[bool], (w, h): (usize, usize), min_px: usize) -> Vec<bool> {
-    // Visited flags, not labels: each region is marked as it closes (1 byte per pixel, not 8).
-    let mut seen = vec![false; w * h];
     let mut out = vec![false; w * h];
-    let mut stack = Vec::new();
-    let mut members = Vec::new();
-    for start in 0..w * h {
-        if textured[start] || seen[start] {
-            continue;
+    if w == 0 {
+        return out;
+    }
+    // Per row, its featureless runs `start..end`.
+    let runs: Vec<Vec<(usize, usize)>> = textured
+        .par_chunks(w)
+        .map(|row| {
+            let mut runs = Vec::new();
+            let mut x = 0;
+            while let Some(start) = row[x..].iter().position(|&t| !t).map(|s| x + s) {
+                let end = row[start..]
+                    .iter()
+                    .position(|&t| t)
+                    .map_or(w, |e| start + e);
+                runs.push((start, end));
+                x = end;
+            }
+            runs
+        })
+        .collect();
+    // The index of each row's first run among all runs.
+    let first: Vec<usize> = runs
+        .iter()
+        .scan(0, |n, r| {
+            let at = *n;
+            *n += r.len();
+            Some(at)
+        })
+        .collect();
+    let mut parent: Vec<usize> = (0..runs.iter().map(Vec::len).sum()).collect();
+    let root = |parent: &mut [usize], mut i: usize| {
+        while parent[i] != i {
+            parent[i] = parent[parent[i]];
+            i = parent[i];
         }
-        seen[start] = true;
-        stack.push(start);
-        members.clear();
-        while let Some(q) = stack.pop() {
-            members.push(q);
-            let (x, y) = (q % w, q / w);
-            let mut visit = |n: usize| {
-                if !textured[n] && !seen[n] {
-                    seen[n] = true;
-                    stack.push(n);
-                }
-            };
-            if x > 0 {
-                visit(q - 1);
+        i
+    };
+    for y in 1..h {
+        // Two pointers over the runs of rows y − 1 and y: each overlapping pair is joined.
+        let (above, here) = (&runs[y - 1], &runs[y]);
+        let (mut i, mut j) = (0, 0);
+        while i < above.len() && j < here.len() {
+            let (a, b) = (above[i], here[j]);
+            if a.0 < b.1 && b.0 < a.1 {
+                let (ra, rb) = (
+                    root(&mut parent, first[y - 1] + i),
+                    root(&mut parent, first[y] + j),
+                );
+                parent[ra.max(rb)] = ra.min(rb);
             }
-            if x + 1 < w {
-                visit(q + 1);
-            }
-            if y > 0 {
-                visit(q - w);
-            }
-            if y + 1 < h {
-                visit(q + w);
-            }
-        }
-        if members.len() >= min_px {
-            for &q in &members {
-                out[q] = true;
+            if a.1 <= b.1 {
+                i += 1;
+            } else {
+                j += 1;
             }
         }
     }
+    let mut size = vec![0usize; parent.len()];
+    let mut roots = vec![0usize; parent.len()];
+    for (k, &(s, e)) in runs.iter().flatten().enumerate() {
+        roots[k] = root(&mut parent, k);
+        size[roots[k]] += e - s;
+    }
+    out.par_chunks_mut(w)
+        .zip(&runs)
+        .zip(&first)
+        .for_each(|((row, runs), &f)| {
+            for (k, &(s, e)) in runs.iter().enumerate() {
+                if size[roots[f + k]] >= min_px {
+                    row[s..e].fill(true);
+                }
+            }
+        });
     out
 }
 
@@ -444,6 +479,77 @@ mod tests {
         // Without the noise figure scaled in, the threshold would not hold.
         let t0 = textured_along_x(&img, sigma / 100.0, (1.0, 1.5), 4.0);
         assert!(t0.iter().filter(|&&b| b).count() > w * h / 2);
+    }
+
+    /// The regions by a 4-connected flood fill from each unvisited featureless pixel: the
+    /// reference of the run-based labelling.
+    fn large_featureless_by_flood(
+        textured: &[bool],
+        (w, h): (usize, usize),
+        min_px: usize,
+    ) -> Vec<bool> {
+        let mut seen = vec![false; w * h];
+        let mut out = vec![false; w * h];
+        for start in 0..w * h {
+            if textured[start] || seen[start] {
+                continue;
+            }
+            seen[start] = true;
+            let (mut stack, mut members) = (vec![start], Vec::new());
+            while let Some(q) = stack.pop() {
+                members.push(q);
+                let (x, y) = (q % w, q / w);
+                let near = [
+                    (x > 0).then(|| q - 1),
+                    (x + 1 < w).then(|| q + 1),
+                    (y > 0).then(|| q - w),
+                    (y + 1 < h).then(|| q + w),
+                ];
+                for n in near.into_iter().flatten() {
+                    if !textured[n] && !seen[n] {
+                        seen[n] = true;
+                        stack.push(n);
+                    }
+                }
+            }
+            if members.len() >= min_px {
+                members.iter().for_each(|&q| out[q] = true);
+            }
+        }
+        out
+    }
+
+    /// The run-based labelling marks the pixels the flood fill marks, on random masks of
+    /// every density (winding regions that merge late, single rows and columns, empty masks).
+    #[test]
+    fn regions_by_runs_equal_the_flood_fill() {
+        let mut state = 11u64;
+        let mut next = || {
+            state = state
+                .wrapping_mul(6_364_136_223_846_793_005)
+                .wrapping_add(1_442_695_040_888_963_407);
+            (state >> 33) as usize
+        };
+        for case in 0..60 {
+            let (w, h) = (1 + next() % 50, 1 + next() % 40);
+            let density = next() % 100;
+            let textured: Vec<bool> = (0..w * h).map(|_| next() % 100 < density).collect();
+            for min_px in [0, 1, 2, 5, 17, 60, w * h] {
+                assert_eq!(
+                    large_featureless(&textured, (w, h), min_px),
+                    large_featureless_by_flood(&textured, (w, h), min_px),
+                    "case {case}: {w}x{h}, density {density} %, min_px {min_px}"
+                );
+            }
+        }
+        // A comb: teeth that join only along the last row form one region.
+        let (w, h) = (9, 6);
+        let comb: Vec<bool> = (0..w * h)
+            .map(|q| q / w < h - 1 && q % w % 2 == 1)
+            .collect();
+        let big = large_featureless(&comb, (w, h), 5 * 5 + w);
+        assert!((0..w * h).all(|q| big[q] != comb[q]));
+        assert_eq!(big, large_featureless_by_flood(&comb, (w, h), 5 * 5 + w));
     }
 
     /// A large featureless region is judged, a speck amid texture is not.

@@ -565,6 +565,20 @@ pub fn upsample_flow(
     // Level l+1's pixel i sits at 2i of level l (pyramid::halve_*): the exact
     // mapping is x/2; the ratio above only differs by the rounding of odd sizes.
     let half = wc == wf.div_ceil(2) && hc == hf.div_ceil(2);
+    // Per column, its two coarse columns and their weights: the same for every row.
+    let columns: Vec<(usize, usize, f32, f32)> = (0..wf)
+        .map(|x| {
+            let fx = if half {
+                x as f32 / 2.0
+            } else {
+                x as f32 * fx_scale
+            }
+            .min((wc - 1) as f32);
+            let x0 = fx as usize; // non-negative: truncation is the floor
+            let tx = fx - x0 as f32;
+            (x0, (x0 + 1).min(wc - 1), 1.0 - tx, tx)
+        })
+        .collect();
     let mut out = zeroed(wf * hf);
     out.par_chunks_mut(wf).enumerate().for_each(|(y, row)| {
         let fy = if half {
@@ -576,18 +590,10 @@ pub fn upsample_flow(
         let y0 = fy as usize; // non-negative: truncation is the floor
         let y1 = (y0 + 1).min(hc - 1);
         let ty = fy - y0 as f32;
-        for (x, o) in row.iter_mut().enumerate() {
-            let fx = if half {
-                x as f32 / 2.0
-            } else {
-                x as f32 * fx_scale
-            }
-            .min((wc - 1) as f32);
-            let x0 = fx as usize; // non-negative: truncation is the floor
-            let x1 = (x0 + 1).min(wc - 1);
-            let tx = fx - x0 as f32;
-            let top = coarse[y0 * wc + x0] * (1.0 - tx) + coarse[y0 * wc + x1] * tx;
-            let bottom = coarse[y1 * wc + x0] * (1.0 - tx) + coarse[y1 * wc + x1] * tx;
+        let (r0, r1) = (&coarse[y0 * wc..][..wc], &coarse[y1 * wc..][..wc]);
+        for (o, &(x0, x1, sx, tx)) in row.iter_mut().zip(&columns) {
+            let top = r0[x0] * sx + r0[x1] * tx;
+            let bottom = r1[x0] * sx + r1[x1] * tx;
             *o = s * (top * (1.0 - ty) + bottom * ty);
         }
     });
@@ -1074,6 +1080,59 @@ mod tests {
         assert_eq!(with(None, 2, 0), with(Some(2), 5, 0));
         let kept = with(Some(0), 3, 0);
         assert!((kept - 3.0).abs() < 1e-5, "u {kept}: no step, the start");
+    }
+
+    /// The upsampling with its per-column table gives the bits of the pixel-by-pixel
+    /// bilinear interpolation, for halving sizes (even and odd) and other ratios.
+    #[test]
+    fn upsampling_by_column_table_equals_the_direct_interpolation() {
+        let direct =
+            |coarse: &[f32], (wc, hc): (usize, usize), (wf, hf): (usize, usize), s: f32| {
+                let scale = |c: usize, f: usize| {
+                    if f > 1 {
+                        (c - 1) as f32 / (f - 1) as f32
+                    } else {
+                        0.0
+                    }
+                };
+                let half = wc == wf.div_ceil(2) && hc == hf.div_ceil(2);
+                let at = |i: usize, n: usize, c: usize, f: usize| {
+                    let t = if half {
+                        i as f32 / 2.0
+                    } else {
+                        i as f32 * scale(c, f)
+                    }
+                    .min((n - 1) as f32);
+                    let i0 = t as usize;
+                    (i0, (i0 + 1).min(n - 1), t - i0 as f32)
+                };
+                (0..wf * hf)
+                    .map(|q| {
+                        let (y0, y1, ty) = at(q / wf, hc, hc, hf);
+                        let (x0, x1, tx) = at(q % wf, wc, wc, wf);
+                        let top = coarse[y0 * wc + x0] * (1.0 - tx) + coarse[y0 * wc + x1] * tx;
+                        let bottom = coarse[y1 * wc + x0] * (1.0 - tx) + coarse[y1 * wc + x1] * tx;
+                        (s * (top * (1.0 - ty) + bottom * ty)).to_bits()
+                    })
+                    .collect::<Vec<_>>()
+            };
+        for (coarse, fine) in [
+            ((8, 5), (16, 9)),
+            ((9, 6), (17, 11)),
+            ((7, 7), (20, 13)),
+            ((1, 3), (1, 5)),
+        ] {
+            let values: Vec<f32> = (0..coarse.0 * coarse.1)
+                .map(|q| ((q * 37 % 23) as f32 - 11.0) * 0.173)
+                .collect();
+            let got = upsample_flow(&values, coarse.0, coarse.1, fine.0, fine.1, 2.0);
+            let bits: Vec<u32> = got.iter().map(|v| v.to_bits()).collect();
+            assert_eq!(
+                bits,
+                direct(&values, coarse, fine, 2.0),
+                "{coarse:?} -> {fine:?}"
+            );
+        }
     }
 
     #[test]

@@ -75,8 +75,8 @@ pub(crate) fn gaussian_blur_into(
     }
     let kernel = gaussian_kernel(sigma);
     let r = kernel.len() / 2;
-    // Horizontal pass: pad each row by mirroring, then a straight dot product.
-    tmp.fill(0.0);
+    // Horizontal pass: pad each row by mirroring, then a straight dot product. Each row is
+    // cleared by the thread that sums it (not the whole plane first, on one core).
     tmp.par_chunks_mut(w).enumerate().for_each_init(
         || vec![0.0f32; w + 2 * r],
         |padded, (y, o)| {
@@ -86,6 +86,7 @@ pub(crate) fn gaussian_blur_into(
                 padded[i] = row[mirror(i as isize - r as isize, w)];
             }
             // Tap by tap over the whole row: the inner loop vectorises.
+            o.fill(0.0);
             for (k, &g) in kernel.iter().enumerate() {
                 for (o, &v) in o.iter_mut().zip(&padded[k..k + w]) {
                     *o += g * v;
@@ -95,8 +96,8 @@ pub(crate) fn gaussian_blur_into(
     );
     // Vertical pass: accumulate whole rows so the inner loop runs along x (vectorises).
     let tmp = &*tmp;
-    out.fill(0.0);
     out.par_chunks_mut(w).enumerate().for_each(|(y, orow)| {
+        orow.fill(0.0);
         for (k, &g) in kernel.iter().enumerate() {
             let sy = mirror(y as isize + k as isize - r as isize, h);
             for (o, &v) in orow.iter_mut().zip(&tmp[sy * w..(sy + 1) * w]) {

@@ -153,31 +153,73 @@ pub fn halve_mask(mask: &[bool], w: usize, h: usize) -> Vec<bool> {
 /// to the integer offsets of the finer level's label windows.
 #[must_use]
 pub fn upsample_offsets(coarse: &[f32], wc: usize, hc: usize, wf: usize, hf: usize) -> Vec<i32> {
+    // Per column, its two coarse columns and their weights: the same for every row.
+    let columns: Vec<(usize, usize, f32, f32)> = (0..wf)
+        .map(|x| {
+            let fx = (x as f32 / 2.0).min((wc - 1) as f32);
+            let x0 = fx as usize; // non-negative: truncation is the floor
+            let tx = fx - x0 as f32;
+            (x0, (x0 + 1).min(wc - 1), 1.0 - tx, tx)
+        })
+        .collect();
     let mut out = vec![0i32; wf * hf];
     out.par_chunks_mut(wf).enumerate().for_each(|(y, row)| {
         let fy = (y as f32 / 2.0).min((hc - 1) as f32);
         let y0 = fy as usize; // non-negative: truncation is the floor
         let y1 = (y0 + 1).min(hc - 1);
         let ty = fy - y0 as f32;
-        for (x, o) in row.iter_mut().enumerate() {
-            let fx = (x as f32 / 2.0).min((wc - 1) as f32);
-            let x0 = fx as usize; // non-negative: truncation is the floor
-            let x1 = (x0 + 1).min(wc - 1);
-            let tx = fx - x0 as f32;
-            let top = coarse[y0 * wc + x0] * (1.0 - tx) + coarse[y0 * wc + x1] * tx;
-            let bottom = coarse[y1 * wc + x0] * (1.0 - tx) + coarse[y1 * wc + x1] * tx;
-            // Flows are bounded by the image size.
-            #[allow(clippy::cast_possible_truncation)]
-            let v = (2.0 * (top * (1.0 - ty) + bottom * ty)).round() as i32;
-            *o = v;
+        let (r0, r1) = (&coarse[y0 * wc..][..wc], &coarse[y1 * wc..][..wc]);
+        for (o, &(x0, x1, sx, tx)) in row.iter_mut().zip(&columns) {
+            let top = r0[x0] * sx + r0[x1] * tx;
+            let bottom = r1[x0] * sx + r1[x1] * tx;
+            *o = round_to_i32(2.0 * (top * (1.0 - ty) + bottom * ty));
         }
     });
     out
 }
 
+/// `v.round() as i32` (half away from zero) for a flow, without the library call that
+/// `round` is on the baseline x86-64 target: the fraction `v − trunc(v)` is exact.
+#[inline]
+fn round_to_i32(v: f32) -> i32 {
+    // Flows are bounded by the image size.
+    #[allow(clippy::cast_possible_truncation)]
+    let whole = v as i32;
+    let fraction = v - whole as f32;
+    // Saturating as the cast is (beyond ±2³¹, and for infinities).
+    whole
+        .saturating_add(i32::from(fraction >= 0.5))
+        .saturating_sub(i32::from(fraction <= -0.5))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The rounding without the library call equals `round`, at and beside every half, on
+    /// both sides of zero.
+    #[test]
+    fn rounding_of_flows_equals_the_library_round() {
+        let halves = (-3000..3000).map(|k| k as f32 * 0.5);
+        let beside = halves.clone().flat_map(|h| [h.next_down(), h.next_up()]);
+        let spread = (-100_000..100_000).map(|k| k as f32 * 0.013_7);
+        let edge = [
+            0.499_999_97,
+            -0.499_999_97,
+            0.0,
+            -0.0,
+            4_194_303.5,
+            -4_194_303.5,
+            3e9,
+            -3e9,
+            f32::INFINITY,
+            f32::NEG_INFINITY,
+            f32::NAN,
+        ];
+        for v in halves.chain(beside).chain(spread).chain(edge) {
+            assert_eq!(round_to_i32(v), v.round() as i32, "{v}");
+        }
+    }
 
     /// One channel takes the unclamped path away from the ends: the values of the general
     /// pass, bit for bit (the same image as both channels of a two-channel buffer).
