@@ -202,8 +202,7 @@ fn best_matches(
                         }
                     }
                 }
-                for y in y0..y1 {
-                    let (lo, hi) = spans[y];
+                for (y, &(lo, hi)) in spans.iter().enumerate().take(y1).skip(y0) {
                     if lo >= hi {
                         continue;
                     }
@@ -523,7 +522,7 @@ mod tests {
             let mut found = 0;
             for p in (0..w * h).filter(|&p| mask[p]) {
                 let g = got[p - y0 * w];
-                let g = (g.k != NONE).then(|| (g.k as usize, [g.zm, g.z0, g.zp]));
+                let g = (g.k != NONE).then_some((g.k as usize, [g.zm, g.z0, g.zp]));
                 let bits = |v: Option<(usize, [f32; 3])>| v.map(|(k, z)| (k, z.map(f32::to_bits)));
                 assert_eq!(bits(g), bits(want[p]), "r {r}, pixel {p}");
                 found += usize::from(g.is_some());

@@ -95,7 +95,7 @@ impl Default for SlantedParams {
             plateau_rim_px: 5,
             plateau_floor_unknown: false,
             plateau_min_px: 1000,
-            plateau_min_shift_px: 0.5,
+            plateau_min_shift_px: 1.0,
         }
     }
 }
