@@ -70,6 +70,11 @@ pub struct SlantedParams {
     pub plateau_rim_px: usize,
     /// With plateaus measured, leave the dark, flat pixels between them unknown (no texture).
     pub plateau_floor_unknown: bool,
+    /// Least pixels of a connected plateau for it to be matched again.
+    pub plateau_min_px: usize,
+    /// Least |median| of the plateau's new disparities minus the matcher's for it to take them,
+    /// pixels: where both agree the matcher saw the top, not its outline.
+    pub plateau_min_shift_px: f32,
 }
 
 impl Default for SlantedParams {
@@ -89,6 +94,8 @@ impl Default for SlantedParams {
             plateau_min_ncc: 0.2,
             plateau_rim_px: 5,
             plateau_floor_unknown: false,
+            plateau_min_px: 1000,
+            plateau_min_shift_px: 1.0,
         }
     }
 }
@@ -121,6 +128,8 @@ impl SlantedParams {
             Some("slanted.plateau_min_ncc")
         } else if self.plateau_rim_px > 32 {
             Some("slanted.plateau_rim_px")
+        } else if !(self.plateau_min_shift_px.is_finite() && self.plateau_min_shift_px >= 0.0) {
+            Some("slanted.plateau_min_shift_px")
         } else {
             None
         }

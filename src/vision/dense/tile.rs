@@ -9,9 +9,10 @@
 //! coarse solution. What a tile cannot see is context beyond its border: the overlap
 //! ([`margins`]) covers the search window (vertical, and horizontal for the right image), the
 //! descriptor's extent, a few top-level pixels of BP context, the refinement window, the
-//! re-assignment band, the opt-in passes that judge the raw disparity (slanted, support, anchor)
-//! and the bilateral filter's support; the seam is a linear cross-fade over the inner half of
-//! the overlap.
+//! re-assignment band, the opt-in passes that judge or re-measure the raw disparity (slanted,
+//! plateau, support, anchor) and the bilateral filter's support; the seam is a linear
+//! cross-fade over the inner half of the overlap. The plateau pass judges each plateau whole
+//! (its size, its median shift): one cut by a seam is judged per tile.
 //!
 //! A rotated or sheared rectification leaves up to half the canvas outside the left micrograph
 //! ([`Coverage`]): tiles are cut down to the columns it covers, with their overlap, and strips
@@ -236,8 +237,8 @@ pub fn margins(params: &DenseParams, top_shift: f32, range: Option<(f64, f64)>) 
     (u_reach + context, v_reach + context)
 }
 
-/// The reach of the opt-in passes between the matching and the filter (the slanted
-/// re-measurement, the support and anchor tests): each reads the images and the raw
+/// The reach of the opt-in passes between the matching and the filter (the slanted and plateau
+/// re-measurements, the support and anchor tests): each reads the images and the raw
 /// disparity around a pixel, so a tile's core needs that much more context (0 when off).
 fn judging(params: &DenseParams) -> usize {
     let sigma = crate::vision::pipeline::matcher_window_sigma(params);
@@ -252,6 +253,11 @@ fn judging(params: &DenseParams) -> usize {
     let q = &params.slanted;
     if q.enabled {
         reach += q.max_gap as f64 + 3.0 * own(q.window_sigma);
+    }
+    if q.plateau {
+        // Its box window, the rim that takes the window's results, and the mask's own reach:
+        // the σ 1 blur (radius 4), the gradient and the erosion.
+        reach += (q.plateau_radius + q.plateau_rim_px + 6) as f64;
     }
     let s = &params.support;
     if s.enabled {
@@ -852,10 +858,22 @@ mod tests {
         let mut slanted = base;
         slanted.slanted.enabled = true;
         assert!(grown(&slanted).0 >= slanted.slanted.max_gap, "slanted");
+        let mut plateau = base;
+        plateau.slanted.plateau = true;
+        plateau.slanted.plateau_radius = 24;
+        let q = plateau.slanted;
+        let pl = grown(&plateau);
+        assert!(
+            pl.0 >= q.plateau_radius + q.plateau_rim_px && pl.0 == pl.1,
+            "plateau {pl:?}"
+        );
         let mut all = anchor;
         all.support = support.support;
         all.slanted = slanted.slanted;
         assert!(grown(&all).0 >= a.0 + s.0 + slanted.slanted.max_gap);
+        all.slanted.plateau = true;
+        all.slanted.plateau_radius = 24;
+        assert!(grown(&all).0 >= a.0 + s.0 + slanted.slanted.max_gap + pl.0);
     }
 
     /// The cores partition the canvas, every padded tile holds the covered part of its core and
