@@ -1317,6 +1317,9 @@ mod tests {
             p.support.enabled = true;
             p.support.rim_px = rim_px;
             p.support.rim_range = 1.5;
+            // The rims from the pixels left unknown, not from the micrograph's regions.
+            p.support.rim_from_texture = false;
+            p.support.rim_side = 0.0;
             p.anchor.enabled = true;
             let out = crate::vision::dense::dense_disparity(&a, &b, None, None, &p).unwrap();
             let d = out.raw.data();
