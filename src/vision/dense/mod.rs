@@ -788,13 +788,32 @@ fn left_right_consistency(
         let key_sigma = params.flow.refine.range_key_sigma;
         let key = (params.support.rim_range > 0.0)
             .then(|| range_key_smoothed(inputs.a.data(), w, h, key_sigma));
-        let rims = support::featureless_rims(
-            &unknown,
-            (w, h),
-            (params.support.rim_px, params.support.rim_share),
-            &[Unknown::NoTexture],
-            key.as_deref().map(|k| (k, params.support.rim_range)),
-        );
+        let rim = (params.support.rim_px, params.support.rim_share);
+        let key = key.as_deref().map(|k| (k, params.support.rim_range));
+        let seeds = params
+            .support
+            .rim_from_texture
+            .then(|| {
+                let sigma = crate::vision::pipeline::matcher_window_sigma(params) as f32;
+                featureless_regions(&inputs.a, va, &params.anchor, sigma)
+            })
+            .flatten();
+        let rims = match seeds {
+            Some(seeds) => {
+                let side = (params.support.rim_side > 0.0).then(|| {
+                    support::support_side(
+                        inputs.a.data(),
+                        va,
+                        &seeds,
+                        (w, h),
+                        (params.anchor.band_sigma, params.support.rim_px.max(0.5)),
+                        params.support.rim_side,
+                    )
+                });
+                support::rims_of(&seeds, &unknown, (w, h), rim, key, side.as_deref())
+            }
+            None => support::featureless_rims(&unknown, (w, h), rim, &[Unknown::NoTexture], key),
+        };
         mark_unknown(&mut raw, &mut confidence, &mut unknown, &rims);
     }
     Consistent {
@@ -808,6 +827,33 @@ fn left_right_consistency(
         clamped,
         unknown,
     }
+}
+
+/// The real pixels (`valid`) of the featureless regions of the left micrograph `a` by the
+/// anchor test's texture criterion ([`anchor::textured_along_x`]): 4-connected regions of at
+/// least `anchor.min_region` matcher windows (`π·(2σ)²` pixels each), the pixels outside the
+/// micrograph counted as textured (a region does not grow through them). `None` without a
+/// noise estimate.
+fn featureless_regions(
+    a: &Image,
+    valid: &[bool],
+    anchor: &anchor::AnchorParams,
+    matcher_sigma: f32,
+) -> Option<Vec<bool>> {
+    let (w, h) = a.dimensions();
+    let noise = crate::vision::precision::noise_sigma(a, Some(valid))?;
+    #[allow(clippy::cast_possible_truncation)]
+    let textured = anchor::textured_along_x(
+        a,
+        noise as f32,
+        (anchor.band_sigma, anchor.texture_sigma),
+        anchor.min_snr,
+    );
+    let blocked: Vec<bool> = textured.iter().zip(valid).map(|(&t, &v)| t || !v).collect();
+    #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
+    let min_px =
+        (anchor.min_region * std::f32::consts::PI * (2.0 * matcher_sigma).powi(2)) as usize;
+    Some(anchor::large_featureless(&blocked, (w, h), min_px.max(1)))
 }
 
 /// The pixels the left–right check rejected in the strip the right micrograph never saw (left

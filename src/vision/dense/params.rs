@@ -103,6 +103,9 @@ impl DenseParams {
                 },
                 support: SupportParams {
                     enabled: false,
+                    rim_px: 0.0,
+                    rim_from_texture: false,
+                    rim_side: 0.0,
                     ..SupportParams::default()
                 },
                 detail: DetailParams {

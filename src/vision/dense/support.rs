@@ -133,7 +133,8 @@ pub struct SupportParams {
     /// decided the disparity; both windows must pass (opt-in).
     pub edge_aware: bool,
     /// Leave unknown the measured pixels within this many pixels of a featureless one (a raised
-    /// feature's blurred outline moves with it); 0: none (opt-in).
+    /// feature's blurred outline moves with it); 0: none (improved 16, with `rim_from_texture`
+    /// and `rim_side`; paper 0).
     pub rim_px: f32,
     /// Only featureless pixels within this much of the pixel's brightness (in standard deviations
     /// of the smoothed left micrograph) make a rim; 0: any.
@@ -141,6 +142,16 @@ pub struct SupportParams {
     /// Only featureless pixels with at least this share of featureless pixels in a Gaussian
     /// window of σ `rim_px` make a rim (a wide support, not specks); 0: any.
     pub rim_share: f32,
+    /// The rims grow from the featureless regions the micrograph shows (the anchor test's
+    /// texture criterion, regions of at least `anchor.min_region` windows, measured or not),
+    /// not only from the pixels left unknown as featureless; measured pixels of those regions
+    /// are left unknown too (improved; paper: off).
+    pub rim_from_texture: bool,
+    /// A measured pixel joins a rim only on the support's side of the outline: its brightness
+    /// (smoothed by `anchor.band_sigma`) less than this share of the way from the mean of the
+    /// featureless pixels within `rim_px` to the mean of the textured ones (0.5: nearer the
+    /// support's); 0: any pixel (with `rim_from_texture`; improved 1, paper 0).
+    pub rim_side: f32,
 }
 
 impl Default for SupportParams {
@@ -163,9 +174,11 @@ impl Default for SupportParams {
             surface_reach: 2.0,
             wider_min_significance: 0.0,
             edge_aware: false,
-            rim_px: 0.0,
+            rim_px: 16.0,
             rim_range: 0.0,
             rim_share: 0.0,
+            rim_from_texture: true,
+            rim_side: 1.0,
         }
     }
 }
@@ -212,6 +225,8 @@ impl SupportParams {
             Some("support.rim_range")
         } else if !(non_negative(self.rim_share) && self.rim_share <= 1.0) {
             Some("support.rim_share")
+        } else if !(non_negative(self.rim_side) && self.rim_side <= 1.0) {
+            Some("support.rim_side")
         } else {
             None
         }
@@ -833,11 +848,25 @@ pub fn featureless_rims(
     reasons: &[Unknown],
     key: Option<(&[f32], f32)>,
 ) -> Vec<Unknown> {
+    let seeds: Vec<bool> = unknown.par_iter().map(|u| reasons.contains(u)).collect();
+    rims_of(&seeds, unknown, (w, h), (rim_px, min_share), key, None)
+}
+
+/// As [`featureless_rims`], from any `seeds` (featureless pixels): per pixel
+/// [`Unknown::NoTexture`] where a measured pixel lies within `rim_px` pixels of a seed that
+/// `key` and `min_share` admit (a measured seed is its own rim), else [`Unknown::Measured`];
+/// with `eligible`, only the pixels it marks.
+#[must_use]
+pub fn rims_of(
+    seeds: &[bool],
+    unknown: &[Unknown],
+    (w, h): (usize, usize),
+    (rim_px, min_share): (f32, f32),
+    key: Option<(&[f32], f32)>,
+    eligible: Option<&[bool]>,
+) -> Vec<Unknown> {
     let share = (min_share > 0.0).then(|| {
-        let ind: Vec<f32> = unknown
-            .par_iter()
-            .map(|u| f32::from(u8::from(reasons.contains(u))))
-            .collect();
+        let ind: Vec<f32> = seeds.par_iter().map(|&s| f32::from(u8::from(s))).collect();
         blur_plane(&ind, w, h, rim_px.max(0.5))
     });
     #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
@@ -851,7 +880,7 @@ pub fn featureless_rims(
             return false;
         }
         let f = y as usize * w + x as usize;
-        reasons.contains(&unknown[f])
+        seeds[f]
             && key.is_none_or(|(k, most)| (k[f] - k[q]).abs() <= most)
             && share.as_ref().is_none_or(|s| s[f] >= min_share)
     };
@@ -860,12 +889,66 @@ pub fn featureless_rims(
         .map(|q| {
             let (x, y) = ((q % w) as isize, (q / w) as isize);
             let near = unknown[q] == Unknown::Measured
+                && eligible.is_none_or(|e| e[q])
                 && disk.iter().any(|&(dx, dy)| featureless(q, x + dx, y + dy));
             if near {
                 Unknown::NoTexture
             } else {
                 Unknown::Measured
             }
+        })
+        .collect()
+}
+
+/// The pixels on the featureless support's side of an outline: the image `img` smoothed by
+/// `band_sigma` lies less than `share` of the way from the Gaussian-weighted mean (σ `sigma`)
+/// of the featureless pixels (`seeds`) to that of the other real (`valid`) pixels (or beyond
+/// the support's mean, away from the feature's). Across a raised feature's blurred outline the
+/// brightness passes from the support's to the feature's; the part nearer the support's is
+/// the band the blur spreads onto the support. Pixels with no seed or no textured pixel within
+/// reach, or no brightness difference between both, are on neither side (`false`).
+#[must_use]
+pub fn support_side(
+    img: &[f32],
+    valid: &[bool],
+    seeds: &[bool],
+    (w, h): (usize, usize),
+    (band_sigma, sigma): (f32, f32),
+    share: f32,
+) -> Vec<bool> {
+    let clean: Vec<f32> = img
+        .par_iter()
+        .zip(valid)
+        .map(|(&v, &ok)| if ok && v.is_finite() { v } else { 0.0 })
+        .collect();
+    let smooth = if band_sigma > 0.0 {
+        blur_plane(&clean, w, h, band_sigma)
+    } else {
+        clean.clone()
+    };
+    let (flat, flat_sum): (Vec<f32>, Vec<f32>) = seeds
+        .par_iter()
+        .zip(&clean)
+        .map(|(&s, &v)| if s { (1.0, v) } else { (0.0, 0.0) })
+        .unzip();
+    let (rest, rest_sum): (Vec<f32>, Vec<f32>) = seeds
+        .par_iter()
+        .zip(valid)
+        .zip(&clean)
+        .map(|((&s, &ok), &v)| if ok && !s { (1.0, v) } else { (0.0, 0.0) })
+        .unzip();
+    let [flat, flat_sum, rest, rest_sum] =
+        [flat, flat_sum, rest, rest_sum].map(|p| blur_plane(&p, w, h, sigma));
+    (0..w * h)
+        .into_par_iter()
+        .map(|q| {
+            let tiny = 1e-3;
+            if flat[q] < tiny || rest[q] < tiny {
+                return false;
+            }
+            let (support, feature) = (flat_sum[q] / flat[q], rest_sum[q] / rest[q]);
+            let contrast = feature - support;
+            contrast.abs() > f32::EPSILON && (smooth[q] - support) / contrast < share
         })
         .collect()
 }
@@ -1234,6 +1317,9 @@ mod tests {
             p.support.enabled = true;
             p.support.rim_px = rim_px;
             p.support.rim_range = 1.5;
+            // The rims from the pixels left unknown, not from the micrograph's regions.
+            p.support.rim_from_texture = false;
+            p.support.rim_side = 0.0;
             p.anchor.enabled = true;
             let out = crate::vision::dense::dense_disparity(&a, &b, None, None, &p).unwrap();
             let d = out.raw.data();
@@ -1255,6 +1341,96 @@ mod tests {
             "{off} floor pixels off (before {off_before})"
         );
         assert!(block_measured > 0.4, "{block_measured}");
+    }
+
+    /// Rims from image-derived seeds: a measured seed is its own rim, measured pixels within
+    /// `rim_px` join it, farther ones and those `eligible` leaves out do not, unknown pixels
+    /// keep their reason.
+    #[test]
+    fn rims_grow_from_seeds_over_measured_pixels_only() {
+        let (w, h) = (20, 1);
+        let seeds: Vec<bool> = (0..w).map(|x| x < 5).collect();
+        let mut unknown = vec![Unknown::Measured; w];
+        unknown[1] = Unknown::LeftRight;
+        let rims = rims_of(&seeds, &unknown, (w, h), (3.0, 0.0), None, None);
+        let cut: Vec<usize> = (0..w).filter(|&x| rims[x] == Unknown::NoTexture).collect();
+        assert_eq!(cut, vec![0, 2, 3, 4, 5, 6, 7], "{cut:?}");
+        let eligible: Vec<bool> = (0..w).map(|x| x != 6).collect();
+        let rims = rims_of(&seeds, &unknown, (w, h), (3.0, 0.0), None, Some(&eligible));
+        let cut: Vec<usize> = (0..w).filter(|&x| rims[x] == Unknown::NoTexture).collect();
+        assert_eq!(cut, vec![0, 2, 3, 4, 5, 7], "{cut:?}");
+        // The unknown-driven form is the seeds' form with the reasons as seeds.
+        let mut u = vec![Unknown::Measured; w];
+        for v in &mut u[..5] {
+            *v = Unknown::NoTexture;
+        }
+        let a = featureless_rims(&u, (w, h), (3.0, 0.0), &[Unknown::NoTexture], None);
+        let cut: Vec<usize> = (0..w).filter(|&x| a[x] == Unknown::NoTexture).collect();
+        assert_eq!(cut, vec![5, 6, 7], "{cut:?}");
+    }
+
+    /// Across a blurred outline from a dark featureless support to a bright feature the pixels
+    /// below the chosen share of the way to the feature's brightness are on the support's side;
+    /// without a brightness difference no pixel is.
+    #[test]
+    fn the_support_side_of_a_blurred_outline() {
+        let (w, h) = (64, 16);
+        let step = |x: usize| 0.25 + 0.5 / (1.0 + (-(x as f32 - 32.0) / 1.5).exp());
+        let img: Vec<f32> = (0..w * h).map(|q| step(q % w)).collect();
+        let valid = vec![true; w * h];
+        // Featureless where the brightness is flat: the support left of 26, the top right of 38.
+        let seeds: Vec<bool> = (0..w * h).map(|q| q % w < 26).collect();
+        let side = support_side(&img, &valid, &seeds, (w, h), (0.0, 8.0), 0.5);
+        let row: Vec<usize> = (0..w).filter(|&x| side[8 * w + x]).collect();
+        assert!(row.contains(&20) && row.contains(&29), "{row:?}");
+        assert!(!row.contains(&33) && !row.contains(&40), "{row:?}");
+        // A larger share reaches further up the outline, not onto the feature's top.
+        let wider = support_side(&img, &valid, &seeds, (w, h), (0.0, 8.0), 0.9);
+        let wider: Vec<usize> = (0..w).filter(|&x| wider[8 * w + x]).collect();
+        assert!(row.iter().all(|x| wider.contains(x)), "{wider:?}");
+        assert!(wider.len() > row.len() && !wider.contains(&45), "{wider:?}");
+        let flat = vec![0.4f32; w * h];
+        let none = support_side(&flat, &valid, &seeds, (w, h), (0.0, 8.0), 0.5);
+        assert!(!none.contains(&true));
+    }
+
+    /// With the rims grown from the micrograph's featureless regions on the support's side of
+    /// the outline (anchor test, no support test), the floor pixels reported more than 1 px off
+    /// beside the block fall to less than a quarter while the block stays nearly as measured as
+    /// without the rims (the old rims, from the unknown pixels without the side, cut its edges).
+    #[test]
+    fn rims_from_the_image_on_the_support_side_keep_the_block() {
+        let (w, h, a, b, floor) = raised_block_on_a_featureless_floor();
+        let run = |rim_px: f32| {
+            let mut p = crate::vision::dense::DenseParams::default();
+            p.flow.levels = 3;
+            p.anchor.enabled = true;
+            p.support.rim_px = rim_px;
+            p.support.rim_from_texture = true;
+            p.support.rim_side = 0.8;
+            let out = crate::vision::dense::dense_disparity(&a, &b, None, None, &p).unwrap();
+            let d = out.raw.data();
+            let off = (0..w * h)
+                .filter(|&q| floor[q] && d[q].is_finite() && d[q].abs() > 1.0)
+                .count();
+            let block = (48..112)
+                .flat_map(|y| (96..160).map(move |x| y * w + x))
+                .filter(|&q| (d[q] - 6.0).abs() <= 1.0)
+                .count();
+            (off, block as f64 / (64.0 * 64.0))
+        };
+        let (off_before, block_before) = run(0.0);
+        let (off, block) = run(16.0);
+        eprintln!("floor pixels off {off_before} -> {off}, block {block_before:.3} -> {block:.3}");
+        assert!(off_before > 0, "the rims are reported without the rim test");
+        assert!(
+            4 * off < off_before,
+            "{off} floor pixels off (before {off_before})"
+        );
+        assert!(
+            block > block_before - 0.1,
+            "{block} (before {block_before})"
+        );
     }
 
     #[test]

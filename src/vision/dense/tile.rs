@@ -829,8 +829,9 @@ mod tests {
     #[test]
     fn the_overlap_covers_the_opt_in_passes_reach() {
         let mut base = params(64);
-        // The anchor test is on in the improved preset: all off for the reference.
+        // The anchor test and the rims are on in the improved preset: all off for the reference.
         base.anchor.enabled = false;
+        base.support.rim_px = 0.0;
         let sigma = crate::vision::pipeline::matcher_window_sigma(&base);
         let off = margins(&base, 0.0, Some((-4.0, 10.0)));
         let grown = |p: &DenseParams| {
