@@ -342,37 +342,58 @@ pub fn large_featureless(textured: &[bool], (w, h): (usize, usize), min_px: usiz
     out
 }
 
+/// The left micrograph's texture along the parallax by the test's criterion, against its own
+/// noise ([`crate::vision::precision::noise_sigma`] over its real pixels `va`); `None` without
+/// a noise estimate. The rims beside a featureless support grow from the same mask.
+#[must_use]
+pub fn left_textured(a: &Image, va: &[bool], params: &AnchorParams) -> Option<Vec<bool>> {
+    let noise = crate::vision::precision::noise_sigma(a, Some(va))?;
+    #[allow(clippy::cast_possible_truncation)]
+    Some(textured_along_x(
+        a,
+        noise as f32,
+        (params.band_sigma, params.texture_sigma),
+        params.min_snr,
+    ))
+}
+
 /// The test on the dense stage's micrographs `a`, `b` (their real pixels `valid`) and measured
-/// disparity: the pixels to leave unknown. `matcher_sigma`: the matcher's window σ, pixels.
+/// disparity: the pixels to leave unknown. `left`: [`left_textured`] of `a` (`None`: no noise
+/// estimate, nothing is judged). `matcher_sigma`: the matcher's window σ, pixels.
 #[must_use]
 pub fn anchor_test(
     (a, b): (&Image, &Image),
     (va, vb): (&[bool], &[bool]),
+    left: Option<&[bool]>,
     disparity: &Image,
     params: &AnchorParams,
     matcher_sigma: f32,
 ) -> Vec<bool> {
     let (w, h) = a.dimensions();
-    let Some(noise) = crate::vision::precision::noise_sigma(a, Some(va)) else {
+    let Some(left) = left else {
         return vec![false; w * h];
     };
-    let sigmas = (params.band_sigma, params.texture_sigma);
-    // The right micrograph's noise only when it is judged too.
-    let noise_b = params
+    // Both micrographs' energy only when the right one is judged too (and has a noise
+    // estimate); else the left one's alone.
+    let noises = params
         .both_images
-        .then(|| crate::vision::precision::noise_sigma(b, Some(vb)))
+        .then(|| {
+            let na = crate::vision::precision::noise_sigma(a, Some(va))?;
+            let nb = crate::vision::precision::noise_sigma(b, Some(vb))?;
+            Some((na, nb))
+        })
         .flatten();
     #[allow(clippy::cast_possible_truncation)]
-    let textured = match noise_b {
-        Some(noise_b) => textured_along_x_both(
+    let both = noises.map(|(na, nb)| {
+        textured_along_x_both(
             (a, b),
-            (noise as f32, noise_b as f32),
+            (na as f32, nb as f32),
             disparity,
-            sigmas,
+            (params.band_sigma, params.texture_sigma),
             params.min_snr,
-        ),
-        _ => textured_along_x(a, noise as f32, sigmas, params.min_snr),
-    };
+        )
+    });
+    let textured = both.as_deref().unwrap_or(left);
     // A reach of at most 32 σ: within usize.
     #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
     let reach_px = (params.reach * matcher_sigma).round().max(1.0) as usize;
@@ -380,10 +401,10 @@ pub fn anchor_test(
     #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
     let min_px =
         (params.min_region * std::f32::consts::PI * (2.0 * matcher_sigma).powi(2)) as usize;
-    let judged = (min_px > 0).then(|| large_featureless(&textured, (w, h), min_px));
+    let judged = (min_px > 0).then(|| large_featureless(textured, (w, h), min_px));
     unanchored_in(
         disparity,
-        &textured,
+        textured,
         judged.as_deref(),
         params.step_px,
         reach_px,

@@ -763,11 +763,18 @@ fn left_right_consistency(
         );
         mark_unknown(&mut raw, &mut confidence, &mut unknown, &judged);
     }
+    // The rims beside featureless pixels, from the support test's or the anchor test's.
+    let rims_on = (params.support.enabled || params.anchor.enabled) && params.support.rim_px > 0.0;
+    // The left micrograph's texture, once for the anchor test and the rims' seeds.
+    let left_textured = (params.anchor.enabled || rims_on && params.support.rim_from_texture)
+        .then(|| anchor::left_textured(&inputs.a, va, &params.anchor))
+        .flatten();
     if params.anchor.enabled {
         let sigma = crate::vision::pipeline::matcher_window_sigma(params) as f32;
         let rims: Vec<Unknown> = anchor::anchor_test(
             (&inputs.a, &inputs.b),
             (va, vb),
+            left_textured.as_deref(),
             &raw,
             &params.anchor,
             sigma,
@@ -783,21 +790,19 @@ fn left_right_consistency(
         .collect();
         mark_unknown(&mut raw, &mut confidence, &mut unknown, &rims);
     }
-    // The rims beside featureless pixels, from the support test's or the anchor test's.
-    if (params.support.enabled || params.anchor.enabled) && params.support.rim_px > 0.0 {
+    if rims_on {
         let key_sigma = params.flow.refine.range_key_sigma;
         let key = (params.support.rim_range > 0.0)
             .then(|| range_key_smoothed(inputs.a.data(), w, h, key_sigma));
         let rim = (params.support.rim_px, params.support.rim_share);
         let key = key.as_deref().map(|k| (k, params.support.rim_range));
-        let seeds = params
-            .support
-            .rim_from_texture
-            .then(|| {
+        let seeds = left_textured
+            .as_deref()
+            .filter(|_| params.support.rim_from_texture)
+            .map(|textured| {
                 let sigma = crate::vision::pipeline::matcher_window_sigma(params) as f32;
-                featureless_regions(&inputs.a, va, &params.anchor, sigma)
-            })
-            .flatten();
+                featureless_regions(textured, va, (w, h), &params.anchor, sigma)
+            });
         let rims = match seeds {
             Some(seeds) => {
                 let side = (params.support.rim_side > 0.0).then(|| {
@@ -829,31 +834,22 @@ fn left_right_consistency(
     }
 }
 
-/// The real pixels (`valid`) of the featureless regions of the left micrograph `a` by the
-/// anchor test's texture criterion ([`anchor::textured_along_x`]): 4-connected regions of at
-/// least `anchor.min_region` matcher windows (`π·(2σ)²` pixels each), the pixels outside the
-/// micrograph counted as textured (a region does not grow through them). `None` without a
-/// noise estimate.
+/// The real pixels (`valid`) of the featureless regions of the left micrograph, from its
+/// texture by the anchor test's criterion ([`anchor::left_textured`]): 4-connected regions of
+/// at least `anchor.min_region` matcher windows (`π·(2σ)²` pixels each), the pixels outside
+/// the micrograph counted as textured (a region does not grow through them).
 fn featureless_regions(
-    a: &Image,
+    textured: &[bool],
     valid: &[bool],
+    (w, h): (usize, usize),
     anchor: &anchor::AnchorParams,
     matcher_sigma: f32,
-) -> Option<Vec<bool>> {
-    let (w, h) = a.dimensions();
-    let noise = crate::vision::precision::noise_sigma(a, Some(valid))?;
-    #[allow(clippy::cast_possible_truncation)]
-    let textured = anchor::textured_along_x(
-        a,
-        noise as f32,
-        (anchor.band_sigma, anchor.texture_sigma),
-        anchor.min_snr,
-    );
+) -> Vec<bool> {
     let blocked: Vec<bool> = textured.iter().zip(valid).map(|(&t, &v)| t || !v).collect();
     #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
     let min_px =
         (anchor.min_region * std::f32::consts::PI * (2.0 * matcher_sigma).powi(2)) as usize;
-    Some(anchor::large_featureless(&blocked, (w, h), min_px.max(1)))
+    anchor::large_featureless(&blocked, (w, h), min_px.max(1))
 }
 
 /// The pixels the left–right check rejected in the strip the right micrograph never saw (left
