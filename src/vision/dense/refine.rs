@@ -539,6 +539,20 @@ fn release_free_memory() {
     }
 }
 
+/// Where fine index `i` falls among the `n` coarse samples: the two neighbours and the second's
+/// weight (at `i/2` when the coarse level is the halving, else at `i·scale`).
+#[inline]
+fn coarse_position(i: usize, half: bool, scale: f32, n: usize) -> (usize, usize, f32) {
+    let f = if half {
+        i as f32 / 2.0
+    } else {
+        i as f32 * scale
+    }
+    .min((n - 1) as f32);
+    let i0 = f as usize; // non-negative: truncation is the floor
+    (i0, (i0 + 1).min(n - 1), f - i0 as f32)
+}
+
 /// Bilinear upsampling of a flow component from `wc × hc` to `wf × hf`,
 /// values scaled by `sx` (the grid's scale factor along the component).
 #[must_use]
@@ -568,28 +582,13 @@ pub fn upsample_flow(
     // Per column, its two coarse columns and their weights: the same for every row.
     let columns: Vec<(usize, usize, f32, f32)> = (0..wf)
         .map(|x| {
-            let fx = if half {
-                x as f32 / 2.0
-            } else {
-                x as f32 * fx_scale
-            }
-            .min((wc - 1) as f32);
-            let x0 = fx as usize; // non-negative: truncation is the floor
-            let tx = fx - x0 as f32;
-            (x0, (x0 + 1).min(wc - 1), 1.0 - tx, tx)
+            let (x0, x1, tx) = coarse_position(x, half, fx_scale, wc);
+            (x0, x1, 1.0 - tx, tx)
         })
         .collect();
     let mut out = zeroed(wf * hf);
     out.par_chunks_mut(wf).enumerate().for_each(|(y, row)| {
-        let fy = if half {
-            y as f32 / 2.0
-        } else {
-            y as f32 * fy_scale
-        }
-        .min((hc - 1) as f32);
-        let y0 = fy as usize; // non-negative: truncation is the floor
-        let y1 = (y0 + 1).min(hc - 1);
-        let ty = fy - y0 as f32;
+        let (y0, y1, ty) = coarse_position(y, half, fy_scale, hc);
         let (r0, r1) = (&coarse[y0 * wc..][..wc], &coarse[y1 * wc..][..wc]);
         for (o, &(x0, x1, sx, tx)) in row.iter_mut().zip(&columns) {
             let top = r0[x0] * sx + r0[x1] * tx;
