@@ -74,6 +74,15 @@ impl Default for AnchorParams {
 }
 
 impl AnchorParams {
+    /// `min_region` in pixels for the matcher's window σ `matcher_sigma`: a matcher window is
+    /// `π·(2σ)²` pixels.
+    #[must_use]
+    // At most 1000 windows of a bounded σ: within usize.
+    #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
+    pub fn min_region_px(&self, matcher_sigma: f32) -> usize {
+        (self.min_region * std::f32::consts::PI * (2.0 * matcher_sigma).powi(2)) as usize
+    }
+
     /// The name of the first field out of range.
     #[must_use]
     pub fn invalid_field(&self) -> Option<&'static str> {
@@ -397,10 +406,7 @@ pub fn anchor_test(
     // A reach of at most 32 σ: within usize.
     #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
     let reach_px = (params.reach * matcher_sigma).round().max(1.0) as usize;
-    // A matcher window: π·(2σ)² pixels.
-    #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
-    let min_px =
-        (params.min_region * std::f32::consts::PI * (2.0 * matcher_sigma).powi(2)) as usize;
+    let min_px = params.min_region_px(matcher_sigma);
     let judged = (min_px > 0).then(|| large_featureless(textured, (w, h), min_px));
     unanchored_in(
         disparity,

@@ -846,10 +846,7 @@ fn featureless_regions(
     matcher_sigma: f32,
 ) -> Vec<bool> {
     let blocked: Vec<bool> = textured.iter().zip(valid).map(|(&t, &v)| t || !v).collect();
-    #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
-    let min_px =
-        (anchor.min_region * std::f32::consts::PI * (2.0 * matcher_sigma).powi(2)) as usize;
-    anchor::large_featureless(&blocked, (w, h), min_px.max(1))
+    anchor::large_featureless(&blocked, (w, h), anchor.min_region_px(matcher_sigma).max(1))
 }
 
 /// The pixels the left–right check rejected in the strip the right micrograph never saw (left

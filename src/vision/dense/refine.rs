@@ -17,6 +17,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::vision::Image;
+use crate::vision::dense::sift_flow::pyramid::coarse_position;
 use crate::vision::filter::blur::{blur, blur_in_place, normalise_contrast};
 use crate::vision::filter::cross_grid::{CrossGrid, range_key_smoothed};
 
@@ -537,20 +538,6 @@ fn release_free_memory() {
     unsafe {
         libc::malloc_trim(0);
     }
-}
-
-/// Where fine index `i` falls among the `n` coarse samples: the two neighbours and the second's
-/// weight (at `i/2` when the coarse level is the halving, else at `i·scale`).
-#[inline]
-fn coarse_position(i: usize, half: bool, scale: f32, n: usize) -> (usize, usize, f32) {
-    let f = if half {
-        i as f32 / 2.0
-    } else {
-        i as f32 * scale
-    }
-    .min((n - 1) as f32);
-    let i0 = f as usize; // non-negative: truncation is the floor
-    (i0, (i0 + 1).min(n - 1), f - i0 as f32)
 }
 
 /// Bilinear upsampling of a flow component from `wc × hc` to `wf × hf`,

@@ -156,18 +156,13 @@ pub fn upsample_offsets(coarse: &[f32], wc: usize, hc: usize, wf: usize, hf: usi
     // Per column, its two coarse columns and their weights: the same for every row.
     let columns: Vec<(usize, usize, f32, f32)> = (0..wf)
         .map(|x| {
-            let fx = (x as f32 / 2.0).min((wc - 1) as f32);
-            let x0 = fx as usize; // non-negative: truncation is the floor
-            let tx = fx - x0 as f32;
-            (x0, (x0 + 1).min(wc - 1), 1.0 - tx, tx)
+            let (x0, x1, tx) = coarse_position(x, true, 0.5, wc);
+            (x0, x1, 1.0 - tx, tx)
         })
         .collect();
     let mut out = vec![0i32; wf * hf];
     out.par_chunks_mut(wf).enumerate().for_each(|(y, row)| {
-        let fy = (y as f32 / 2.0).min((hc - 1) as f32);
-        let y0 = fy as usize; // non-negative: truncation is the floor
-        let y1 = (y0 + 1).min(hc - 1);
-        let ty = fy - y0 as f32;
+        let (y0, y1, ty) = coarse_position(y, true, 0.5, hc);
         let (r0, r1) = (&coarse[y0 * wc..][..wc], &coarse[y1 * wc..][..wc]);
         for (o, &(x0, x1, sx, tx)) in row.iter_mut().zip(&columns) {
             let top = r0[x0] * sx + r0[x1] * tx;
@@ -176,6 +171,20 @@ pub fn upsample_offsets(coarse: &[f32], wc: usize, hc: usize, wf: usize, hf: usi
         }
     });
     out
+}
+
+/// Where fine index `i` falls among the `n` coarse samples: the two neighbours and the second's
+/// weight (at `i/2` when the coarse level is the halving, else at `i·scale`).
+#[inline]
+pub(crate) fn coarse_position(i: usize, half: bool, scale: f32, n: usize) -> (usize, usize, f32) {
+    let f = if half {
+        i as f32 / 2.0
+    } else {
+        i as f32 * scale
+    }
+    .min((n - 1) as f32);
+    let i0 = f as usize; // non-negative: truncation is the floor
+    (i0, (i0 + 1).min(n - 1), f - i0 as f32)
 }
 
 /// `v.round() as i32` (half away from zero) for a flow, without the library call that
